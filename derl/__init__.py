@@ -1,0 +1,1 @@
+"""DERL's science, importable without the bus: bodies, worlds, learning, evolution, analysis."""

@@ -1,0 +1,1 @@
+"""Environments: terrain, tasks and batched simulation of UNIMAL bodies."""

@@ -1,0 +1,219 @@
+"""The paper's mutation operators. One operator per child, chosen uniformly among those that apply;
+each attempt draws fresh random choices, the child must pass the full validity check, and an
+operator that finds no valid child within `max_attempts` raises `MutationFailed`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
+from pydantic import ValidationError
+
+from derl.unimal.genome import Genome, Joint, Limb
+from derl.unimal.space import (
+    AXIS_SETS,
+    DENSITIES,
+    GEARS,
+    JOINT_RANGES,
+    LIMB_LENGTHS,
+    MAX_LIMBS,
+    PHIS,
+    THETAS,
+)
+from derl.unimal.validity import InvalidBody, check_body
+
+MAX_ATTEMPTS = 50
+MIN_LIMBS_TO_DELETE = 3
+
+# Distinct limb directions (theta, phi) by where a new limb hangs.
+SAGITTAL_DIRECTIONS = ((0, 90), (180, 90), (0, 135), (180, 135), (0, 180))
+PAIR_ON_SAGITTAL_DIRECTIONS = tuple((t, p) for t in (45, 90, 135) for p in (90, 135))
+PAIR_ON_PAIR_DIRECTIONS = (*((t, p) for t in THETAS for p in PHIS if p != 180), (0, 180))
+
+
+class MutationFailed(RuntimeError):
+    """No valid child was found: the operator, the attempts and the last reason."""
+
+    def __init__(self, op: str, attempts: int, reason: str) -> None:
+        super().__init__(f"{op} found no valid child in {attempts} attempts; last: {reason}")
+        self.op = op
+        self.attempts = attempts
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Mutation:
+    """What was done to make a child: the operator and a human-readable detail."""
+
+    op: str
+    detail: str
+
+
+Operator = Callable[[Genome, np.random.Generator], tuple[Genome, str]]
+
+
+T = TypeVar("T")
+
+
+def _pick(rng: np.random.Generator, items: Sequence[T]) -> T:
+    return items[int(rng.integers(len(items)))]
+
+
+def _other(rng: np.random.Generator, options: Sequence[T], current: T) -> T:
+    return _pick(rng, [o for o in options if o != current])
+
+
+def random_joint(rng: np.random.Generator, axis: str) -> Joint:
+    return Joint(axis=axis, range=_pick(rng, JOINT_RANGES), gear=_pick(rng, GEARS))
+
+
+def random_joints(rng: np.random.Generator) -> tuple[Joint, ...]:
+    return tuple(random_joint(rng, axis) for axis in _pick(rng, AXIS_SETS))
+
+
+def _with(genome: Genome, **changes: object) -> Genome:
+    """A validated copy of `genome` with some fields changed."""
+    fields = {"head_density": genome.head_density, "limb_density": genome.limb_density}
+    return Genome(**{**fields, "limbs": genome.limbs, **changes})
+
+
+def _replace(genome: Genome, limb: Limb, **changes: object) -> Genome:
+    """A validated copy of `genome` with one limb entry changed."""
+    new = Limb(**{**dict(limb), **changes})
+    return _with(genome, limbs=tuple(new if item.id == limb.id else item for item in genome.limbs))
+
+
+def grow_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """Add one sagittal limb or a mirror pair at a site drawn uniformly among the limb sites
+    (every physical limb's mid and end, and the head centre) that have room for it."""
+    room = MAX_LIMBS - genome.num_limbs
+    sites: list[tuple[int | None, str]] = [(None, "head")]
+    for limb in genome.limbs:
+        if room >= 2 or not limb.paired:  # a mirrored site takes a pair
+            sites += [(limb.id, "mid"), (limb.id, "end")] * limb.count
+    parent, site = _pick(rng, sites)
+    if genome.is_sagittal(parent):
+        paired = room >= 2 and bool(rng.integers(2))
+        directions = PAIR_ON_SAGITTAL_DIRECTIONS if paired else SAGITTAL_DIRECTIONS
+    else:
+        paired, directions = True, PAIR_ON_PAIR_DIRECTIONS
+    theta, phi = _pick(rng, directions)
+    new = Limb(
+        id=genome.next_id(),
+        parent=parent,
+        site=site,
+        paired=paired,
+        length=_pick(rng, LIMB_LENGTHS),
+        theta=theta,
+        phi=phi,
+        joints=random_joints(rng),
+    )
+    child = _with(genome, limbs=(*genome.limbs, new))
+    where = "head" if parent is None else f"{site} of limb {parent}"
+    return child, f"{'pair' if paired else 'limb'} {new.id} at {where}"
+
+
+def delete_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """Remove a leaf limb (or leaf pair)."""
+    leaf = _pick(rng, genome.leaves())
+    limbs = tuple(limb for limb in genome.limbs if limb.id != leaf.id)
+    return _with(genome, limbs=limbs), f"limb {leaf.id}"
+
+
+def limb_params(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """Give a limb (or pair) a new length; its children move with its sites."""
+    limb = _pick(rng, genome.limbs)
+    length = _other(rng, LIMB_LENGTHS, limb.length)
+    return _replace(genome, limb, length=length), f"limb {limb.id} length {length}"
+
+
+def density(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """A new density for all limbs, or for the head."""
+    field = _pick(rng, ("limb_density", "head_density"))
+    value = _other(rng, DENSITIES, getattr(genome, field))
+    return _with(genome, **{field: value}), f"{field} {value}"
+
+
+def dof(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """A new set of hinge axes for a limb (or pair); kept axes keep their range and gear."""
+    limb = _pick(rng, genome.limbs)
+    current = tuple(j.axis for j in limb.joints)
+    axes = _other(rng, AXIS_SETS, current)
+    kept = {j.axis: j for j in limb.joints}
+    joints = tuple(kept.get(axis) or random_joint(rng, axis) for axis in axes)
+    return _replace(genome, limb, joints=joints), f"limb {limb.id} axes {''.join(axes)}"
+
+
+def _mutate_joint(
+    genome: Genome, rng: np.random.Generator, field: str, options: Sequence[object]
+) -> tuple[Genome, str]:
+    limb = _pick(rng, genome.limbs)
+    index = int(rng.integers(len(limb.joints)))
+    joint = limb.joints[index]
+    value = _other(rng, options, getattr(joint, field))
+    joints = list(limb.joints)
+    joints[index] = Joint(**{**dict(joint), field: value})
+    child = _replace(genome, limb, joints=tuple(joints))
+    return child, f"limb {limb.id} joint {joint.axis} {field} {value}"
+
+
+def joint_angle(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """A new range for one hinge of a limb (or pair)."""
+    return _mutate_joint(genome, rng, "range", JOINT_RANGES)
+
+
+def gear(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
+    """A new motor gear for one hinge of a limb (or pair)."""
+    return _mutate_joint(genome, rng, "gear", GEARS)
+
+
+OPERATORS: dict[str, Operator] = {
+    "grow_limb": grow_limb,
+    "delete_limb": delete_limb,
+    "limb_params": limb_params,
+    "density": density,
+    "dof": dof,
+    "joint_angle": joint_angle,
+    "gear": gear,
+}
+
+
+def applicable(genome: Genome) -> list[str]:
+    """The operators that can act on this genome."""
+    if not genome.limbs:
+        return ["grow_limb"]
+    ops = [op for op in OPERATORS if op not in ("grow_limb", "delete_limb")]
+    if genome.num_limbs < MAX_LIMBS:
+        ops.append("grow_limb")
+    if genome.num_limbs >= MIN_LIMBS_TO_DELETE:
+        ops.append("delete_limb")
+    return sorted(ops, key=list(OPERATORS).index)
+
+
+def mutate(
+    genome: Genome,
+    rng: np.random.Generator,
+    op: str | None = None,
+    max_attempts: int = MAX_ATTEMPTS,
+) -> tuple[Genome, Mutation]:
+    """A valid child of `genome` made by one operator (drawn uniformly if not given)."""
+    ops = applicable(genome)
+    if op is None:
+        op = _pick(rng, ops)
+    elif op not in ops:
+        raise MutationFailed(op, 0, f"{op} does not apply to a body with {genome.num_limbs} limbs")
+    reason = ""
+    for _ in range(max_attempts):
+        try:
+            child, detail = OPERATORS[op](genome, rng)
+            check_body(child)
+        except ValidationError as error:  # structurally impossible (e.g. more than 10 limbs)
+            reason = error.errors()[0]["msg"]
+            continue
+        except InvalidBody as error:  # physically impossible (self-intersection)
+            reason = str(error)
+            continue
+        return child, Mutation(op, detail)
+    raise MutationFailed(op, max_attempts, reason)

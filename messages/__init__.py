@@ -1,0 +1,1 @@
+"""The wire: pydantic message models, the msgpack codec, key expressions, the schema version."""

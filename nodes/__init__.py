@@ -1,0 +1,1 @@
+"""The processes of derl: the `derl` command line and, later, the bus nodes."""

@@ -1,0 +1,29 @@
+"""The `derl` command line: one entry point whose subcommands live in small modules."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from nodes import unimal_cli
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="derl",
+        description="Deep Evolutionary Reinforcement Learning: evolve and train UNIMAL bodies.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    unimal_cli.register(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display
+    args = build_parser().parse_args(argv)
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,23 @@
+"""Shared fixtures: small hand-made bodies with known geometry."""
+
+from __future__ import annotations
+
+import pytest
+
+from derl.unimal import Genome, Joint, Limb
+
+XY = (Joint(axis="x", range=(-30, 60), gear=200), Joint(axis="y", range=(-45, 0), gear=150))
+
+
+@pytest.fixture
+def quadruped() -> Genome:
+    """A front and a back pair of legs from the head, lower legs on the front pair."""
+    return Genome(
+        head_density=700,
+        limb_density=600,
+        limbs=(
+            Limb(id=0, paired=True, length=0.3, theta=45, phi=135, joints=XY),
+            Limb(id=1, paired=True, length=0.3, theta=135, phi=135, joints=XY[:1]),
+            Limb(id=2, parent=0, site="end", paired=True, length=0.2, theta=0, phi=180, joints=XY),
+        ),
+    )

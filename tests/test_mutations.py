@@ -1,0 +1,117 @@
+"""Mutation operators, random bodies and populations, including hypothesis property tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from derl.unimal import (
+    OPERATORS,
+    Genome,
+    MutationFailed,
+    applicable,
+    check_body,
+    mutate,
+    random_genome,
+    sample_population,
+    shape_key,
+)
+from derl.unimal.geometry import MIRROR, layout
+from derl.unimal.mjcf import agent_spec
+from derl.unimal.space import MAX_LIMBS
+
+
+@pytest.mark.parametrize("op", list(OPERATORS))
+def test_each_operator_changes_what_it_says(quadruped: Genome, op: str) -> None:
+    rng = np.random.default_rng(1)
+    child, mutation = mutate(quadruped, rng, op=op)
+    assert mutation.op == op
+    assert child != quadruped
+    check_body(child)
+    if op == "grow_limb":
+        assert child.num_limbs in (quadruped.num_limbs + 1, quadruped.num_limbs + 2)
+    elif op == "delete_limb":
+        assert child.num_limbs == quadruped.num_limbs - 2
+    else:
+        assert child.num_limbs == quadruped.num_limbs
+    if op in ("density",):
+        assert child.limbs == quadruped.limbs
+    if op in ("joint_angle", "gear", "dof"):
+        assert [(x.length, x.theta, x.phi) for x in child.limbs] == [
+            (x.length, x.theta, x.phi) for x in quadruped.limbs
+        ]
+
+
+def test_operators_that_do_not_apply_are_reported(quadruped: Genome) -> None:
+    bare = Genome(head_density=500, limb_density=500)
+    assert applicable(bare) == ["grow_limb"]
+    with pytest.raises(MutationFailed, match="delete_limb does not apply"):
+        mutate(bare, np.random.default_rng(0), op="delete_limb")
+    rng = np.random.default_rng(2)
+    full = quadruped
+    while full.num_limbs < MAX_LIMBS:
+        full, _ = mutate(full, rng, op="grow_limb")
+    assert "grow_limb" not in applicable(full)
+    with pytest.raises(MutationFailed, match="grow_limb does not apply"):
+        mutate(full, rng, op="grow_limb")
+
+
+def test_running_out_of_attempts_is_an_error_not_a_no_op(quadruped: Genome) -> None:
+    with pytest.raises(MutationFailed, match="found no valid child in 0 attempts") as failure:
+        mutate(quadruped, np.random.default_rng(0), op="grow_limb", max_attempts=0)
+    assert failure.value.op == "grow_limb"
+
+
+def test_operator_choice_is_uniform(quadruped: Genome) -> None:
+    rng = np.random.default_rng(3)
+    counts = dict.fromkeys(OPERATORS, 0)
+    for _ in range(1400):
+        _, mutation = mutate(quadruped, rng)
+        counts[mutation.op] += 1
+    assert all(150 < c < 250 for c in counts.values()), counts
+
+
+def test_random_bodies_have_two_to_nine_limbs() -> None:
+    rng = np.random.default_rng(4)
+    limbs = [random_genome(rng).num_limbs for _ in range(40)]
+    assert min(limbs) >= 2 and max(limbs) <= 9
+    assert len(set(limbs)) >= 5
+
+
+def test_population_has_no_near_duplicates() -> None:
+    population = sample_population(24, np.random.default_rng(5))
+    assert len({shape_key(g) for g in population}) == 24
+    for genome in population:
+        check_body(genome)
+
+
+def _assert_symmetric_and_valid(genome: Genome) -> None:
+    assert genome.num_limbs <= MAX_LIMBS
+    check_body(genome)  # compiles, centre of mass on the plane, no contact at rest
+    assert Genome.model_validate_json(genome.model_dump_json()) == genome
+    parts = {part.name: part for part in layout(genome)}
+    for name, part in parts.items():
+        if part.twin:
+            primary = parts[name.removesuffix("_mirror")]
+            np.testing.assert_allclose(part.origin, MIRROR * primary.origin, atol=1e-12)
+            np.testing.assert_allclose(part.direction, MIRROR * primary.direction, atol=1e-12)
+        elif genome.is_sagittal(part.limb.id):
+            assert part.origin[1] == 0.0 and part.direction[1] == 0.0
+    model = agent_spec(genome).compile()
+    assert model.nu == genome.dof
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), steps=st.integers(0, 50))
+def test_any_mutation_sequence_gives_a_valid_symmetric_body(seed: int, steps: int) -> None:
+    rng = np.random.default_rng(seed)
+    genome = random_genome(rng)
+    _assert_symmetric_and_valid(genome)
+    for _ in range(steps):
+        try:
+            genome, _ = mutate(genome, rng)
+        except MutationFailed:
+            continue
+        _assert_symmetric_and_valid(genome)
