@@ -1,0 +1,121 @@
+"""Vectorised episode bookkeeping during training, and the fitness computed from it.
+
+Per copy, running sums of the reward and of every reward component plus the episode length; when
+copies finish, one record per episode (env step at finish, return, component sums, length) is
+appended for all of them at once.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+FitnessSource = Literal["window", "last_episodes", "unfinished"]
+
+
+@dataclass(frozen=True)
+class EpisodeLog:
+    """Finished episodes in order of finishing; every array has one entry per episode."""
+
+    finish_step: np.ndarray
+    """Env steps (all copies) done when the episode finished."""
+    ret: np.ndarray
+    """Sum of the raw (unscaled) reward."""
+    length: np.ndarray
+    components: dict[str, np.ndarray]
+    """Sum of each reward component."""
+
+    def __len__(self) -> int:
+        return len(self.finish_step)
+
+
+@dataclass(frozen=True)
+class Fitness:
+    """Mean episode sum of one reward component, and where it came from.
+
+    `source` is "window" (episodes finished in the last window of steps, the definition),
+    "last_episodes" (none finished in the window: the last finished ones), or "unfinished"
+    (no episode finished at all: the partial sums of the episodes still running).
+    """
+
+    value: float
+    source: FitnessSource
+    episodes: int
+
+
+class EpisodeTracker:
+    """Running per-copy sums; records every episode that finishes."""
+
+    def __init__(self, num_envs: int, component: str, recent: int) -> None:
+        self.component = component
+        self.ret = np.zeros(num_envs)
+        self.length = np.zeros(num_envs, np.int64)
+        self.sums: dict[str, np.ndarray] = {}
+        self.recent: deque[float] = deque(maxlen=recent)
+        self._finish: list[np.ndarray] = []
+        self._ret: list[np.ndarray] = []
+        self._length: list[np.ndarray] = []
+        self._components: dict[str, list[np.ndarray]] = {}
+
+    def step(
+        self,
+        reward: np.ndarray,
+        components: dict[str, np.ndarray],
+        done: np.ndarray,
+        env_steps: int,
+    ) -> None:
+        """Add one batched step; `env_steps` counts all copies' steps including this one."""
+        if not self.sums:
+            if self.component not in components:
+                raise KeyError(
+                    f"fitness component {self.component!r} not among the environment's reward "
+                    f"components {sorted(components)}"
+                )
+            self.sums = {key: np.zeros_like(self.ret) for key in components}
+            self._components = {key: [] for key in components}
+        self.ret += reward
+        self.length += 1
+        for key, value in components.items():
+            self.sums[key] += value
+        idx = np.flatnonzero(done)
+        if idx.size == 0:
+            return
+        self._finish.append(np.full(idx.size, env_steps, np.int64))
+        self._ret.append(self.ret[idx])
+        self._length.append(self.length[idx])
+        for key, running in self.sums.items():
+            self._components[key].append(running[idx])
+            running[idx] = 0.0
+        self.recent.extend(self._components[self.component][-1])
+        self.ret[idx] = 0.0
+        self.length[idx] = 0
+
+    def recent_mean(self) -> float | None:
+        """Mean fitness-component sum over the last few finished episodes (None before any)."""
+        return float(np.mean(self.recent)) if self.recent else None
+
+    def log(self) -> EpisodeLog:
+        def cat(parts: list[np.ndarray], dtype: type) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros(0, dtype)
+
+        return EpisodeLog(
+            finish_step=cat(self._finish, np.int64),
+            ret=cat(self._ret, np.float64),
+            length=cat(self._length, np.int64),
+            components={k: cat(v, np.float64) for k, v in self._components.items()},
+        )
+
+    def fitness(self, env_steps: int, window: int, fallback_episodes: int) -> Fitness:
+        """Mean fitness-component sum over episodes finished in the last `window` steps."""
+        log = self.log()
+        if len(log) == 0:
+            return Fitness(float(self.sums[self.component].mean()), "unfinished", 0)
+        sums = log.components[self.component]
+        in_window = log.finish_step > env_steps - window
+        if in_window.any():
+            return Fitness(float(sums[in_window].mean()), "window", int(in_window.sum()))
+        last = sums[-fallback_episodes:]
+        return Fitness(float(last.mean()), "last_episodes", len(last))

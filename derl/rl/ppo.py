@@ -1,0 +1,296 @@
+"""PPO lifetime learning on a batched environment: rollouts, GAE, clipped updates, fitness.
+
+One iteration collects `rollout_steps` batched steps into preallocated numpy buffers (the network
+reads them through shared-memory torch views), computes GAE, and runs `epochs` passes of shuffled
+minibatches. A time-limit truncation bootstraps from V(final_obs); a termination does not. The
+fitness and the learning curve come from raw (unscaled) reward components.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from derl.rl.checkpoint import Checkpoint
+from derl.rl.config import PPOConfig
+from derl.rl.env_api import BatchedEnv
+from derl.rl.episodes import EpisodeLog, EpisodeTracker, FitnessSource
+from derl.rl.network import ActorCritic
+from derl.rl.normalize import ObsNormalizer, RewardScaler
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Handed to the callback once per iteration."""
+
+    iteration: int
+    """Iterations done (1-based)."""
+    iterations: int
+    env_steps: int
+    recent_return: float | None
+    """Mean fitness-component sum of the last finished episodes (None before the first)."""
+    steps_per_second: float
+
+
+@dataclass(frozen=True)
+class TimeSplit:
+    """Where the wall time went, in seconds."""
+
+    env_s: float
+    """`env.step` (simulation, observations, rewards, resets)."""
+    inference_s: float
+    """Network forward passes while sampling, including bootstrap values."""
+    update_s: float
+    """GAE and the gradient updates."""
+    other_s: float
+    """Normalisation, buffer writes, episode bookkeeping, callbacks."""
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """Outcome of one training run."""
+
+    fitness: float
+    """Mean episode sum of `config.fitness_component` (see `fitness_source`)."""
+    fitness_source: FitnessSource
+    """"window": episodes finished in the last `fitness_window_steps` (the definition);
+    "last_episodes": none finished there, the last `recent_episodes` were used;
+    "unfinished": no episode finished at all, the running partial sums were used."""
+    fitness_episodes: int
+    curve: list[tuple[int, float]]
+    """Per iteration (once an episode has finished): (env steps, mean fitness-component sum
+    over the last `recent_episodes` finished episodes)."""
+    episodes: EpisodeLog
+    env_steps: int
+    wall_time_s: float
+    steps_per_second: float
+    time_split: TimeSplit
+    checkpoint: Checkpoint
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.episodes)
+
+
+def compute_gae(
+    rewards: np.ndarray,
+    values: np.ndarray,
+    final_values: np.ndarray,
+    terminated: np.ndarray,
+    truncated: np.ndarray,
+    gamma: float,
+    lam: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised advantage estimates and value targets, each (T, N).
+
+    `values` is (T + 1, N): V(s_0) .. V(s_T), where s_{t+1} is the observation after the reset
+    for copies that finished at step t. `final_values[t]` is V(final_obs) and is used as the
+    next value where step t was truncated. Terminated steps have no next value; both end the
+    lambda-trace.
+    """
+    next_values = np.where(truncated, final_values, values[1:])
+    deltas = rewards + gamma * next_values * ~terminated - values[:-1]
+    carry = gamma * lam * ~(terminated | truncated)
+    advantages = np.zeros_like(deltas)
+    last = np.zeros_like(deltas[0])
+    for t in range(len(deltas) - 1, -1, -1):
+        last = deltas[t] + carry[t] * last
+        advantages[t] = last
+    return advantages, advantages + values[:-1]
+
+
+class _Rollout:
+    """Preallocated buffers for one rollout; the first axis is time."""
+
+    def __init__(
+        self, steps: int, num_envs: int, obs_spaces: dict[str, int], action_dim: int
+    ) -> None:
+        f32 = np.float32
+        # One extra row: the observation after the last step, carried to the next rollout.
+        self.obs = {k: np.zeros((steps + 1, num_envs, d), f32) for k, d in obs_spaces.items()}
+        self.obs_t = {k: torch.from_numpy(v) for k, v in self.obs.items()}
+        self.actions = np.zeros((steps, num_envs, action_dim), f32)
+        self.log_probs = np.zeros((steps, num_envs), f32)
+        self.values = np.zeros((steps + 1, num_envs), f32)
+        self.final_values = np.zeros((steps, num_envs), f32)
+        self.rewards = np.zeros((steps, num_envs), f32)
+        self.terminated = np.zeros((steps, num_envs), bool)
+        self.truncated = np.zeros((steps, num_envs), bool)
+
+    def obs_at(self, t: int) -> dict[str, torch.Tensor]:
+        return {k: v[t] for k, v in self.obs_t.items()}
+
+    def obs_rows(self, t: int) -> dict[str, np.ndarray]:
+        return {k: v[t] for k, v in self.obs.items()}
+
+
+class _Trainer:
+    """State of one training run; `train` drives it."""
+
+    def __init__(self, env: BatchedEnv, config: PPOConfig) -> None:
+        if env.num_envs != config.num_envs:
+            raise ValueError(f"env has {env.num_envs} copies, config.num_envs={config.num_envs}")
+        torch.set_num_threads(config.torch_threads)
+        torch.manual_seed(config.seed)
+        self.env = env
+        self.config = config
+        self.net = ActorCritic(env.obs_spaces, env.action_dim)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=config.lr, eps=config.adam_eps)
+        self.noise = torch.Generator().manual_seed(config.seed)
+        self.rng = np.random.default_rng(config.seed)
+        self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip, config.unnormalized_obs)
+        self.reward_scaler = RewardScaler(env.num_envs, config.gamma, config.reward_clip)
+        self.episodes = EpisodeTracker(
+            env.num_envs, config.fitness_component, config.recent_episodes
+        )
+        self.buf = _Rollout(config.rollout_steps, env.num_envs, env.obs_spaces, env.action_dim)
+        self.env_steps = 0
+        self.env_s = self.inference_s = self.update_s = 0.0
+
+    def reset(self) -> None:
+        raw = self.env.reset(self.config.seed)
+        self.obs_norm.update(raw)
+        self.obs_norm.normalize(raw, out=self.buf.obs_rows(0))
+
+    def collect(self) -> None:
+        """Fill the rollout buffers; row 0 of the observations is already in place."""
+        buf, net, clock = self.buf, self.net, time.perf_counter
+        for t in range(self.config.rollout_steps):
+            t0 = clock()
+            with torch.inference_mode():
+                actions, log_probs, values = net.act(buf.obs_at(t), self.noise)
+            buf.actions[t] = actions.numpy()
+            buf.log_probs[t] = log_probs.numpy()
+            buf.values[t] = values.numpy()
+            t1 = clock()
+            step = self.env.step(np.clip(buf.actions[t], -1.0, 1.0))
+            t2 = clock()
+            self.env_s += t2 - t1
+            self.inference_s += t1 - t0
+            done = step.terminated | step.truncated
+            self.env_steps += self.env.num_envs
+            self.episodes.step(step.reward, step.components, done, self.env_steps)
+            buf.rewards[t] = self.reward_scaler.scale(step.reward, done)
+            buf.terminated[t] = step.terminated
+            buf.truncated[t] = step.truncated
+            self.obs_norm.update(step.obs)
+            self.obs_norm.normalize(step.obs, out=buf.obs_rows(t + 1))
+            boot = np.flatnonzero(step.truncated & ~step.terminated)
+            if boot.size:
+                final = self.obs_norm.normalize({k: v[boot] for k, v in step.final_obs.items()})
+                t3 = clock()
+                buf.final_values[t, boot] = self._value(final)
+                self.inference_s += clock() - t3
+        t4 = clock()
+        buf.values[-1] = self._value(buf.obs_rows(-1))
+        self.inference_s += clock() - t4
+
+    def _value(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        with torch.inference_mode():
+            return self.net.value({k: torch.from_numpy(v) for k, v in obs.items()}).numpy()
+
+    def update(self, iteration: int) -> None:
+        """GAE, then `epochs` passes of shuffled minibatches over the rollout."""
+        config, buf, net = self.config, self.buf, self.net
+        t0 = time.perf_counter()
+        for group in self.optimizer.param_groups:
+            group["lr"] = config.lr * (1.0 - iteration / config.iterations)
+        advantages, returns = compute_gae(
+            buf.rewards,
+            buf.values,
+            buf.final_values,
+            buf.terminated,
+            buf.truncated,
+            config.gamma,
+            config.gae_lambda,
+        )
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+        n = config.batch_size
+        obs = {k: v[:-1].reshape(n, -1) for k, v in buf.obs_t.items()}
+        actions = torch.from_numpy(buf.actions.reshape(n, -1))
+        old_log_probs = torch.from_numpy(buf.log_probs.reshape(n))
+        old_values = torch.from_numpy(buf.values[:-1].reshape(n))
+        advantages_t = torch.from_numpy(advantages.reshape(n))
+        returns_t = torch.from_numpy(returns.reshape(n))
+        size = config.minibatch_size
+        for _ in range(config.epochs):
+            order = torch.from_numpy(self.rng.permutation(n))
+            for start in range(0, n - size + 1, size):
+                idx = order[start : start + size]
+                log_probs, entropy, values = net.evaluate(
+                    {k: v[idx] for k, v in obs.items()}, actions[idx]
+                )
+                ratio = torch.exp(log_probs - old_log_probs[idx])
+                adv = advantages_t[idx]
+                policy_loss = -torch.min(
+                    ratio * adv, ratio.clamp(1.0 - config.clip, 1.0 + config.clip) * adv
+                ).mean()
+                old_v, target = old_values[idx], returns_t[idx]
+                clipped_v = old_v + (values - old_v).clamp(-config.value_clip, config.value_clip)
+                value_loss = (
+                    0.5
+                    * torch.max((values - target).square(), (clipped_v - target).square()).mean()
+                )
+                loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                nn.utils.clip_grad_norm_(net.parameters(), config.max_grad_norm)
+                self.optimizer.step()
+        for rows in buf.obs.values():
+            rows[0] = rows[-1]  # the last observation starts the next rollout
+        self.update_s += time.perf_counter() - t0
+
+
+def train(
+    env: BatchedEnv,
+    config: PPOConfig,
+    callback: Callable[[Progress], None] | None = None,
+) -> TrainResult:
+    """Train a fresh actor-critic on `env` with PPO; same env, config and seed give the same run."""
+    start = time.perf_counter()
+    trainer = _Trainer(env, config)
+    trainer.reset()
+    curve: list[tuple[int, float]] = []
+    for iteration in range(config.iterations):
+        trainer.collect()
+        trainer.update(iteration)
+        recent = trainer.episodes.recent_mean()
+        if recent is not None:
+            curve.append((trainer.env_steps, recent))
+        if callback is not None:
+            elapsed = time.perf_counter() - start
+            callback(
+                Progress(
+                    iteration=iteration + 1,
+                    iterations=config.iterations,
+                    env_steps=trainer.env_steps,
+                    recent_return=recent,
+                    steps_per_second=trainer.env_steps / elapsed,
+                )
+            )
+    wall = time.perf_counter() - start
+    fitness = trainer.episodes.fitness(
+        trainer.env_steps, config.fitness_window_steps, config.recent_episodes
+    )
+    return TrainResult(
+        fitness=fitness.value,
+        fitness_source=fitness.source,
+        fitness_episodes=fitness.episodes,
+        curve=curve,
+        episodes=trainer.episodes.log(),
+        env_steps=trainer.env_steps,
+        wall_time_s=wall,
+        steps_per_second=trainer.env_steps / wall,
+        time_split=TimeSplit(
+            env_s=trainer.env_s,
+            inference_s=trainer.inference_s,
+            update_s=trainer.update_s,
+            other_s=wall - trainer.env_s - trainer.inference_s - trainer.update_s,
+        ),
+        checkpoint=Checkpoint.capture(trainer.net, trainer.obs_norm, config),
+    )

@@ -1,0 +1,227 @@
+"""derl.rl: GAE, network, normalisation, checkpoints, reproducibility, learning on MuJoCo."""
+
+from __future__ import annotations
+
+import numpy as np
+import pydantic
+import pytest
+import torch
+
+from derl.rl import (
+    ActorCritic,
+    BatchedEnv,
+    Checkpoint,
+    GymBatchedEnv,
+    ObsNormalizer,
+    Policy,
+    PPOConfig,
+    Progress,
+    RewardScaler,
+    RunningMeanStd,
+    TrainResult,
+    compute_gae,
+    train,
+)
+from derl.rl.episodes import EpisodeTracker
+
+DERL_OBS = {"proprioception": 50, "heightmap": 1410}
+
+
+def test_config_defaults_are_the_papers_and_unknown_keys_fail() -> None:
+    config = PPOConfig()
+    assert (config.num_envs, config.rollout_steps, config.total_steps) == (32, 128, 5_000_000)
+    assert (config.gamma, config.gae_lambda, config.clip, config.value_clip) == (
+        0.99,
+        0.95,
+        0.2,
+        0.2,
+    )
+    assert (config.epochs, config.minibatch_size, config.lr, config.max_grad_norm) == (
+        4,
+        512,
+        3e-4,
+        0.5,
+    )
+    assert config.iterations == 1220
+    with pytest.raises(pydantic.ValidationError):
+        PPOConfig(learning_rate=1e-3)
+    with pytest.raises(pydantic.ValidationError):
+        PPOConfig(num_envs=2, rollout_steps=8, minibatch_size=512)
+
+
+def test_gae_by_hand_with_termination_and_truncation() -> None:
+    # Copy 0 terminates at step 1; copy 1 is truncated at step 0 with V(final_obs) = 10.
+    rewards = np.ones((3, 2), np.float32)
+    values = np.array([[1, 5], [2, 6], [3, 7], [4, 8]], np.float32)
+    final_values = np.array([[0, 10], [0, 0], [0, 0]], np.float32)
+    terminated = np.array([[0, 0], [1, 0], [0, 0]], bool)
+    truncated = np.array([[0, 1], [0, 0], [0, 0]], bool)
+    adv, ret = compute_gae(rewards, values, final_values, terminated, truncated, 0.5, 0.5)
+    # Copy 0: d2 = 1 + .5*4 - 3 = 0; d1 = 1 - 2 = -1 (no bootstrap); d0 = 1 + .5*2 - 1 = 1,
+    #   A0 = d0 + .25*A1 = .75.
+    # Copy 1: d2 = 1 + .5*8 - 7 = -2; d1 = 1 + .5*7 - 6 = -1.5, A1 = -1.5 + .25*(-2) = -2;
+    #   d0 = 1 + .5*10 - 5 = 1 and the trace stops at the truncation, A0 = 1.
+    expected = np.array([[0.75, 1.0], [-1.0, -2.0], [0.0, -2.0]])
+    np.testing.assert_allclose(adv, expected, atol=1e-6)
+    np.testing.assert_allclose(ret, expected + values[:-1], atol=1e-6)
+
+
+def test_network_shapes_and_gaussian_matches_torch_distributions() -> None:
+    torch.manual_seed(0)
+    net = ActorCritic(DERL_OBS, 12)
+    actor = {id(p) for p in net.actor.parameters()}
+    assert actor.isdisjoint(id(p) for p in net.critic.parameters())
+    assert net.actor.fuse[0].in_features == 128
+    assert torch.equal(net.log_std, torch.zeros(12))
+    assert all(not m.bias.any() for m in net.modules() if isinstance(m, torch.nn.Linear))
+
+    obs = {k: torch.randn(7, d) for k, d in DERL_OBS.items()}
+    with torch.no_grad():
+        net.log_std.copy_(torch.linspace(-1.0, 0.5, 12))
+        actions, log_prob, value = net.act(obs)
+        assert actions.shape == (7, 12) and log_prob.shape == (7,) and value.shape == (7,)
+        mean = net.action_mean(obs)
+        normal = torch.distributions.Normal(mean, net.log_std.exp())
+        torch.testing.assert_close(log_prob, normal.log_prob(actions).sum(-1), atol=1e-5, rtol=0)
+        other, entropy, value2 = net.evaluate(obs, actions)
+        torch.testing.assert_close(other, log_prob, atol=1e-5, rtol=0)
+        torch.testing.assert_close(entropy, normal.entropy().sum(-1)[0], atol=1e-5, rtol=0)
+        torch.testing.assert_close(value2, value)
+
+    single = ActorCritic({"obs": 4}, 1)
+    assert single.actor.fuse[0].in_features == 64
+
+
+def test_running_mean_std_matches_numpy_and_round_trips() -> None:
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(3.0, 2.0, (n, 5)) for n in (1, 17, 64)]
+    rms = RunningMeanStd((5,))
+    for batch in batches:
+        rms.update(batch)
+    everything = np.concatenate(batches)
+    np.testing.assert_allclose(rms.mean, everything.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(rms.var, everything.var(0), rtol=1e-12)
+    assert rms.count == len(everything)
+
+    norm = ObsNormalizer({"a": 5, "b": 3}, clip=10.0, unnormalized=("b",))
+    obs = {"a": everything.astype(np.float32), "b": rng.normal(size=(82, 3)).astype(np.float32)}
+    norm.update(obs)
+    out = norm.normalize(obs)
+    expected = np.clip((obs["a"] - everything.mean(0)) / np.sqrt(everything.var(0) + 1e-8), -10, 10)
+    np.testing.assert_allclose(out["a"], expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(out["b"], obs["b"])
+
+    loaded = ObsNormalizer({"a": 5, "b": 3}, clip=10.0, unnormalized=("b",))
+    loaded.load_state_dict(norm.state_dict())
+    for key in obs:
+        np.testing.assert_array_equal(loaded.normalize(obs)[key], out[key])
+
+
+def test_reward_scaler_divides_by_return_std_and_round_trips() -> None:
+    scaler = RewardScaler(num_envs=2, gamma=0.5, clip=10.0)
+    rewards = [np.array([1.0, 2.0]), np.array([1.0, 2.0]), np.array([1.0, 2.0])]
+    done = [np.array([False, True]), np.array([False, False]), np.array([False, False])]
+    returns_seen = []
+    running = np.zeros(2)
+    for reward, d in zip(rewards, done, strict=True):
+        running = running * 0.5 + reward
+        returns_seen.append(running.copy())
+        running[d] = 0.0
+        scaled = scaler.scale(reward, d)
+    std = np.sqrt(np.concatenate(returns_seen).var() + 1e-8)
+    np.testing.assert_allclose(scaled, rewards[-1] / std)
+
+    copy = RewardScaler(num_envs=2, gamma=0.5, clip=10.0)
+    copy.load_state_dict(scaler.state_dict())
+    np.testing.assert_array_equal(copy.stats.var, scaler.stats.var)
+
+
+def test_fitness_window_and_fallbacks() -> None:
+    tracker = EpisodeTracker(num_envs=2, component="forward", recent=10)
+    no, first, both = np.array([False, False]), np.array([True, False]), np.array([True, True])
+    tracker.step(np.ones(2), {"forward": np.array([1.0, 2.0])}, no, env_steps=2)
+    assert tracker.fitness(2, window=10, fallback_episodes=10).source == "unfinished"
+    assert tracker.fitness(2, window=10, fallback_episodes=10).value == pytest.approx(1.5)
+    tracker.step(np.ones(2), {"forward": np.array([1.0, 2.0])}, first, env_steps=4)
+    tracker.step(np.ones(2), {"forward": np.array([5.0, 2.0])}, both, env_steps=100)
+    log = tracker.log()
+    np.testing.assert_array_equal(log.finish_step, [4, 100, 100])
+    np.testing.assert_array_equal(log.components["forward"], [2.0, 5.0, 6.0])
+    np.testing.assert_array_equal(log.length, [2, 1, 3])
+    window = tracker.fitness(100, window=50, fallback_episodes=10)
+    assert (window.value, window.source, window.episodes) == (5.5, "window", 2)
+    late = tracker.fitness(1000, window=50, fallback_episodes=2)
+    assert (late.value, late.source, late.episodes) == (5.5, "last_episodes", 2)
+
+
+def test_checkpoint_bytes_give_identical_actions() -> None:
+    torch.manual_seed(0)
+    net = ActorCritic(DERL_OBS, 12)
+    norm = ObsNormalizer(DERL_OBS, clip=10.0)
+    rng = np.random.default_rng(0)
+    obs = {k: rng.normal(2.0, 3.0, (16, d)).astype(np.float32) for k, d in DERL_OBS.items()}
+    norm.update(obs)
+    config = PPOConfig(fitness_component="forward")
+    data = Checkpoint.capture(net, norm, config).to_bytes()
+    restored = Checkpoint.from_bytes(data)
+    assert restored.config == config and restored.obs_spaces == DERL_OBS
+    actions = Policy(net, norm)(obs)
+    assert actions.shape == (16, 12) and actions.dtype == np.float32
+    np.testing.assert_array_equal(Policy.from_checkpoint(data)(obs), actions)
+    np.testing.assert_array_equal(Policy.from_checkpoint(restored)(obs), actions)
+
+
+def test_gym_adapter_autoresets_and_reports_truncation() -> None:
+    env = GymBatchedEnv("InvertedPendulum-v5", 3, max_episode_steps=5)
+    assert isinstance(env, BatchedEnv)
+    assert env.obs_spaces == {"obs": 4} and env.action_dim == 1
+    obs = env.reset(seed=7)
+    assert obs["obs"].shape == (3, 4) and obs["obs"].dtype == np.float32
+    np.testing.assert_array_equal(env.reset(seed=7)["obs"], obs["obs"])
+    for _ in range(5):
+        step = env.step(np.zeros((3, 1), np.float32))
+    assert step.truncated.all() and not step.terminated.any()
+    assert not np.array_equal(step.final_obs["obs"], step.obs["obs"])
+    np.testing.assert_array_equal(step.components["reward"], step.reward)
+    env.close()
+
+
+def _short_run(seed: int) -> tuple[TrainResult, list[Progress]]:
+    env = GymBatchedEnv("InvertedPendulum-v5", 4)
+    config = PPOConfig(
+        num_envs=4,
+        rollout_steps=64,
+        total_steps=512,
+        minibatch_size=64,
+        fitness_component="reward",
+        seed=seed,
+    )
+    progress = []
+    result = train(env, config, callback=progress.append)
+    env.close()
+    return result, progress
+
+
+def test_training_is_reproducible() -> None:
+    first, progress = _short_run(seed=3)
+    second, _ = _short_run(seed=3)
+    assert [p.iteration for p in progress] == [1, 2]
+    assert first.env_steps == 512 and len(first.curve) == 2
+    assert first.curve == second.curve
+    assert first.num_episodes == second.num_episodes > 0
+    for key, value in first.checkpoint.weights.items():
+        assert torch.equal(value, second.checkpoint.weights[key]), key
+
+
+@pytest.mark.slow
+def test_ppo_learns_inverted_pendulum() -> None:
+    env = GymBatchedEnv("InvertedPendulum-v5", 32)
+    # The paper's hyperparameters unchanged, only a smaller budget and fitness window.
+    config = PPOConfig(total_steps=250_000, fitness_component="reward", fitness_window_steps=20_000)
+    result = train(env, config)
+    env.close()
+    assert result.env_steps == 249_856  # 61 whole rollouts of 32 x 128
+    assert result.fitness_source == "window"
+    assert result.fitness >= 900.0, result.curve[-10:]
+    assert result.curve[-1][1] >= 900.0
+    assert result.wall_time_s < 240.0
