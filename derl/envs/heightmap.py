@@ -77,29 +77,58 @@ class HeightmapGrid(BaseModel):
 
 
 def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid) -> np.ndarray:
-    """Heightmaps of N bodies: (N, K) float32, heights relative to the ground under each body.
+    """Heightmaps of N bodies on one terrain: (N, K) float32, relative to the ground under each.
 
     ``xy`` (N, 2) are the world positions of the heads and ``yaw`` (N,) their headings (angle
-    of the head's x-axis projected on the ground, from world +x towards +y). Offsets are rotated
-    by yaw, then every point and every body reads its nearest vertex of ``terrain.heights``; the
-    entry at offset (0, 0) is therefore always 0. Points outside the world read the nearest edge
-    vertex (the world continues flat at its edge heights), instead of the original's -10 m gap:
-    it keeps observations in the terrain's own range, and episodes end before bodies get there.
+    of the head's x-axis projected on the ground, from world +x towards +y). See `sample_stack`.
+    """
+    n = np.asarray(yaw).shape[0]
+    return sample_stack(terrain.heights[None], terrain, xy, yaw, grid, np.zeros(n, np.intp))
+
+
+def sample_stack(
+    heights: np.ndarray,
+    layout: Terrain,
+    xy: ArrayLike,
+    yaw: ArrayLike,
+    grid: HeightmapGrid,
+    which: np.ndarray | None = None,
+) -> np.ndarray:
+    """Heightmaps of N bodies, body n on terrain ``heights[which[n]]`` (default: ``heights[n]``).
+
+    ``heights`` is a stack (M, nrow, ncol) of terrains laid out like ``layout`` (its resolution
+    and extent). Offsets are rotated by yaw, then every point reads its nearest vertex; the entry
+    at offset (0, 0) is therefore always 0. Points outside the world read the nearest edge vertex
+    (the world continues flat at its edge heights), instead of the original's -10 m gap: it
+    keeps observations in the terrain's own range, and episodes end before bodies get there.
+    One set of numpy operations for all bodies.
     """
     xy = np.asarray(xy, dtype=np.float64)
     yaw = np.asarray(yaw, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or yaw.shape != (xy.shape[0],):
         raise ValueError(f"need xy (N, 2) and yaw (N,), got {xy.shape} and {yaw.shape}")
-    res, ncol, nrow = terrain.resolution, terrain.ncol, terrain.nrow
+    which = np.arange(xy.shape[0]) if which is None else which
+    res, ncol, nrow = layout.resolution, layout.ncol, layout.nrow
     forward, left = (grid.offsets / res).T
     cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    col0 = ((xy[:, 0] - terrain.x_min) / res)[:, None]
-    row0 = ((xy[:, 1] - terrain.y_min) / res)[:, None]
+    col0 = ((xy[:, 0] - layout.x_min) / res)[:, None]
+    row0 = ((xy[:, 1] - layout.y_min) / res)[:, None]
     cols = _nearest(col0 + cos * forward - sin * left, ncol)
     rows = _nearest(row0 + sin * forward + cos * left, nrow)
-    flat = terrain.heights.ravel()
-    ground = flat[_nearest(row0, nrow) * ncol + _nearest(col0, ncol)]
-    return flat[rows * ncol + cols] - ground
+    flat = heights.reshape(-1)
+    base = (which * (nrow * ncol))[:, None]
+    ground = ground_stack(heights, layout, xy, which)[:, None]
+    return flat[base + rows * ncol + cols] - ground
+
+
+def ground_stack(
+    heights: np.ndarray, layout: Terrain, xy: np.ndarray, which: np.ndarray | None = None
+) -> np.ndarray:
+    """(N,) height of the nearest vertex under each body, as the heightmap reads it."""
+    which = np.arange(xy.shape[0]) if which is None else which
+    col = _nearest((xy[:, 0] - layout.x_min) / layout.resolution, layout.ncol)
+    row = _nearest((xy[:, 1] - layout.y_min) / layout.resolution, layout.nrow)
+    return heights[which, row, col]
 
 
 def _nearest(coord: np.ndarray, n: int) -> np.ndarray:

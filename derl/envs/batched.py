@@ -1,0 +1,261 @@
+"""N copies of one body in one task, stepped together in C by `mujoco.batch.Batch`.
+
+The model is compiled once per body and task; terrain, objects and goals change per episode by
+writing into the model copies and the state, never by recompiling. Observations, rewards and
+endings are numpy operations over all copies at once. Each step applies the actions (clipped to
+[-1, 1]) for 4 physics steps of 5 ms (50 Hz control); an episode lasts 1000 control steps unless
+the head falls below half its resting height, leaves the arena, the task is achieved, or the
+physics goes unstable (MuJoCo error, warning or non-finite state: that copy ends, and is counted).
+Finished copies reset themselves inside `step`, which satisfies `derl.rl.BatchedEnv`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import mujoco.batch
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from derl.envs.task import Arrays, Task
+from derl.unimal import Genome, agent_spec
+from derl.unimal.geometry import layout
+from derl.unimal.mjcf import rest_height
+
+ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
+
+
+class EnvConfig(BaseModel):
+    """How the copies are simulated; defaults are the paper's."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    num_envs: int = Field(32, ge=1)
+    nthread: int = Field(1, ge=1)
+    episode_steps: int = Field(1000, ge=1)
+    frame_skip: int = Field(4, ge=1)
+    reset_noise: float = Field(0.005, ge=0)
+    spawn_clearance: float = Field(0.05, ge=0)
+    fall_ratio: float = Field(0.5, ge=0, le=1)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One batched step (the fields of `derl.rl.StepResult`)."""
+
+    obs: Arrays
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    final_obs: Arrays
+    components: Arrays
+
+
+class UnimalEnv:
+    """A batch of copies of one UNIMAL in one task."""
+
+    def __init__(
+        self, genome: Genome, task: Task, config: EnvConfig | None = None, seed: int = 0
+    ) -> None:
+        self.genome = genome
+        self.task = task
+        self.config = config or EnvConfig()
+        self.rest_height = rest_height(layout(genome))
+        spec = agent_spec(genome, head_height=self.rest_height + self.config.spawn_clearance)
+        task.build(spec)
+        self.model = spec.compile()
+        self.batch = mujoco.batch.Batch(
+            self.model, self.config.num_envs, nthread=self.config.nthread, persistent=True
+        )
+        self.rng = np.random.default_rng(seed)
+        self._index_model()
+        self._bind()
+        task.setup(self)
+        self.steps = np.zeros(self.num_envs, dtype=np.int64)
+        self.unstable_count = 0
+        self._obs_spaces = {"proprioception": self._proprioception().shape[1]}
+        self._obs_spaces.update(task.obs_spaces())
+
+    # --- the BatchedEnv interface -------------------------------------------------------------
+
+    @property
+    def num_envs(self) -> int:
+        return self.config.num_envs
+
+    @property
+    def obs_spaces(self) -> dict[str, int]:
+        return dict(self._obs_spaces)
+
+    @property
+    def action_dim(self) -> int:
+        return self.model.nu
+
+    def reset(self, seed: int) -> Arrays:
+        """Start a new episode in every copy; deterministic for a given seed."""
+        self.rng = np.random.default_rng(seed)
+        self._reset(np.arange(self.num_envs))
+        return self._observe()
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Apply (N, A) actions for one control step."""
+        np.clip(actions, -1.0, 1.0, out=self.ctrl)
+        self.prev_head = self.head_pos.copy()
+        warnings_before = self.warnings[:, :, 1].sum(axis=1)
+        failed = np.zeros(self.num_envs, dtype=bool)
+        try:
+            self.batch.step(nstep=self.config.frame_skip, stage=mujoco.mjtStage.mjSTAGE_VEL)
+        except mujoco.batch.SimulationError as error:
+            failed[error.ids] = True
+        unstable = (
+            failed
+            | (self.warnings[:, :, 1].sum(axis=1) > warnings_before)
+            | ~np.isfinite(self.qpos).all(axis=1)
+            | ~np.isfinite(self.qvel).all(axis=1)
+        )
+        self.steps += 1
+        terms = self.task.rewards(self)
+        components = {**terms, **self.task.metrics(self, terms)}
+        components["energy"] = np.abs(self.ctrl) @ self.gear
+        for values in components.values():
+            values[unstable] = 0.0
+        reward = np.sum(list(terms.values()), axis=0) if terms else np.zeros(self.num_envs)
+        terminated = unstable | self._fallen() | self._off_arena() | self.task.success(self)
+        truncated = ~terminated & (self.steps >= self.config.episode_steps)
+        self.unstable_count += int(unstable.sum())
+        obs = self._observe()
+        final_obs = obs
+        done = np.flatnonzero(terminated | truncated)
+        if len(done):
+            final_obs = {key: value.copy() for key, value in obs.items()}
+            self._reset(done)
+            fresh = self._observe()
+            for key, value in obs.items():
+                value[done] = fresh[key][done]
+        return StepResult(obs, reward, terminated, truncated, final_obs, components)
+
+    # --- state the tasks read -----------------------------------------------------------------
+
+    @property
+    def head_pos(self) -> np.ndarray:
+        """(N, 3) head centre in the world (a live view)."""
+        return self.qpos[:, self.root : self.root + 3]
+
+    @property
+    def head_rot(self) -> np.ndarray:
+        """(N, 3, 3) head orientation: columns are the head's axes in the world."""
+        return self.xmat[:, self.head].reshape(-1, 3, 3)
+
+    @property
+    def head_vel(self) -> np.ndarray:
+        """(N, 3) linear velocity of the head in the world."""
+        return self.qvel[:, self.root_dof : self.root_dof + 3]
+
+    def to_head_frame(self, vectors: np.ndarray) -> np.ndarray:
+        """World vectors (N, 3) expressed in each copy's head frame."""
+        return np.einsum("nji,nj->ni", self.head_rot, vectors)
+
+    @property
+    def yaw(self) -> np.ndarray:
+        """(N,) heading: the head's x axis projected on the ground, from +x towards +y."""
+        rot = self.xmat[:, self.head]
+        return np.arctan2(rot[:, 3], rot[:, 0])
+
+    def agent_points(self) -> np.ndarray:
+        """(N, P, 3) the head centre and every limb's mid and end sites, in the world."""
+        return self.site_xpos[:, self.agent_sites]
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _index_model(self) -> None:
+        model = self.model
+        root = model.joint("root")
+        self.head = model.body("head").id
+        self.root = int(root.qposadr[0])
+        self.root_dof = int(root.dofadr[0])
+        hinges = [j for j in range(model.njnt) if model.jnt_bodyid[j] != self.head]
+        hinges = [j for j in hinges if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
+        agent_bodies = self._agent_bodies()
+        hinges = [j for j in hinges if model.jnt_bodyid[j] in agent_bodies]
+        self.joint_qpos = np.array([model.jnt_qposadr[j] for j in hinges], dtype=np.intp)
+        self.joint_dofs = np.array([model.jnt_dofadr[j] for j in hinges], dtype=np.intp)
+        self.agent_qpos = np.concatenate([np.arange(self.root, self.root + 7), self.joint_qpos])
+        self.agent_dofs = np.concatenate(
+            [np.arange(self.root_dof, self.root_dof + 6), self.joint_dofs]
+        )
+        self.gear = model.actuator_gear[:, 0].copy()
+        sensors = [model.sensor(i) for i in range(model.nsensor)]
+        agent_sensors = [s for s in sensors if s.name.startswith(("head_", "limb"))]
+        self.sensor_index = np.concatenate(
+            [np.arange(s.adr[0], s.adr[0] + s.dim[0]) for s in agent_sensors]
+        )
+        sites = ["head_imu"] + [
+            f"{model.body(b).name}_{kind}"
+            for b in sorted(agent_bodies - {self.head})
+            for kind in ("mid", "end")
+        ]
+        self.agent_sites = np.array([model.site(name).id for name in sites], dtype=np.intp)
+
+    def _agent_bodies(self) -> set[int]:
+        model = self.model
+        bodies = {self.head}
+        for body in range(self.head + 1, model.nbody):
+            if model.body_parentid[body] in bodies:
+                bodies.add(body)
+        return bodies
+
+    def _bind(self) -> None:
+        batch = self.batch
+        self.qpos = batch.bind("qpos")
+        self.qvel = batch.bind("qvel")
+        self.ctrl = batch.bind("ctrl")
+        self.sensordata = batch.bind("sensordata")
+        self.xmat = batch.bind("xmat")
+        self.site_xpos = batch.bind("site_xpos")
+        self.warnings = batch.warning  # (N, warning kinds, [last info, count])
+        self.prev_head = np.zeros((self.num_envs, 3))
+
+    def _reset(self, ids: np.ndarray) -> None:
+        batch, config = self.batch, self.config
+        batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        self.task.reset(self, ids)
+        n, noise = len(ids), config.reset_noise
+        spawn = np.tile(np.array(self.task.spawn, dtype=np.float64), (n, 1))
+        qpos = self.qpos[ids]
+        qpos[:, self.root : self.root + 2] = spawn
+        ground = self.task.ground(self, spawn, ids)
+        qpos[:, self.root + 2] = ground + self.rest_height + config.spawn_clearance
+        qpos[:, self.agent_qpos] += self.rng.uniform(-noise, noise, (n, len(self.agent_qpos)))
+        quat = qpos[:, self.root + 3 : self.root + 7]
+        quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+        self.qpos[ids] = qpos
+        qvel = self.qvel[ids]
+        qvel[:, self.agent_dofs] = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
+        self.qvel[ids] = qvel
+        self.ctrl[ids] = 0.0
+        batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
+        self.steps[ids] = 0
+        self.prev_head[ids] = self.head_pos[ids]
+        self.task.placed(self, ids)
+
+    def _fallen(self) -> np.ndarray:
+        height = self.head_pos[:, 2] - self.task.ground(self, self.head_pos[:, :2])
+        return height < self.config.fall_ratio * self.rest_height
+
+    def _off_arena(self) -> np.ndarray:
+        half = np.array(self.task.arena) - ARENA_MARGIN
+        return (np.abs(self.head_pos[:, :2]) > half).any(axis=1)
+
+    def _proprioception(self) -> np.ndarray:
+        return np.concatenate(
+            [
+                self.qpos[:, self.joint_qpos],
+                self.qvel[:, self.agent_dofs],
+                self.sensordata[:, self.sensor_index],
+            ],
+            axis=1,
+            dtype=np.float32,
+        )
+
+    def _observe(self) -> Arrays:
+        return {"proprioception": self._proprioception(), **self.task.observe(self)}

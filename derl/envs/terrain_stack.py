@@ -1,0 +1,69 @@
+"""Per-copy terrain for a batch: every copy walks its own heightfield, new at each of its episodes.
+
+`mujoco.batch` shares asset data such as ``hfield_data`` between the simulations of a batch, so
+each copy runs on its own shallow copy of the compiled model (``Batch.set_models``); a new terrain
+is written into that copy's ``hfield_data`` in place (no recompile) and into a stacked height
+array that the heightmap observation and the fall test read for all copies at once.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from derl.envs.heightmap import HeightmapGrid, ground_stack, sample_stack
+from derl.envs.terrain import Terrain, TerrainConfig, generate_terrain
+
+HFIELD_NAME = "terrain"
+HFIELD_BASE = 0.1  # depth of the solid under z = 0, m
+
+
+def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig) -> None:
+    """Add the terrain's heightfield asset and geom (all zeros until a terrain is written)."""
+    nrow, ncol = config.grid_shape
+    spec.add_hfield(
+        name=HFIELD_NAME,
+        nrow=nrow,
+        ncol=ncol,
+        size=[config.size_x / 2, config.size_y / 2, config.max_height, HFIELD_BASE],
+        userdata=np.zeros(nrow * ncol).tolist(),
+    )
+    spec.worldbody.add_geom(
+        name=HFIELD_NAME,
+        type=mujoco.mjtGeom.mjGEOM_HFIELD,
+        hfieldname=HFIELD_NAME,
+        rgba=[0.55, 0.6, 0.5, 1],
+        condim=3,
+        friction=[0.7, 0.1, 0.1],
+    )
+
+
+class TerrainStack:
+    """The terrains of all copies of a batch, and their heightfields in the copies' models."""
+
+    def __init__(self, config: TerrainConfig, batch: mujoco.batch.Batch) -> None:
+        self.config = config
+        self.heights = np.zeros((batch.nsim, *config.grid_shape), dtype=np.float32)
+        self.models = [copy.copy(batch.model) for _ in range(batch.nsim)]
+        batch.set_models(self.models)
+        self.hfield = batch.model.hfield(HFIELD_NAME).id
+        self.layout = Terrain(self.heights[0], config.resolution, config.max_height)
+        self.generated = 0
+
+    def renew(self, ids: np.ndarray, rng: np.random.Generator) -> None:
+        """A fresh terrain for each copy in ``ids``."""
+        for i in ids:
+            terrain = generate_terrain(self.config, rng)
+            terrain.write_to(self.models[i], self.hfield)
+            self.heights[i] = terrain.heights
+        self.generated += len(ids)
+
+    def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+        """Ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
+        return ground_stack(self.heights, self.layout, xy, ids)
+
+    def heightmap(self, xy: np.ndarray, yaw: np.ndarray, grid: HeightmapGrid) -> np.ndarray:
+        return sample_stack(self.heights, self.layout, xy, yaw, grid)

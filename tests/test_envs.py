@@ -1,0 +1,193 @@
+"""Batched environments: rewards on scripted motions, endings, heightmap wiring, batch vs single."""
+
+from __future__ import annotations
+
+import gymnasium
+import mujoco
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
+from derl.envs.heightmap import sample_stack
+from derl.envs.terrain import TerrainConfig
+from derl.unimal import Genome
+
+SMALL_VT = TerrainConfig.variable(size_x=20.0, size_y=10.0)
+SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=20.0)
+
+
+def _env(genome: Genome, task: str, n: int = 4, **config: object) -> UnimalEnv:
+    options = {"vt": {"terrain": SMALL_VT}, "mvt": {"terrain": SMALL_MVT}}.get(task, {})
+    return UnimalEnv(genome, make_task(task, **options), EnvConfig(num_envs=n, **config))
+
+
+def _lift(env: UnimalEnv, height: float, velocity: tuple[float, float, float]) -> None:
+    """Put every head `height` above its spawn, moving at `velocity` (free flight)."""
+    env.qpos[:, env.root + 2] += height
+    env.qvel[:, :] = 0.0
+    env.qvel[:, env.root_dof : env.root_dof + 3] = velocity
+    env.batch.forward()
+
+
+@pytest.mark.parametrize("task", ["ft", "vt"])
+def test_forward_reward_is_fifty_times_the_distance(quadruped: Genome, task: str) -> None:
+    env = _env(quadruped, task)
+    env.reset(0)
+    _lift(env, 5.0, (1.5, 0.0, 0.0))
+    x0 = env.head_pos[:, 0].copy()
+    total = np.zeros(env.num_envs)
+    for _ in range(20):
+        result = env.step(np.zeros((env.num_envs, env.action_dim), np.float32))
+        assert not result.terminated.any()
+        total += result.components["forward"]
+        assert np.all(result.components["ctrl"] == 0)
+    np.testing.assert_allclose(total, 50 * (env.head_pos[:, 0] - x0), rtol=1e-9)
+    np.testing.assert_allclose(total, 50 * 1.5 * 20 * 0.02, rtol=0.02)
+
+
+def test_ctrl_cost_and_energy(quadruped: Genome) -> None:
+    env = _env(quadruped, "ft")
+    env.reset(0)
+    actions = np.full((env.num_envs, env.action_dim), 0.5, np.float32)
+    actions[:, 0] = 3.0  # clipped to 1
+    result = env.step(actions)
+    expected = -1e-3 * (0.25 * (env.action_dim - 1) + 1.0)
+    np.testing.assert_allclose(result.components["ctrl"], expected)
+    gears = env.model.actuator_gear[:, 0]
+    np.testing.assert_allclose(result.components["energy"], 0.5 * gears.sum() + 0.5 * gears[0])
+
+
+def test_push_and_reach_rewards(quadruped: Genome) -> None:
+    env = _env(quadruped, "mvt", n=2)
+    env.reset(1)
+    task = env.task
+    box = task.box_qpos
+    goal = task.goal[:, :2].copy()
+    start = env.qpos[:, box : box + 2].copy()
+    toward = (goal - start) / np.linalg.norm(goal - start, axis=1, keepdims=True)
+    env.qpos[:, box + 2] += 3.0  # the box flies toward the goal at 2 m/s
+    env.qvel[:, task.box_dof : task.box_dof + 6] = 0.0
+    env.qvel[:, task.box_dof : task.box_dof + 2] = 2.0 * toward
+    env.batch.forward()
+    task.placed(env, np.arange(2))
+    push = np.zeros(2)
+    for _ in range(10):
+        result = env.step(np.zeros((2, env.action_dim), np.float32))
+        push += result.components["push"]
+    moved = np.linalg.norm(goal - start, axis=1) - np.linalg.norm(
+        goal - env.qpos[:, box : box + 2], axis=1
+    )
+    np.testing.assert_allclose(push, 100 * moved, rtol=1e-6)
+    np.testing.assert_allclose(moved, 2.0 * 10 * 0.02, rtol=0.02)
+    manipulation = result.components["manipulation"]
+    np.testing.assert_allclose(manipulation, result.components["reach"] + result.components["push"])
+
+
+def test_reach_bonus_is_paid_once(quadruped: Genome) -> None:
+    env = _env(quadruped, "mvt", n=1)
+    env.reset(2)
+    task = env.task
+    head = env.head_pos[0].copy()
+    env.qpos[0, task.box_qpos : task.box_qpos + 3] = head + np.array([0.5, 0.0, 0.0])
+    env.batch.forward()
+    first = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
+    second = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
+    assert first > 9.0 and abs(second) < 5.0
+
+
+def test_fall_ends_the_episode(quadruped: Genome) -> None:
+    env = _env(quadruped, "ft", n=2)
+    env.reset(0)
+    env.qpos[0, env.root + 2] = 0.3 * env.rest_height
+    env.batch.forward()
+    result = env.step(np.zeros((2, env.action_dim), np.float32))
+    assert result.terminated.tolist() == [True, False]
+    assert env.steps.tolist() == [0, 1]  # copy 0 was reset in place
+    spawn_height = env.rest_height + env.config.spawn_clearance
+    assert env.head_pos[0, 2] == pytest.approx(spawn_height, abs=0.02)
+
+
+def test_time_limit_truncates(quadruped: Genome) -> None:
+    env = _env(quadruped, "ft", n=2, episode_steps=5, fall_ratio=0.0)
+    env.reset(0)
+    for step in range(5):
+        result = env.step(np.zeros((2, env.action_dim), np.float32))
+        assert result.truncated.all() == (step == 4)
+    assert not result.terminated.any()
+    assert (result.final_obs["proprioception"] != result.obs["proprioception"]).any(axis=1).all()
+
+
+def test_unstable_physics_ends_only_that_copy(quadruped: Genome) -> None:
+    env = _env(quadruped, "ft", n=3)
+    env.reset(0)
+    env.qvel[1, 6:] = 1e12
+    result = env.step(np.zeros((3, env.action_dim), np.float32))
+    assert result.terminated.tolist() == [False, True, False]
+    assert env.unstable_count == 1
+    assert all(np.isfinite(v).all() for v in result.obs.values())
+    assert result.components["forward"][1] == 0.0
+
+
+def test_batch_matches_single_simulations(quadruped: Genome) -> None:
+    env = _env(quadruped, "ft", n=3, reset_noise=0.01, fall_ratio=0.0)
+    env.reset(4)
+    model = env.model
+    singles = []
+    for i in range(3):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = env.qpos[i], env.qvel[i]
+        singles.append(data)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        actions = rng.uniform(-1, 1, (3, env.action_dim)).astype(np.float32)
+        env.step(actions)
+        for i, data in enumerate(singles):
+            data.ctrl[:] = actions[i]
+            mujoco.mj_step(model, data, nstep=4)
+    for i, data in enumerate(singles):
+        np.testing.assert_allclose(env.qpos[i], data.qpos, atol=1e-9)
+
+
+def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
+    env = _env(quadruped, "vt", n=2)
+    env.reset(0)
+    yaw = np.pi / 2
+    env.qpos[1, env.root + 3 : env.root + 7] = [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
+    env.batch.forward()
+    assert env.yaw[1] == pytest.approx(yaw)
+    stack = env.task.terrains
+    expected = sample_stack(
+        stack.heights, stack.layout, env.head_pos[:, :2], env.yaw, env.task.grid
+    )
+    np.testing.assert_array_equal(env.task.observe(env)["heightmap"], expected)
+
+
+def test_new_terrain_every_episode(quadruped: Genome) -> None:
+    env = _env(quadruped, "vt", n=2)
+    env.reset(0)
+    before = env.task.terrains.heights.copy()
+    assert not np.array_equal(before[0], before[1])
+    env.qpos[0, env.root + 2] = 0.0  # copy 0 falls
+    env.batch.forward()
+    env.step(np.zeros((2, env.action_dim), np.float32))
+    after = env.task.terrains.heights
+    assert not np.array_equal(before[0], after[0])
+    np.testing.assert_array_equal(before[1], after[1])
+    model_heights = env.task.terrains.models[0].hfield_data.reshape(after[0].shape)
+    np.testing.assert_allclose(model_heights * SMALL_VT.max_height, after[0], atol=1e-6)
+
+
+def test_reset_is_deterministic(quadruped: Genome) -> None:
+    env = _env(quadruped, "mvt", n=2)
+    first = env.reset(7)
+    second = env.reset(7)
+    for key in first:
+        np.testing.assert_array_equal(first[key], second[key])
+
+
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_gymnasium_env_checker_passes(quadruped: Genome, task: str) -> None:
+    env = gymnasium.make(f"derl/{TASKS[task].gym_name}-v0", genome=quadruped)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
