@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from nodes import unimal_cli
+from nodes import train_cli, unimal_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -16,6 +16,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     unimal_cli.register(commands)
+    train_cli.register(commands)
     return parser
 
 

@@ -39,7 +39,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     count.set_defaults(run=_count)
 
 
-def _load(path: Path):  # -> Genome
+def load_genome(path: Path):  # -> Genome
+    """A genome from a JSON file, or exit with a clear message."""
     from pydantic import ValidationError
 
     from derl.unimal import Genome
@@ -76,7 +77,7 @@ def _sample(args: argparse.Namespace) -> int:
 def _show(args: argparse.Namespace) -> int:
     from derl.unimal import describe
 
-    descriptors = describe(_load(args.file))
+    descriptors = describe(load_genome(args.file))
     if args.json:
         print(descriptors.model_dump_json(indent=2))
         return 0
@@ -95,9 +96,9 @@ def _render(args: argparse.Namespace) -> int:
         files = sorted(args.path.glob("*.json"))
         if not files:
             raise SystemExit(f"derl: no genome JSON files in {args.path}")
-        image = render_grid([_load(f) for f in files], width, height)
+        image = render_grid([load_genome(f) for f in files], width, height)
     else:
-        image = render_body(_load(args.path), width, height)
+        image = render_body(load_genome(args.path), width, height)
     save_png(image, args.out)
     console.print(f"wrote {args.out} ({image.shape[1]}x{image.shape[0]})")
     return 0

@@ -13,7 +13,7 @@ from derl.envs.heightmap import sample_stack
 from derl.envs.terrain import TerrainConfig
 from derl.unimal import Genome
 
-SMALL_VT = TerrainConfig.variable(size_x=20.0, size_y=10.0)
+SMALL_VT = TerrainConfig.variable(size_x=30.0, size_y=10.0)
 SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=20.0)
 
 
@@ -163,19 +163,29 @@ def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
     np.testing.assert_array_equal(env.task.observe(env)["heightmap"], expected)
 
 
-def test_new_terrain_every_episode(quadruped: Genome) -> None:
-    env = _env(quadruped, "vt", n=2)
+def test_new_terrain_after_every_episode_that_saw_it(quadruped: Genome) -> None:
+    env = _env(quadruped, "vt", n=3)
     env.reset(0)
-    before = env.task.terrains.heights.copy()
+    stack = env.task.terrains
+    before = stack.heights.copy()
     assert not np.array_equal(before[0], before[1])
-    env.qpos[0, env.root + 2] = 0.0  # copy 0 falls
+    env.qpos[0, env.root] = stack.first_obstacle[0]  # copy 0 walks up to its obstacles...
     env.batch.forward()
-    env.step(np.zeros((2, env.action_dim), np.float32))
-    after = env.task.terrains.heights
-    assert not np.array_equal(before[0], after[0])
-    np.testing.assert_array_equal(before[1], after[1])
-    model_heights = env.task.terrains.models[0].hfield_data.reshape(after[0].shape)
+    env.step(np.zeros((3, env.action_dim), np.float32))
+    env.qpos[:2, env.root + 2] = 0.0  # ...then copies 0 and 1 fall
+    env.batch.forward()
+    result = env.step(np.zeros((3, env.action_dim), np.float32))
+    assert result.terminated[:2].all() and not result.terminated[2]
+    after = stack.heights
+    assert not np.array_equal(before[0], after[0])  # it had seen its terrain: a new one
+    np.testing.assert_array_equal(before[1], after[1])  # it saw only the flat start: kept
+    np.testing.assert_array_equal(before[2], after[2])  # still running
+    model_heights = stack.models[0].hfield_data.reshape(after[0].shape)
     np.testing.assert_allclose(model_heights * SMALL_VT.max_height, after[0], atol=1e-6)
+    spawn_view = sample_stack(
+        stack.heights, stack.layout, np.array([env.task.spawn] * 3), np.zeros(3), env.task.grid
+    )
+    assert not spawn_view.any()  # from the spawn point no obstacle is in sight
 
 
 def test_reset_is_deterministic(quadruped: Genome) -> None:

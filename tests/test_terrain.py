@@ -79,8 +79,9 @@ def _check_step_profile(profile: np.ndarray) -> None:
 
 def test_start_area_is_flat_and_spawn_is_in_it(worlds: list[Terrain]) -> None:
     for terrain in worlds:
-        assert terrain.spawn == pytest.approx((terrain.x_min + 2.0, 0.0))
-        assert not _columns(terrain, terrain.x_min, terrain.x_min + 4.0 + 1.0).any()
+        start = TerrainConfig().start_flat
+        assert terrain.spawn == pytest.approx((terrain.x_min + start / 2, 0.0))
+        assert not _columns(terrain, terrain.x_min, terrain.x_min + start + 1.0).any()
 
 
 def test_generation_is_deterministic_per_seed() -> None:
@@ -157,7 +158,7 @@ def _ray_heights(model: mujoco.MjModel, data: mujoco.MjData, points: np.ndarray)
 
 
 def test_height_at_matches_mujoco_rays_also_after_in_place_rewrite() -> None:
-    config = TerrainConfig(size_x=20.0, size_y=10.0)
+    config = TerrainConfig(size_x=20.0, size_y=10.0, start_flat=4.0)
     rng = np.random.default_rng(3)
     first = generate_terrain(config, np.random.default_rng(0))
     model, data = _hfield_model(first)
@@ -168,7 +169,9 @@ def test_height_at_matches_mujoco_rays_also_after_in_place_rewrite() -> None:
         hits = _ray_heights(model, data, points)
         np.testing.assert_allclose(hits, terrain.height_at(points[:, 0], points[:, 1]), atol=2e-3)
     with pytest.raises(ValueError):
-        generate_terrain(TerrainConfig(size_x=20.0, size_y=12.0), rng).write_to(model)
+        generate_terrain(TerrainConfig(size_x=20.0, size_y=12.0, start_flat=4.0), rng).write_to(
+            model
+        )
 
 
 def test_height_at_interpolates_on_mujoco_triangles() -> None:
@@ -243,7 +246,9 @@ def test_heightmap_outside_world_reads_edge(step_world: Terrain) -> None:
 
 
 def test_batched_heightmap_equals_single_calls() -> None:
-    terrain = generate_terrain(TerrainConfig(size_x=20.0, size_y=10.0), np.random.default_rng(5))
+    terrain = generate_terrain(
+        TerrainConfig(size_x=20.0, size_y=10.0, start_flat=4.0), np.random.default_rng(5)
+    )
     grid = HeightmapGrid()
     rng = np.random.default_rng(0)
     xy = rng.uniform((-10.0, -5.0), (10.0, 5.0), size=(16, 2))

@@ -94,6 +94,7 @@ class UnimalEnv:
     def reset(self, seed: int) -> Arrays:
         """Start a new episode in every copy; deterministic for a given seed."""
         self.rng = np.random.default_rng(seed)
+        self.task.start(self)
         self._reset(np.arange(self.num_envs))
         return self._observe()
 

@@ -69,6 +69,11 @@ class HeightmapGrid(BaseModel):
         return self.nx * self.ny
 
     @cached_property
+    def reach(self) -> float:
+        """Distance (m) from the body to the furthest point of the grid."""
+        return float(np.hypot(self.offsets[:, 0], self.offsets[:, 1]).max())
+
+    @cached_property
     def offsets(self) -> np.ndarray:
         """(K, 2) body-frame (forward, left) offsets in meters, ordered like an (ny, nx) image:
         k = iy * nx + ix, so ``obs.reshape(ny, nx)`` has rows = left offset, columns = forward."""

@@ -40,6 +40,9 @@ class Task(ABC):
         """Observation types the task adds, with their sizes."""
         return {}
 
+    def start(self, sim: Sim) -> None:
+        """A new seeded run begins: forget anything carried between episodes."""
+
     def reset(self, sim: Sim, ids: np.ndarray) -> None:
         """New episode for copies ``ids``: terrain, objects and goals (the body is placed after)."""
 

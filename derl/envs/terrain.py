@@ -43,7 +43,9 @@ class TerrainConfig(BaseModel):
     size_y: float = Field(100.0, gt=0)
     resolution: float = Field(0.1, gt=0)
     max_height: float = Field(1.5, gt=0)
-    start_flat: float = Field(4.0, ge=0)
+    # A body at the spawn point (the middle of the start area) perceives only flat ground: its
+    # heightmap reaches 5.7 m, the first obstacle is at least 7 + 1 m away.
+    start_flat: float = Field(14.0, ge=0)
     flat_length: Range = (1.0, 3.0)
     obstacle_length: Range = (4.0, 8.0)
     obstacles: tuple[ObstacleKind, ...] = ("hills", "steps", "rubble")

@@ -1,9 +1,15 @@
-"""Per-copy terrain for a batch: every copy walks its own heightfield, new at each of its episodes.
+"""Per-copy terrain for a batch: every copy walks its own heightfield, new for each episode.
 
 `mujoco.batch` shares asset data such as ``hfield_data`` between the simulations of a batch, so
 each copy runs on its own shallow copy of the compiled model (``Batch.set_models``); a new terrain
 is written into that copy's ``hfield_data`` in place (no recompile) and into a stacked height
 array that the heightmap observation and the fall test read for all copies at once.
+
+A terrain is renewed after every episode in which its copy could have perceived or touched an
+obstacle: the head came within `reach` m (the heightmap's range plus a body's size) of the first
+non-flat segment. An episode that saw only the flat start area learnt nothing about its terrain,
+so the next one may use it as fresh: early in training, when bodies fall within a few dozen
+steps, this avoids generating a million-cell terrain for each of them.
 """
 
 from __future__ import annotations
@@ -51,15 +57,30 @@ class TerrainStack:
         batch.set_models(self.models)
         self.hfield = batch.model.hfield(HFIELD_NAME).id
         self.layout = Terrain(self.heights[0], config.resolution, config.max_height)
+        self.first_obstacle = np.full(batch.nsim, -np.inf)  # x where each copy's course starts
+        self.furthest = np.full(batch.nsim, np.inf)  # furthest head x in the current episode
         self.generated = 0
 
-    def renew(self, ids: np.ndarray, rng: np.random.Generator) -> None:
-        """A fresh terrain for each copy in ``ids``."""
-        for i in ids:
+    def track(self, head_x: np.ndarray) -> None:
+        """Record how far each copy's head went (call every step)."""
+        np.maximum(self.furthest, head_x, out=self.furthest)
+
+    def renew(self, ids: np.ndarray, rng: np.random.Generator, reach: float) -> None:
+        """A fresh terrain for each copy in ``ids`` whose episode came within ``reach`` m of an
+        obstacle (or that has none yet)."""
+        seen = ids[self.furthest[ids] + reach >= self.first_obstacle[ids]]
+        for i in seen:
             terrain = generate_terrain(self.config, rng)
             terrain.write_to(self.models[i], self.hfield)
             self.heights[i] = terrain.heights
-        self.generated += len(ids)
+            obstacles = [s.x_start for s in terrain.segments if s.kind != "flat"]
+            self.first_obstacle[i] = min(obstacles, default=np.inf)
+        self.generated += len(seen)
+        self.furthest[ids] = -np.inf
+
+    def forget(self) -> None:
+        """Make every copy's next reset draw a fresh terrain (a new seeded run)."""
+        self.furthest[:] = np.inf
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """Ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from derl.envs.batched import UnimalEnv
 
 CONTROL_DT = 0.02  # s per control step: 4 x 5 ms
+BODY_REACH = 2.0  # m: no limb tip is further than this from the head
 
 
 class RewardWeights(BaseModel):
@@ -99,13 +100,17 @@ class Variable(Flat):
     def obs_spaces(self) -> dict[str, int]:
         return {"heightmap": self.grid.size}
 
+    def start(self, env: UnimalEnv) -> None:
+        self.terrains.forget()
+
     def reset(self, env: UnimalEnv, ids: np.ndarray) -> None:
-        self.terrains.renew(ids, env.rng)
+        self.terrains.renew(ids, env.rng, self.grid.reach + BODY_REACH)
 
     def ground(self, env: UnimalEnv, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)
 
     def observe(self, env: UnimalEnv) -> Arrays:
+        self.terrains.track(env.head_pos[:, 0])
         return {"heightmap": self.terrains.heightmap(env.head_pos[:, :2], env.yaw, self.grid)}
 
 

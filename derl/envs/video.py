@@ -1,0 +1,42 @@
+"""Offscreen frames of copy 0 of a batched environment, with a camera that follows the head."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from derl.envs.batched import UnimalEnv
+
+
+class FrameRecorder:
+    """Renders copy 0 of `env` after each call; uses `MUJOCO_GL` (egl or osmesa)."""
+
+    def __init__(self, env: UnimalEnv, width: int = 480, height: int = 360) -> None:
+        self.env = env
+        terrains = getattr(env.task, "terrains", None)
+        self.model = terrains.models[0] if terrains is not None else env.model
+        self.data = mujoco.MjData(self.model)
+        self.renderer = mujoco.Renderer(self.model, height, width)
+        self.camera = mujoco.MjvCamera()
+        self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+        self.camera.trackbodyid = env.head
+        self.camera.distance = 3.0 + 2.0 * env.rest_height
+        self.camera.azimuth = 120.0
+        self.camera.elevation = -20.0
+        self.uploaded = -1
+
+    def frame(self) -> np.ndarray:
+        """An RGB image (height, width, 3) of copy 0 now."""
+        terrains = getattr(self.env.task, "terrains", None)
+        if terrains is not None and terrains.generated != self.uploaded:
+            # the copy's terrain changed: send it to the GPU (the Renderer has no public call)
+            self.renderer._gl_context.make_current()
+            mujoco.mjr_uploadHField(self.model, self.renderer._mjr_context, terrains.hfield)
+            self.uploaded = terrains.generated
+        self.env.batch.get_data(0, self.data)
+        mujoco.mj_forward(self.model, self.data)
+        self.renderer.update_scene(self.data, self.camera)
+        return self.renderer.render().copy()
+
+    def close(self) -> None:
+        self.renderer.close()

@@ -1,0 +1,102 @@
+"""Lifetime learning of one body in one task: build its batched environment, train a controller
+from scratch with PPO, and measure what evolution and the analyses need.
+
+Fitness is the mean episode sum of the task's selection component (forward progress for FT/VT,
+reach + push for MVT) over the episodes that finished in the last `fitness_window` steps: the
+paper's last 100k of 5M steps, scaled with the budget (a tenth of it) for short trainings. Cost
+of work over the same episodes is E / (M g r): E the episode's sum of |joint torque|, M the
+body's mass, r its selection reward (undefined, NaN, when r <= 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from derl.envs import EnvConfig, UnimalEnv, make_task
+from derl.rl import PPOConfig, Progress, TrainResult, train
+from derl.unimal import Genome
+
+GRAVITY = 9.81
+PAPER_WINDOW = 100_000
+
+
+class LifetimeResult(BaseModel):
+    """What one lifetime of learning produced, small enough to travel in a message."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    task: str
+    fitness: float
+    fitness_source: str
+    fitness_episodes: int
+    curve_steps: list[int]
+    curve_returns: list[float]
+    energy: float  # mean sum of |joint torque| per final episode
+    mass: float
+    cost_of_work: float
+    episodes: int
+    env_steps: int
+    wall_time_s: float
+    steps_per_second: float
+    unstable_steps: int
+    time_split: dict[str, float]
+
+
+def fitness_window(total_steps: int, batch_size: int) -> int:
+    """The paper's 100k-step window, or a tenth of a shorter budget (at least one rollout)."""
+    return min(PAPER_WINDOW, max(total_steps // 10, batch_size))
+
+
+def ppo_config(task: str, steps: int, seed: int, **overrides: object) -> PPOConfig:
+    """The paper's PPO for a task: its fitness component and a budget-scaled fitness window."""
+    base = PPOConfig(total_steps=steps, seed=seed, **overrides)
+    component = make_task(task).fitness_component
+    window = fitness_window(base.total_steps, base.batch_size)
+    return base.model_copy(update={"fitness_component": component, "fitness_window_steps": window})
+
+
+def learn(
+    genome: Genome,
+    task: str,
+    config: PPOConfig,
+    callback: Callable[[Progress], None] | None = None,
+    nthread: int = 1,
+) -> tuple[LifetimeResult, TrainResult]:
+    """Train a fresh controller for `genome` in `task`; returns the summary and the full result."""
+    env = UnimalEnv(
+        genome,
+        make_task(task),
+        EnvConfig(num_envs=config.num_envs, nthread=nthread),
+        seed=config.seed,
+    )
+    result = train(env, config, callback)
+    mass = float(env.model.body_subtreemass[env.head])
+    log = result.episodes
+    final = log.finish_step > result.env_steps - config.fitness_window_steps
+    if not final.any():
+        final = np.arange(len(log)) >= len(log) - config.recent_episodes
+    energy = float(log.components["energy"][final].mean()) if final.any() else float("nan")
+    reward = result.fitness
+    cost = energy / (mass * GRAVITY * reward) if reward > 0 else float("nan")
+    steps, returns = zip(*result.curve, strict=True) if result.curve else ((), ())
+    summary = LifetimeResult(
+        task=task,
+        fitness=result.fitness,
+        fitness_source=result.fitness_source,
+        fitness_episodes=result.fitness_episodes,
+        curve_steps=list(steps),
+        curve_returns=list(returns),
+        energy=energy,
+        mass=mass,
+        cost_of_work=cost,
+        episodes=len(log),
+        env_steps=result.env_steps,
+        wall_time_s=result.wall_time_s,
+        steps_per_second=result.steps_per_second,
+        unstable_steps=env.unstable_count,
+        time_split={k: round(v, 3) for k, v in vars(result.time_split).items()},
+    )
+    return summary, result
