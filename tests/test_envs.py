@@ -160,7 +160,7 @@ def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
     expected = sample_stack(
         stack.heights, stack.layout, env.head_pos[:, :2], env.yaw, env.task.grid
     )
-    np.testing.assert_array_equal(env.task.observe(env)["heightmap"], expected)
+    np.testing.assert_array_equal(env.task.observe(env, env.all)["heightmap"], expected)
 
 
 def test_new_terrain_after_every_episode_that_saw_it(quadruped: Genome) -> None:

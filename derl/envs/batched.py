@@ -72,9 +72,10 @@ class UnimalEnv:
         self._index_model()
         self._bind()
         task.setup(self)
+        self.all = np.arange(self.num_envs)
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self.unstable_count = 0
-        self._obs_spaces = {"proprioception": self._proprioception().shape[1]}
+        self._obs_spaces = {"proprioception": self._proprioception(self.all).shape[1]}
         self._obs_spaces.update(task.obs_spaces())
 
     # --- the BatchedEnv interface -------------------------------------------------------------
@@ -95,8 +96,8 @@ class UnimalEnv:
         """Start a new episode in every copy; deterministic for a given seed."""
         self.rng = np.random.default_rng(seed)
         self.task.start(self)
-        self._reset(np.arange(self.num_envs))
-        return self._observe()
+        self._reset(self.all)
+        return self._observe(self.all)
 
     def step(self, actions: np.ndarray) -> StepResult:
         """Apply (N, A) actions for one control step."""
@@ -124,15 +125,14 @@ class UnimalEnv:
         terminated = unstable | self._fallen() | self._off_arena() | self.task.success(self)
         truncated = ~terminated & (self.steps >= self.config.episode_steps)
         self.unstable_count += int(unstable.sum())
-        obs = self._observe()
+        obs = self._observe(self.all)
         final_obs = obs
         done = np.flatnonzero(terminated | truncated)
         if len(done):
             final_obs = {key: value.copy() for key, value in obs.items()}
             self._reset(done)
-            fresh = self._observe()
-            for key, value in obs.items():
-                value[done] = fresh[key][done]
+            for key, value in self._observe(done).items():
+                obs[key][done] = value
         return StepResult(obs, reward, terminated, truncated, final_obs, components)
 
     # --- state the tasks read -----------------------------------------------------------------
@@ -247,16 +247,17 @@ class UnimalEnv:
         half = np.array(self.task.arena) - ARENA_MARGIN
         return (np.abs(self.head_pos[:, :2]) > half).any(axis=1)
 
-    def _proprioception(self) -> np.ndarray:
+    def _proprioception(self, ids: np.ndarray) -> np.ndarray:
         return np.concatenate(
             [
-                self.qpos[:, self.joint_qpos],
-                self.qvel[:, self.agent_dofs],
-                self.sensordata[:, self.sensor_index],
+                self.qpos[np.ix_(ids, self.joint_qpos)],
+                self.qvel[np.ix_(ids, self.agent_dofs)],
+                self.sensordata[np.ix_(ids, self.sensor_index)],
             ],
             axis=1,
             dtype=np.float32,
         )
 
-    def _observe(self) -> Arrays:
-        return {"proprioception": self._proprioception(), **self.task.observe(self)}
+    def _observe(self, ids: np.ndarray) -> Arrays:
+        """Observations of copies ``ids``."""
+        return {"proprioception": self._proprioception(ids), **self.task.observe(self, ids)}

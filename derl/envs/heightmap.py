@@ -69,6 +69,12 @@ class HeightmapGrid(BaseModel):
         return self.nx * self.ny
 
     @cached_property
+    def cell_offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        """(forward, left) offsets in cells, float32 rows of shape (1, K), for lookups."""
+        cells = (self.offsets / self.resolution).astype(np.float32)
+        return cells[None, :, 0].copy(), cells[None, :, 1].copy()
+
+    @cached_property
     def reach(self) -> float:
         """Distance (m) from the body to the furthest point of the grid."""
         return float(np.hypot(self.offsets[:, 0], self.offsets[:, 1]).max())
@@ -113,17 +119,18 @@ def sample_stack(
     if xy.ndim != 2 or xy.shape[1] != 2 or yaw.shape != (xy.shape[0],):
         raise ValueError(f"need xy (N, 2) and yaw (N,), got {xy.shape} and {yaw.shape}")
     which = np.arange(xy.shape[0]) if which is None else which
-    res, ncol, nrow = layout.resolution, layout.ncol, layout.nrow
-    forward, left = (grid.offsets / res).T
-    cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    col0 = ((xy[:, 0] - layout.x_min) / res)[:, None]
-    row0 = ((xy[:, 1] - layout.y_min) / res)[:, None]
-    cols = _nearest(col0 + cos * forward - sin * left, ncol)
-    rows = _nearest(row0 + sin * forward + cos * left, nrow)
-    flat = heights.reshape(-1)
-    base = (which * (nrow * ncol))[:, None]
-    ground = ground_stack(heights, layout, xy, which)[:, None]
-    return flat[base + rows * ncol + cols] - ground
+    nrow, ncol = layout.nrow, layout.ncol
+    forward, left = grid.cell_offsets
+    cos, sin = np.cos(yaw).astype(np.float32)[:, None], np.sin(yaw).astype(np.float32)[:, None]
+    col0 = ((xy[:, 0] - layout.x_min) / layout.resolution).astype(np.float32)[:, None]
+    row0 = ((xy[:, 1] - layout.y_min) / layout.resolution).astype(np.float32)[:, None]
+    index = _nearest(row0 + sin * forward + cos * left, nrow)  # float32 throughout: 2x faster
+    index *= ncol
+    index += _nearest(col0 + cos * forward - sin * left, ncol)
+    index += (which * (nrow * ncol))[:, None]
+    heights_at = heights.reshape(-1)[index]
+    heights_at -= ground_stack(heights, layout, xy, which)[:, None]
+    return heights_at
 
 
 def ground_stack(
@@ -137,8 +144,10 @@ def ground_stack(
 
 
 def _nearest(coord: np.ndarray, n: int) -> np.ndarray:
-    """Index of the nearest of n vertices to a fractional vertex coordinate, clamped to the grid."""
-    return np.clip(np.rint(coord), 0, n - 1).astype(np.intp)
+    """Index of the nearest of n vertices to fractional vertex coordinates, clamped to the grid."""
+    np.clip(coord, 0, n - 1, out=coord)
+    coord += 0.5
+    return coord.astype(np.intp)
 
 
 def _axis(low: float, high: float, resolution: float) -> np.ndarray:

@@ -61,8 +61,8 @@ class Task(ABC):
         """Per-step quantities reported beside the reward terms (e.g. the fitness component)."""
         return {}
 
-    def observe(self, sim: Sim) -> Arrays:
-        """The task's observations, (N, size) each."""
+    def observe(self, sim: Sim, ids: np.ndarray) -> Arrays:
+        """The task's observations of copies ``ids``, (len(ids), size) each."""
         return {}
 
     def success(self, sim: Sim) -> np.ndarray:

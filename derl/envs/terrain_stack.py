@@ -86,5 +86,8 @@ class TerrainStack:
         """Ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
         return ground_stack(self.heights, self.layout, xy, ids)
 
-    def heightmap(self, xy: np.ndarray, yaw: np.ndarray, grid: HeightmapGrid) -> np.ndarray:
-        return sample_stack(self.heights, self.layout, xy, yaw, grid)
+    def heightmap(
+        self, xy: np.ndarray, yaw: np.ndarray, grid: HeightmapGrid, ids: np.ndarray
+    ) -> np.ndarray:
+        """Heightmaps of copies ``ids`` at heads ``xy`` facing ``yaw``."""
+        return sample_stack(self.heights, self.layout, xy, yaw, grid, ids)

@@ -109,9 +109,10 @@ class Variable(Flat):
     def ground(self, env: UnimalEnv, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)
 
-    def observe(self, env: UnimalEnv) -> Arrays:
+    def observe(self, env: UnimalEnv, ids: np.ndarray) -> Arrays:
         self.terrains.track(env.head_pos[:, 0])
-        return {"heightmap": self.terrains.heightmap(env.head_pos[:, :2], env.yaw, self.grid)}
+        xy, yaw = env.head_pos[ids, :2], env.yaw[ids]
+        return {"heightmap": self.terrains.heightmap(xy, yaw, self.grid, ids)}
 
 
 class BoxPlacement(BaseModel):
@@ -233,7 +234,7 @@ class Manipulation(Variable):
     def metrics(self, env: UnimalEnv, terms: Arrays) -> Arrays:
         return {"manipulation": terms["reach"] + terms["push"]}
 
-    def observe(self, env: UnimalEnv) -> Arrays:
+    def observe(self, env: UnimalEnv, ids: np.ndarray) -> Arrays:
         box = self.box_pos(env)
         box_vel = env.qvel[:, self.box_dof : self.box_dof + 3] - env.head_vel
         box_angvel = env.qvel[:, self.box_dof + 3 : self.box_dof + 6]
@@ -247,4 +248,4 @@ class Manipulation(Variable):
             axis=1,
             dtype=np.float32,
         )
-        return {**super().observe(env), "object": obj}
+        return {**super().observe(env, ids), "object": obj[ids]}
