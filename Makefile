@@ -15,10 +15,13 @@ install: $(BIN)/python
 install-test: $(BIN)/python
 	$(BIN)/pip install -q -e '.[test]'
 
-# The main job: sample a population of UNIMAL bodies and render them as a grid.
+# The main job (until `derl run` exists): sample a population of UNIMAL bodies, render them,
+# and train a controller for the first one on flat terrain.
 run: install
 	$(BIN)/derl unimal sample --n 16 --seed 0 --out runs/unimals
 	$(BIN)/derl unimal render runs/unimals --out runs/unimals/population.png
+	$(BIN)/derl train --genome runs/unimals/unimal_0000.json --task ft --steps 200000 --out runs/train
+	$(BIN)/derl rollout runs/train --episodes 2 --video runs/train/episode.gif
 
 lint: install-test
 	$(BIN)/ruff check .
