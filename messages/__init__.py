@@ -1,1 +1,52 @@
 """The wire: pydantic message models, the msgpack codec, key expressions, the schema version."""
+
+from messages.codec import DecodeError, decode, encode
+from messages.keys import InvalidKey, KeySpace, ParsedKey, check_segment, kind_of, parse
+from messages.schema import (
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    Ack,
+    Curve,
+    EvalJob,
+    EvalResult,
+    FitnessReport,
+    FitnessSource,
+    Member,
+    Message,
+    MessageBase,
+    PopulationSnapshot,
+    RunStatus,
+    Tournament,
+    TrainJob,
+    TrainProgress,
+    WorkerReady,
+)
+
+__all__ = [
+    "MESSAGE_TYPES",
+    "SCHEMA_VERSION",
+    "Ack",
+    "Curve",
+    "DecodeError",
+    "EvalJob",
+    "EvalResult",
+    "FitnessReport",
+    "FitnessSource",
+    "InvalidKey",
+    "KeySpace",
+    "Member",
+    "Message",
+    "MessageBase",
+    "ParsedKey",
+    "PopulationSnapshot",
+    "RunStatus",
+    "Tournament",
+    "TrainJob",
+    "TrainProgress",
+    "WorkerReady",
+    "check_segment",
+    "decode",
+    "encode",
+    "kind_of",
+    "parse",
+]

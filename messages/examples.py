@@ -1,0 +1,138 @@
+"""One valid message of every type, for tests, benchmarks and documentation.
+
+`examples(run, i)` varies the ids and numbers with `i`, so many distinct messages can be made;
+`checkpoint_bytes` sets the size of the FitnessReport's (pseudo-random) checkpoint.
+"""
+
+from __future__ import annotations
+
+import random
+
+from derl.unimal.genome import Genome, Joint, Limb
+from messages.schema import (
+    Ack,
+    Curve,
+    EvalJob,
+    EvalResult,
+    FitnessReport,
+    Member,
+    MessageBase,
+    PopulationSnapshot,
+    RunStatus,
+    Tournament,
+    TrainJob,
+    TrainProgress,
+    WorkerReady,
+)
+
+_JOINTS = (Joint(axis="x", range=(-30, 60), gear=200), Joint(axis="y", range=(-45, 0), gear=150))
+
+GENOME = Genome(
+    head_density=700,
+    limb_density=600,
+    limbs=(
+        Limb(id=0, paired=True, length=0.3, theta=45, phi=135, joints=_JOINTS),
+        Limb(id=1, parent=0, site="end", paired=True, length=0.2, theta=0, phi=180, joints=_JOINTS),
+    ),
+)
+"""A small valid body: one pair of two-segment legs."""
+
+
+def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[MessageBase]:
+    """One message of each type (in `MESSAGE_TYPES` order), all of run `run`."""
+    child, parent, node, job = f"a{i + 10}", f"a{i}", f"trainer-{i % 3}", f"job.{i}"
+    curve = Curve(env_steps=(4096 * (i + 1), 8192 * (i + 1)), returns=(0.5 * i, -1.25 + i))
+    return [
+        WorkerReady(run=run, node=node, role="trainer", host="host-1", pid=1000 + i, nthread=2),
+        TrainJob(
+            run=run,
+            job=job,
+            child=child,
+            node=node,
+            genome=GENOME,
+            task="ft",
+            steps=5_000_000,
+            seed=i,
+            parent=parent,
+            lease_s=3.0,
+        ),
+        EvalJob(
+            run=run,
+            job=job,
+            agent=child,
+            node=node,
+            genome=GENOME,
+            task="patrol",
+            seed=2**64 - 1 - i,
+            steps=1_000_000,
+            lease_s=2.5,
+        ),
+        Tournament(
+            run=run,
+            child=child,
+            contestants=(parent, f"a{i + 1}", parent),
+            fitness=(10.0 + i, 3.5, 10.0 + i),
+            parent=parent,
+            mutation="grow_limb",
+            detail="pair on limb 0 end",
+            iteration=i,
+        ),
+        TrainProgress(
+            run=run,
+            child=child,
+            job=job,
+            node=node,
+            env_steps=4096 * i,
+            total_steps=5_000_000,
+            recent_return=None if i % 2 else 1.5 * i,
+            steps_per_s=1234.5,
+        ),
+        FitnessReport(
+            run=run,
+            child=child,
+            job=job,
+            node=node,
+            fitness=123.25 + i,
+            fitness_source="window",
+            fitness_episodes=32,
+            curve=curve,
+            energy=4.5e3,
+            cost_of_work=0.75,
+            mass=6.25,
+            episodes=160,
+            env_steps=5_000_000,
+            wall_s=3600.5,
+            steps_per_s=1388.9,
+            checkpoint=random.Random(i).randbytes(checkpoint_bytes),
+        ),
+        Ack(run=run, of="FitnessReport", job=job, child=child, node=node),
+        EvalResult(
+            run=run,
+            agent=child,
+            task="patrol",
+            seed=7,
+            reward=-12.5 - i,
+            cost_of_work=1.5,
+            curve=curve,
+            node=node,
+            job=job,
+        ),
+        PopulationSnapshot(
+            run=run,
+            birth_counter=i + 2,
+            members=(
+                Member(agent=parent, fitness=10.0 + i, parent=None, birth=0),
+                Member(agent=child, fitness=-0.5, parent=parent, birth=i + 1),
+            ),
+        ),
+        RunStatus(
+            run=run,
+            born=i + 2,
+            target=4000,
+            best_fitness=10.0 + i,
+            best_agent=parent,
+            in_flight=3,
+            workers_alive=4,
+            done=False,
+        ),
+    ]

@@ -1,0 +1,236 @@
+"""The coordinator's journal: the messages it accepts or sends, appended to MCAP segment files.
+
+Coordinator state is a fold over this journal (DESIGN.md section 3). A run directory holds
+``journal/segment-0001.mcap``, ``segment-0002.mcap``, ... one per start: a crashed file cannot be
+appended to. Each message type has its own channel (topic ``derl/<run>/<kind>``, message encoding
+``msgpack``, schema encoding ``jsonschema`` with the model's JSON schema, schema name = type).
+
+Durability (research/bus-tech.md 5.3): chunked, uncompressed, and ``Writer.flush()`` after every
+message, which closes the chunk (each message gets its own CRC) and flushes the file. A SIGKILL
+then loses at most the message being written (no fsync: power loss is not covered). Reading goes
+record by record without the summary, so a segment cut at any byte gives back every message
+written before the cut; a closed segment can be compacted into zstd chunks.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+
+from mcap.exceptions import EndOfFile
+from mcap.records import Channel, McapRecord, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import CompressionType, Writer
+
+from messages import SCHEMA_VERSION, DecodeError, KeySpace, MessageBase, decode, encode, kind_of
+
+log = logging.getLogger(__name__)
+
+LIBRARY = "derl-journal"
+_SEGMENT = re.compile(r"segment-(\d+)\.mcap")
+
+
+class JournalWriter:
+    """One segment file, written message by message, each one flushed before `write` returns."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._file = self.path.open("xb")
+        self._writer = Writer(self._file, compression=CompressionType.NONE)
+        self._writer.start(profile="", library=LIBRARY)
+        self._writer.flush()
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._sequence = 0
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def write(self, msg: MessageBase, publish_time_ns: int | None = None) -> None:
+        """Append `msg` (log time now; publish time, e.g. the sender's, defaults to it)."""
+        data = encode(msg)
+        with self._lock:
+            if self._closed:
+                raise ValueError(f"{self.path} is closed")
+            now = time.time_ns()
+            self._writer.add_message(
+                self._channel(msg),
+                log_time=now,
+                data=data,
+                publish_time=now if publish_time_ns is None else publish_time_ns,
+                sequence=self._sequence & 0xFFFF_FFFF,
+            )
+            self._writer.flush()
+            self._sequence += 1
+
+    def _channel(self, msg: MessageBase) -> int:
+        channel = self._channels.get((msg.type, msg.run))
+        if channel is None:
+            if msg.type not in self._schemas:
+                schema = json.dumps(type(msg).model_json_schema()).encode()
+                self._schemas[msg.type] = self._writer.register_schema(
+                    msg.type, SchemaEncoding.JSONSchema, schema
+                )
+            channel = self._writer.register_channel(
+                KeySpace(msg.run).family(kind_of(msg)),
+                MessageEncoding.MessagePack,
+                self._schemas[msg.type],
+                {"schema_version": str(SCHEMA_VERSION)},
+            )
+            self._channels[(msg.type, msg.run)] = channel
+        return channel
+
+    def close(self) -> None:
+        """Write the summary and footer; closing twice is harmless."""
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._writer.finish()
+                self._file.close()
+
+    def __enter__(self) -> JournalWriter:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def segments(run_dir: Path) -> list[Path]:
+    """The journal segments of a run directory, oldest first."""
+    return [path for _, path in _numbered(run_dir)]
+
+
+def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
+    matches = ((_SEGMENT.fullmatch(p.name), p) for p in (Path(run_dir) / "journal").iterdir())
+    return sorted((int(m[1]), p) for m, p in matches if m)
+
+
+def replay(run_dir: Path) -> Iterator[MessageBase]:
+    """Every message of every segment, in the order written."""
+    for path in segments(run_dir):
+        yield from read_segment(path)
+
+
+def read_segment(path: Path) -> Iterator[MessageBase]:
+    """The messages of one segment in file order; what does not decode is logged and skipped."""
+    channels: dict[int, Channel] = {}
+    for record in _records(path):
+        if isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Message):
+            channel = channels.get(record.channel_id)
+            if channel is None or channel.message_encoding != MessageEncoding.MessagePack:
+                log.warning(
+                    "%s: message %d on an unknown or non-msgpack channel skipped",
+                    path,
+                    record.sequence,
+                )
+                continue
+            try:
+                yield decode(record.data)
+            except DecodeError as exc:
+                log.warning(
+                    "%s: message %d on %s skipped: %s", path, record.sequence, channel.topic, exc
+                )
+
+
+def _records(path: Path) -> Iterator[McapRecord]:
+    """The records of an MCAP file in order, up to the first one that is cut or corrupt."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        end = 0  # where the last complete record ends
+        try:
+            for record in StreamReader(f, validate_crcs=True).records:
+                end = f.tell()
+                yield record
+        except Exception as exc:  # a cut or corrupt tail: EndOfFile, CRC, struct, zstd errors...
+            if isinstance(exc, EndOfFile) and end == size:
+                log.info("%s has no footer (still open, or its writer died between messages)", path)
+            else:
+                log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size, exc)
+
+
+class Journal:
+    """A run's journal: opens the next segment for writing; `replay` reads all of them."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = Path(run_dir)
+        folder = self.run_dir / "journal"
+        folder.mkdir(parents=True, exist_ok=True)
+        number = max((n for n, _ in _numbered(self.run_dir)), default=0) + 1
+        self._writer = JournalWriter(folder / f"segment-{number:04d}.mcap")
+
+    @property
+    def segment(self) -> Path:
+        """The segment being written."""
+        return self._writer.path
+
+    def write(self, msg: MessageBase, publish_time_ns: int | None = None) -> None:
+        self._writer.write(msg, publish_time_ns)
+
+    def replay(self) -> Iterator[MessageBase]:
+        """Every message journaled in this run so far, this segment's included."""
+        return replay(self.run_dir)
+
+    def close(self) -> None:
+        self._writer.close()
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def compact(segment: Path) -> bool:
+    """Rewrite a closed (or crashed) segment with 1 MiB zstd chunks and a summary.
+
+    Returns False, leaving the file as it is, when the `zstandard` package is missing. Never call
+    it on the segment being written.
+    """
+    if importlib.util.find_spec("zstandard") is None:
+        return False
+    segment = Path(segment)
+    tmp = segment.with_name(segment.name + ".tmp")
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    with tmp.open("wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        writer.start(profile="", library=LIBRARY)
+        for record in _records(segment):
+            if isinstance(record, Schema) and record.id not in schemas:
+                schemas[record.id] = writer.register_schema(
+                    record.name, record.encoding, record.data
+                )
+            elif isinstance(record, Channel) and record.id not in channels:
+                channels[record.id] = writer.register_channel(
+                    record.topic,
+                    record.message_encoding,
+                    schemas.get(record.schema_id, 0),
+                    record.metadata,
+                )
+            elif isinstance(record, Message) and record.channel_id in channels:
+                writer.add_message(
+                    channels[record.channel_id],
+                    log_time=record.log_time,
+                    data=record.data,
+                    publish_time=record.publish_time,
+                    sequence=record.sequence,
+                )
+        writer.finish()
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, segment)
+    return True

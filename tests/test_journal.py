@@ -1,0 +1,213 @@
+"""The coordinator's MCAP journal on real files: replay, cut tails, kill -9, compaction."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import msgpack
+import pytest
+from mcap.reader import make_reader
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import CompressionType, Writer
+
+from messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, kind_of
+from messages.examples import examples
+from nodes.journal import Journal, JournalWriter, compact, read_segment, replay, segments
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def mixed(count: int, start: int = 0) -> list[MessageBase]:
+    """`count` messages cycling through every type, ids and numbers varying."""
+    types = len(MESSAGE_TYPES)
+    return [examples("run1", i // types)[i % types] for i in range(start, start + count)]
+
+
+def payloads(msgs: list[MessageBase]) -> list[bytes]:
+    return [encode(m) for m in msgs]
+
+
+def test_two_segments_replay_in_order(tmp_path: Path) -> None:
+    written = mixed(1000)
+    with Journal(tmp_path) as journal:
+        assert journal.segment == tmp_path / "journal" / "segment-0001.mcap"
+        for msg in written[:500]:
+            journal.write(msg)
+    with Journal(tmp_path) as journal:
+        assert journal.segment.name == "segment-0002.mcap"
+        assert payloads(list(journal.replay())) == payloads(written[:500])
+        for msg in written[500:]:
+            journal.write(msg)
+    assert [p.name for p in segments(tmp_path)] == ["segment-0001.mcap", "segment-0002.mcap"]
+    back = list(replay(tmp_path))
+    assert back == written
+    assert payloads(back) == payloads(written)
+
+
+def test_standard_reader_sees_channels_schemas_and_encodings(tmp_path: Path) -> None:
+    written = mixed(3 * len(MESSAGE_TYPES))
+    with JournalWriter(tmp_path / "j.mcap") as writer:
+        for i, msg in enumerate(written):
+            writer.write(msg, publish_time_ns=1000 + i)
+    with (tmp_path / "j.mcap").open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == len(written)
+        assert {c.compression for c in summary.chunk_indexes} == {""}
+        schemas = summary.schemas
+        assert sorted(s.name for s in schemas.values()) == sorted(MESSAGE_TYPES)
+        for schema in schemas.values():
+            assert schema.encoding == SchemaEncoding.JSONSchema == "jsonschema"
+            assert json.loads(schema.data) == MESSAGE_TYPES[schema.name].model_json_schema()
+        topics = {schemas[c.schema_id].name: c.topic for c in summary.channels.values()}
+        assert len(summary.channels) == len(MESSAGE_TYPES)
+        for msg in written:
+            assert topics[msg.type] == KeySpace("run1").family(kind_of(msg))
+        assert {c.message_encoding for c in summary.channels.values()} == {"msgpack"}
+        read = list(reader.iter_messages(log_time_order=False))
+    assert [decode(m.data) for _, _, m in read] == written
+    assert [m.publish_time for _, _, m in read] == [1000 + i for i in range(len(written))]
+    assert [m.sequence for _, _, m in read] == list(range(len(written)))
+    assert all(m.log_time > 10**18 for _, _, m in read)  # ns since the epoch
+
+
+def test_segment_cut_at_any_byte_gives_a_prefix(tmp_path: Path, caplog) -> None:
+    written = payloads(mixed(60))
+    full = tmp_path / "full.mcap"
+    with JournalWriter(full) as writer:
+        for payload in written:
+            writer.write(decode(payload))
+    data = full.read_bytes()
+    rng = random.Random(7)
+    cuts = sorted({0, 1, 8, 9, len(data) - 1, len(data), *rng.sample(range(len(data)), 30)})
+    counts = []
+    cut_file = tmp_path / "cut.mcap"
+    for cut in cuts:
+        cut_file.write_bytes(data[:cut])
+        with caplog.at_level(logging.INFO, logger="nodes.journal"):
+            back = payloads(list(read_segment(cut_file)))
+        assert back == written[: len(back)], cut
+        counts.append(len(back))
+    assert counts == sorted(counts)
+    assert counts[-1] == counts[-2] == len(written)  # the summary adds nothing to lose
+    assert counts[0] == 0
+    assert "broken tail skipped" in caplog.text
+
+
+def test_undecodable_records_are_skipped(tmp_path: Path, caplog) -> None:
+    good = mixed(2)
+    path = tmp_path / "odd.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f, compression=CompressionType.NONE)
+        writer.start()
+        schema = writer.register_schema("x", SchemaEncoding.JSONSchema, b"{}")
+        packed = writer.register_channel("derl/run1/x", MessageEncoding.MessagePack, schema)
+        as_json = writer.register_channel("derl/run1/y", MessageEncoding.JSON, schema)
+        raw = {**good[0].model_dump(), "schema_version": 99}
+        for channel, data in [
+            (packed, encode(good[0])),
+            (packed, b"\xc1garbage"),
+            (packed, msgpack.packb(raw)),
+            (as_json, b"{}"),
+            (packed, encode(good[1])),
+        ]:
+            writer.add_message(channel, log_time=1, data=data, publish_time=1)
+        writer.finish()
+    with caplog.at_level(logging.WARNING, logger="nodes.journal"):
+        assert list(read_segment(path)) == good
+    assert "not msgpack" in caplog.text
+    assert "schema version 99" in caplog.text
+    assert "non-msgpack channel" in caplog.text
+
+
+def test_corrupt_chunk_ends_the_segment_with_a_warning(tmp_path: Path, caplog) -> None:
+    written = payloads(mixed(20))
+    path = tmp_path / "flip.mcap"
+    with JournalWriter(path) as writer:
+        for payload in written:
+            writer.write(decode(payload))
+    data = bytearray(path.read_bytes())
+    at = data.find(written[10])
+    data[at + len(written[10]) // 2] ^= 0x40
+    path.write_bytes(data)
+    with caplog.at_level(logging.WARNING, logger="nodes.journal"):
+        assert payloads(list(read_segment(path))) == written[:10]
+    assert "CRCValidationError" in caplog.text
+
+
+CHILD = """
+import sys
+from messages import TrainProgress
+from nodes.journal import Journal
+
+journal = Journal(sys.argv[1])
+for i in range(10**9):
+    journal.write(TrainProgress(run="run1", child=f"a{i}", job="j", node="n", env_steps=i,
+                                total_steps=10**12, recent_return=None, steps_per_s=1.0))
+    print(i + 1, flush=True)
+"""
+
+
+def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    child = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(CHILD), str(tmp_path)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    reported = 0
+    try:
+        assert child.stdout is not None
+        for line in child.stdout:
+            reported = int(line)
+            if reported >= 300:
+                break
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait(timeout=10)
+        reported = max([reported, *map(int, child.stdout.read().split())])
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+            child.wait(timeout=10)
+    assert child.returncode == -signal.SIGKILL
+    back = list(replay(tmp_path))
+    assert 300 <= reported <= len(back) <= reported + 1
+    assert [m.env_steps for m in back] == list(range(len(back)))  # type: ignore[attr-defined]
+    with Journal(tmp_path) as journal:  # a restart: a new segment, the old one stays readable
+        assert journal.segment.name == "segment-0002.mcap"
+        journal.write(mixed(1)[0])
+        assert len(list(journal.replay())) == len(back) + 1
+
+
+def test_compaction_keeps_every_message(tmp_path: Path) -> None:
+    pytest.importorskip("zstandard")
+    written = payloads(mixed(200))
+    closed, crashed = tmp_path / "closed.mcap", tmp_path / "crashed.mcap"
+    with JournalWriter(closed) as writer:
+        for payload in written:
+            writer.write(decode(payload))
+    data = closed.read_bytes()
+    crashed.write_bytes(data[: data.find(written[150])])
+    before = closed.stat().st_size
+    assert compact(closed) and compact(crashed)
+    assert closed.stat().st_size < before / 2
+    assert payloads(list(read_segment(closed))) == written
+    assert payloads(list(read_segment(crashed))) == written[:150]
+    for path, count in ((closed, 200), (crashed, 150)):
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == count
+        assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        assert len(summary.channels) == len(MESSAGE_TYPES)

@@ -1,0 +1,356 @@
+"""The wire: every message round-trips, bad values and bad payloads give one error type, keys."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import typing
+
+import msgpack
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
+
+from messages import (
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    DecodeError,
+    FitnessReport,
+    FitnessSource,
+    InvalidKey,
+    KeySpace,
+    MessageBase,
+    TrainJob,
+    decode,
+    encode,
+    kind_of,
+    parse,
+)
+from messages.examples import GENOME, examples
+from messages.keys import ARITY, ROUTES
+
+SAMPLES = examples("run1", 3)
+PAYLOADS = [encode(m) for m in SAMPLES]
+
+
+def _dump(msg: MessageBase) -> dict[str, typing.Any]:
+    return msg.model_dump(mode="python")
+
+
+def _set(raw: dict[str, typing.Any], path: str, value: object) -> dict[str, typing.Any]:
+    """A copy of `raw` with the (dotted) field `path` set to `value`."""
+    head, _, rest = path.partition(".")
+    out = dict(raw)
+    out[head] = _set(raw[head], rest, value) if rest else value
+    return out
+
+
+def _sample(type_name: str) -> MessageBase:
+    return next(m for m in SAMPLES if m.type == type_name)
+
+
+# --- models and codec --------------------------------------------------------------------------
+
+
+def test_one_example_per_type_and_every_type_is_routed() -> None:
+    assert [m.type for m in SAMPLES] == list(MESSAGE_TYPES)
+    assert set(ROUTES) == set(MESSAGE_TYPES)
+    assert {kind for kind, _ in ROUTES.values()} <= set(ARITY)
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: m.type)
+def test_round_trip_is_exact(msg: MessageBase) -> None:
+    payload = encode(msg)
+    back = decode(payload, type(msg))
+    assert back == msg
+    assert type(back) is type(msg)
+    assert encode(back) == payload
+    assert msg.schema_version == SCHEMA_VERSION
+
+
+def test_genome_and_checkpoint_survive() -> None:
+    report = examples("r", 5, checkpoint_bytes=900_000)[5]
+    assert isinstance(report, FitnessReport)
+    back = decode(encode(report), FitnessReport)
+    assert back.checkpoint == report.checkpoint and len(back.checkpoint) == 900_000
+    job = decode(encode(_sample("TrainJob")), TrainJob)
+    assert job.genome == GENOME and job.genome.num_limbs == 4
+
+
+def test_missing_measure_is_nan_and_survives() -> None:
+    report = _sample("FitnessReport").model_copy(update={"energy": math.nan})
+    back = FitnessReport.model_validate(decode(encode(report)).model_dump())
+    assert math.isnan(back.energy) and encode(back) == encode(report)
+
+
+def test_encoding_is_deterministic() -> None:
+    assert [encode(m) for m in examples("run1", 3)] == PAYLOADS
+
+
+def test_messages_are_frozen() -> None:
+    with pytest.raises(ValidationError):
+        _sample("Ack").node = "other"  # type: ignore[misc]
+
+
+def test_fitness_source_matches_lifetime_learning() -> None:
+    from derl.rl.episodes import FitnessSource as RLFitnessSource
+
+    assert typing.get_args(FitnessSource) == typing.get_args(RLFitnessSource)
+
+
+BAD_VALUES = [
+    ("WorkerReady", "role", "coordinator"),
+    ("WorkerReady", "pid", 0),
+    ("WorkerReady", "nthread", 0),
+    ("WorkerReady", "node", ""),
+    ("WorkerReady", "node", "a/b"),
+    ("WorkerReady", "node", "a*"),
+    ("WorkerReady", "run", "run$1"),
+    ("WorkerReady", "node", "x" * 129),
+    ("TrainJob", "seed", -1),
+    ("TrainJob", "seed", 2**64),
+    ("TrainJob", "steps", 0),
+    ("TrainJob", "lease_s", 0.0),
+    ("TrainJob", "lease_s", math.inf),
+    ("TrainJob", "task", "a b"),
+    ("TrainJob", "genome.head_density", 650),
+    ("TrainJob", "genome.limbs", ({"id": 0},)),
+    ("EvalJob", "agent", "?"),
+    ("Tournament", "parent", "a5"),
+    ("Tournament", "fitness", (1.0, 2.0)),
+    ("Tournament", "fitness", (1.0, math.nan, 1.0)),
+    ("Tournament", "mutation", "teleport"),
+    ("Tournament", "child", "a3"),
+    ("Tournament", "contestants", ()),
+    ("Tournament", "iteration", -1),
+    ("TrainProgress", "env_steps", 10_000_000),
+    ("TrainProgress", "recent_return", math.inf),
+    ("TrainProgress", "steps_per_s", -1.0),
+    ("FitnessReport", "fitness", math.nan),
+    ("FitnessReport", "fitness", -math.inf),
+    ("FitnessReport", "fitness_source", "guess"),
+    ("FitnessReport", "energy", -1.0),
+    ("FitnessReport", "cost_of_work", math.inf),
+    ("FitnessReport", "mass", 0.0),
+    ("FitnessReport", "checkpoint", "not bytes"),
+    ("FitnessReport", "curve.returns", (1.0,)),
+    ("FitnessReport", "curve.env_steps", (10, 5)),
+    ("Ack", "of", "TrainJob"),
+    ("EvalResult", "reward", math.nan),
+    ("PopulationSnapshot", "birth_counter", 1),
+    ("PopulationSnapshot", "members", ({"agent": "a", "fitness": 1.0, "birth": 0},) * 2),
+    ("RunStatus", "best_agent", None),
+    ("RunStatus", "target", 0),
+    ("RunStatus", "in_flight", -1),
+]
+
+
+@pytest.mark.parametrize(("type_name", "field", "value"), BAD_VALUES)
+def test_out_of_range_values_are_rejected(type_name: str, field: str, value: object) -> None:
+    raw = _set(_dump(_sample(type_name)), field, value)
+    with pytest.raises(ValidationError):
+        MESSAGE_TYPES[type_name].model_validate(raw)
+    if value == 2**64:
+        return  # msgpack cannot carry it: only the model sees it
+    reason = f"invalid {type_name}: ({field.split('.')[0]}|Value error)"
+    with pytest.raises(DecodeError, match=reason):
+        decode(msgpack.packb(raw))
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: m.type)
+def test_unknown_keys_are_rejected(msg: MessageBase) -> None:
+    raw = {**_dump(msg), "surprise": 1}
+    with pytest.raises(ValidationError):
+        type(msg).model_validate(raw)
+    with pytest.raises(DecodeError, match="surprise"):
+        decode(msgpack.packb(raw))
+
+
+@pytest.mark.parametrize(
+    ("raw", "reason"),
+    [
+        ({**_dump(SAMPLES[0]), "schema_version": 2}, "schema version 2, expected 1"),
+        ({k: v for k, v in _dump(SAMPLES[0]).items() if k != "schema_version"}, "schema version"),
+        ({**_dump(SAMPLES[0]), "type": "Teleport"}, "unknown message type 'Teleport'"),
+        ({**_dump(SAMPLES[0]), "type": [1, 2]}, "unknown message type"),
+        ({k: v for k, v in _dump(SAMPLES[0]).items() if k != "type"}, "no message type"),
+        ([1, 2, 3], "not a map"),
+    ],
+)
+def test_bad_envelopes_say_why(raw: object, reason: str) -> None:
+    with pytest.raises(DecodeError, match=reason):
+        decode(msgpack.packb(raw))
+
+
+@pytest.mark.parametrize("payload", [b"", b"\xc1", PAYLOADS[1][:-1], PAYLOADS[0] + b"\x00"])
+def test_broken_msgpack_is_a_decode_error(payload: bytes) -> None:
+    with pytest.raises(DecodeError, match="not msgpack"):
+        decode(payload)
+
+
+def test_expected_type_is_enforced() -> None:
+    with pytest.raises(DecodeError, match="expected FitnessReport, got Ack"):
+        decode(encode(_sample("Ack")), FitnessReport)
+
+
+def _decode_or_reject(payload: bytes) -> None:
+    with contextlib.suppress(DecodeError):
+        decode(payload)
+
+
+FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@FUZZ
+@given(st.binary(max_size=512))
+def test_random_bytes_only_raise_decode_error(payload: bytes) -> None:
+    _decode_or_reject(payload)
+
+
+@FUZZ
+@given(st.sampled_from(PAYLOADS), st.data())
+def test_mutated_payloads_only_raise_decode_error(payload: bytes, data: st.DataObject) -> None:
+    buf = bytearray(payload)
+    for _ in range(data.draw(st.integers(1, 4))):
+        at = data.draw(st.integers(0, len(buf) - 1))
+        action = data.draw(st.sampled_from(["flip", "byte", "cut", "insert"]))
+        if action == "flip":
+            buf[at] ^= 1 << data.draw(st.integers(0, 7))
+        elif action == "byte":
+            buf[at] = data.draw(st.integers(0, 255))
+        elif action == "cut":
+            del buf[at:]
+            break
+        else:
+            buf[at:at] = data.draw(st.binary(min_size=1, max_size=9))
+    _decode_or_reject(bytes(buf))
+
+
+JUNK = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | st.floats()
+    | st.text(max_size=8)
+    | st.binary(max_size=8),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner),
+    max_leaves=12,
+)
+
+
+@FUZZ
+@given(st.sampled_from(SAMPLES), st.data(), JUNK)
+def test_junk_in_any_field_only_raises_decode_error(
+    msg: MessageBase, data: st.DataObject, junk: object
+) -> None:
+    raw = _dump(msg)
+    field = data.draw(st.sampled_from(sorted(raw)))
+    if isinstance(raw[field], dict):  # reach into nested models (genome, curve)
+        raw = _set(raw, f"{field}.{data.draw(st.sampled_from(sorted(raw[field])))}", junk)
+    else:
+        raw[field] = junk
+    _decode_or_reject(msgpack.packb(raw))
+
+
+@FUZZ
+@given(st.dictionaries(st.text(max_size=12), JUNK, max_size=6), st.sampled_from(list(ROUTES)))
+def test_junk_maps_only_raise_decode_error(raw: dict[str, object], type_name: str) -> None:
+    _decode_or_reject(msgpack.packb({"schema_version": 1, "type": type_name, **raw}))
+
+
+def test_deep_nesting_is_a_decode_error() -> None:
+    for depth in (100, 10_000):
+        with pytest.raises(DecodeError):
+            decode(b"\x91" * depth + b"\x00")
+
+
+# --- keys --------------------------------------------------------------------------------------
+
+KS = KeySpace("run1")
+BUILT = [
+    (KS.alive("trainer", "t1"), "alive", ("trainer", "t1")),
+    (KS.ready("t1"), "ready", ("t1",)),
+    (KS.job("t1"), "job", ("t1",)),
+    (KS.tournament("a12"), "tournament", ("a12",)),
+    (KS.progress("a12"), "progress", ("a12",)),
+    (KS.fitness("a12"), "fitness", ("a12",)),
+    (KS.ack("t1"), "ack", ("t1",)),
+    (KS.eval("a12", "patrol"), "eval", ("a12", "patrol")),
+    (KS.population(), "population", ()),
+    (KS.status(), "status", ()),
+]
+
+
+@pytest.mark.parametrize(("key", "kind", "parts"), BUILT, ids=lambda v: str(v))
+def test_built_keys_parse_back_and_are_zenoh_keys(
+    key: str, kind: str, parts: tuple[str, ...]
+) -> None:
+    assert key == "/".join(("derl", "run1", kind, *parts))
+    assert parse(key) == ("run1", kind, parts)
+    expr = zenoh.KeyExpr(key)
+    assert zenoh.KeyExpr(KS.all(kind)).includes(expr)
+    assert zenoh.KeyExpr(KS.everything()).includes(expr)
+    assert not zenoh.KeyExpr(KeySpace("run2").everything()).intersects(expr)
+
+
+def test_wildcards() -> None:
+    assert KS.all("fitness") == "derl/run1/fitness/*"
+    assert KS.all("alive", "trainer") == "derl/run1/alive/trainer/*"
+    assert KS.all("eval") == "derl/run1/eval/*/*"
+    assert KS.all("status") == "derl/run1/status"
+    assert KS.everything() == "derl/run1/**"
+    assert KS.family("fitness") == "derl/run1/fitness"
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: m.type)
+def test_messages_route_to_their_kind(msg: MessageBase) -> None:
+    kind, fields = ROUTES[msg.type]
+    assert kind == kind_of(msg)
+    assert parse(KS.key_for(msg)) == ("run1", kind, tuple(getattr(msg, f) for f in fields))
+    with pytest.raises(InvalidKey):
+        KeySpace("run2").key_for(msg)
+
+
+UNSAFE = ["", "a/b", "*", "**", "a$b", "q?", "#", "a b", "é", "x" * 129, "a\n"]
+
+
+@pytest.mark.parametrize("bad", UNSAFE)
+def test_unsafe_ids_are_rejected(bad: str) -> None:
+    with pytest.raises(InvalidKey):
+        KeySpace(bad)
+    with pytest.raises(InvalidKey):
+        KS.fitness(bad)
+    with pytest.raises(InvalidKey):
+        KS.alive(bad, "n")
+    with pytest.raises(InvalidKey):
+        KS.all("eval", bad)
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "derl/run1/teleport/x",
+        "derl/run1/fitness",
+        "derl/run1/fitness/a/b",
+        "derl/run1/status/x",
+        "derl/run1/fitness/*",
+        "derl//status",
+        "other/run1/status",
+        "derl/run1",
+        "",
+        "derl/run1/eval/a12/",
+    ],
+)
+def test_parse_rejects_foreign_keys(key: str) -> None:
+    with pytest.raises(InvalidKey):
+        parse(key)
+
+
+def test_unknown_kinds_are_rejected_when_building() -> None:
+    for build in (lambda: KS.key("teleport"), lambda: KS.all("x"), lambda: KS.family("x")):
+        with pytest.raises(InvalidKey, match="unknown kind"):
+            build()
+    with pytest.raises(InvalidKey, match="2 id segments"):
+        KS.key("eval", "a")
