@@ -22,10 +22,10 @@ import mujoco
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bodies import reference_body  # noqa: E402
+from bodies import reference_body
 
-from derl.envs import make_env  # noqa: E402
-from derl.lifetime import learn, ppo_config  # noqa: E402
+from derl.envs import make_env
+from derl.lifetime import learn, ppo_config
 
 
 def raw_physics_rate(world: str, limbs: int, steps: int = 200) -> float:

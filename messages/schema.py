@@ -100,6 +100,7 @@ class TrainJob(MessageBase):
     seed: Seed
     parent: Id | None = None
     lease_s: LeaseSeconds
+    num_envs: Annotated[int, Field(ge=1, le=65_536)] = 32
 
 
 class EvalJob(MessageBase):
@@ -114,6 +115,7 @@ class EvalJob(MessageBase):
     seed: Seed
     steps: Steps
     lease_s: LeaseSeconds
+    num_envs: Annotated[int, Field(ge=1, le=65_536)] = 32
 
 
 class Tournament(MessageBase):
@@ -246,6 +248,10 @@ class RunStatus(MessageBase):
     best_agent: Id | None = None
     in_flight: Count
     workers_alive: Count
+    evaluated: Count = 0
+    eval_target: Count = 0
+    rejected: Count = 0
+    steps_per_s: NonNegative = 0.0
     done: bool = False
 
     @model_validator(mode="after")

@@ -111,7 +111,10 @@ def segments(run_dir: Path) -> list[Path]:
 
 
 def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
-    matches = ((_SEGMENT.fullmatch(p.name), p) for p in (Path(run_dir) / "journal").iterdir())
+    folder = Path(run_dir) / "journal"
+    if not folder.is_dir():
+        return []
+    matches = ((_SEGMENT.fullmatch(p.name), p) for p in folder.iterdir())
     return sorted((int(m[1]), p) for m, p in matches if m)
 
 

@@ -32,14 +32,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     train.add_argument("--envs", type=int, default=32, help="environment copies (paper: 32)")
     train.add_argument("--threads", type=int, default=1, help="simulation threads")
     train.add_argument("--out", type=Path, required=True, help="output directory")
-    train.set_defaults(run=_train)
+    train.set_defaults(handler=_train)
 
     rollout = commands.add_parser("rollout", help="replay a trained policy deterministically")
     rollout.add_argument("dir", type=Path, help="output directory of `derl train`")
     rollout.add_argument("--episodes", type=int, default=3)
     rollout.add_argument("--seed", type=int, default=0)
     rollout.add_argument("--video", type=Path, help="write a video (.mp4 or .gif) of episode 1")
-    rollout.set_defaults(run=_rollout)
+    rollout.set_defaults(handler=_rollout)
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -21,22 +21,22 @@ def register(commands: argparse._SubParsersAction) -> None:
     sample.add_argument("--n", type=int, default=16, help="number of bodies (default 16)")
     sample.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sample.add_argument("--out", type=Path, required=True, help="output directory")
-    sample.set_defaults(run=_sample)
+    sample.set_defaults(handler=_sample)
 
     show = sub.add_parser("show", help="print a body's descriptors")
     show.add_argument("file", type=Path, help="genome JSON file")
     show.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    show.set_defaults(run=_show)
+    show.set_defaults(handler=_show)
 
     render = sub.add_parser("render", help="draw a body, or a directory of bodies as a grid")
     render.add_argument("path", type=Path, help="genome JSON file, or a directory of them")
     render.add_argument("--out", type=Path, required=True, help="PNG file to write")
     render.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
-    render.set_defaults(run=_render)
+    render.set_defaults(handler=_render)
 
     count = sub.add_parser("count", help="count the distinct bodies of the design space")
     count.add_argument("--max-limbs", type=int, default=10)
-    count.set_defaults(run=_count)
+    count.set_defaults(handler=_count)
 
 
 def load_genome(path: Path):  # -> Genome

@@ -1,0 +1,126 @@
+"""Aging (regularized) tournament evolution as a deterministic state machine, with no bus.
+
+The population is the P most recently born agents, in birth order. The initial P bodies come from
+the run's seed; afterwards each tournament draws T members with replacement, the fittest is the
+parent (the first drawn among equals), and one mutation of its body is the child. Tournament k
+draws from its own generator seeded by (seed, k), so a decision depends only on the state it was
+made in: replaying recorded decisions and births rebuilds the same state, and the next decision
+is the one the crashed run would have made.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from derl.evolution.config import EvolutionConfig
+from derl.unimal import Genome, MutationFailed, mutate, sample_population
+
+MAX_DRAWS = 100
+
+
+@dataclass(frozen=True)
+class Member:
+    """A born agent."""
+
+    agent: str
+    fitness: float
+    parent: str | None
+    birth: int
+
+
+@dataclass(frozen=True)
+class Child:
+    """A body to train: an initial one (no parent) or a tournament's mutated winner."""
+
+    child: str
+    genome: Genome
+    parent: str | None = None
+    contestants: tuple[str, ...] = ()
+    fitness: tuple[float, ...] = ()
+    mutation: str = ""
+    detail: str = ""
+    iteration: int = -1
+
+
+class Evolution:
+    """Who is born, who may be a parent, and which child comes next."""
+
+    def __init__(self, config: EvolutionConfig, initial: list[Genome] | None = None) -> None:
+        """`initial`: the P initial bodies, if already drawn (else drawn from the seed)."""
+        self.config = config
+        if initial is None:
+            initial = sample_population(config.population, np.random.default_rng([config.seed, 0]))
+        if len(initial) != config.population:
+            raise ValueError(
+                f"{len(initial)} initial bodies for a population of {config.population}"
+            )
+        self.initial = [Child(f"i{k:04d}", genome) for k, genome in enumerate(initial)]
+        self.genomes: dict[str, Genome] = {c.child: c.genome for c in self.initial}
+        self.parents: dict[str, str | None] = {c.child: None for c in self.initial}
+        self.born: list[Member] = []
+        self.fitness: dict[str, float] = {}
+        self.iterations = 0
+
+    @property
+    def population(self) -> list[Member]:
+        """The P most recently born agents."""
+        return self.born[-self.config.population :]
+
+    @property
+    def initial_born(self) -> bool:
+        return all(child.child in self.fitness for child in self.initial)
+
+    @property
+    def done(self) -> bool:
+        return len(self.born) >= self.config.total
+
+    def best(self) -> Member | None:
+        return max(self.born, key=lambda m: m.fitness, default=None)
+
+    def tournament(self) -> Child:
+        """Decide the next child (call `record` with it to make it part of the state)."""
+        if not self.initial_born:
+            raise RuntimeError("tournaments start once the initial population is born")
+        rng = np.random.default_rng([self.config.seed, 1, self.iterations])
+        population = self.population
+        reason = ""
+        for _ in range(MAX_DRAWS):
+            drawn = [
+                population[i] for i in rng.integers(len(population), size=self.config.tournament)
+            ]
+            parent = max(drawn, key=lambda m: m.fitness)
+            try:
+                genome, mutation = mutate(self.genomes[parent.agent], rng)
+            except MutationFailed as failure:
+                reason = str(failure)
+                continue
+            return Child(
+                child=f"c{self.iterations:05d}",
+                genome=genome,
+                parent=parent.agent,
+                contestants=tuple(m.agent for m in drawn),
+                fitness=tuple(m.fitness for m in drawn),
+                mutation=mutation.op,
+                detail=mutation.detail,
+                iteration=self.iterations,
+            )
+        raise RuntimeError(f"no tournament produced a valid child in {MAX_DRAWS} draws: {reason}")
+
+    def record(self, child: Child) -> None:
+        """A decided tournament becomes a fact (idempotent)."""
+        if child.child in self.genomes:
+            return
+        self.genomes[child.child] = child.genome
+        self.parents[child.child] = child.parent
+        self.iterations = max(self.iterations, child.iteration + 1)
+
+    def birth(self, agent: str, fitness: float) -> Member | None:
+        """`agent` is born with `fitness`; None if it was born already or is unknown."""
+        if agent in self.fitness or agent not in self.genomes:
+            return None
+        member = Member(agent, fitness, self.parents[agent], len(self.born))
+        self.born.append(member)
+        self.fitness[agent] = fitness
+        return member

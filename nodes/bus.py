@@ -1,0 +1,189 @@
+"""The Zenoh side of every node: a session configured from flags, typed publish and subscribe.
+
+Defaults follow the measurements in bus-tech.md: multicast scouting OFF (only explicit
+endpoints), a 2.5 s transport lease (a hung node is declared dead 2.5 s after it stops), control
+messages sent with `CongestionControl.BLOCK` (the default DROP loses bursts even on loopback),
+monitors subscribing through a `RingChannel` so a slow viewer can never stall a trainer. A
+``--zenoh-config`` file (TLS, access control, anything Zenoh accepts) is the base; flags given on
+the command line override it, and multicast stays off unless ``--multicast`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import queue
+import socket
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
+from messages import DecodeError, KeySpace, MessageBase, decode, encode
+
+log = logging.getLogger("derl.bus")
+
+LEASE_MS = 2500
+MSGPACK = zenoh.Encoding("application/msgpack")
+
+
+class ZenohOptions(BaseModel):
+    """How a node joins the bus."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast: bool = False
+    lease_ms: int = Field(LEASE_MS, ge=100)
+    config_file: Path | None = None
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True) -> None:
+    group = parser.add_argument_group("bus")
+    group.add_argument("--run", required=run_required, help="run id (keys live under derl/<run>/)")
+    for flag, example in (("--listen", "tcp/0.0.0.0:7447"), ("--connect", "tcp/10.0.0.5:7447")):
+        group.add_argument(
+            flag,
+            action="append",
+            default=[],
+            metavar="EP",
+            help=f"endpoint to {flag[2:]} {'to' if flag == '--connect' else 'on'}, "
+            f"e.g. {example} (repeatable)",
+        )
+    group.add_argument("--mode", choices=["peer", "client"], default="peer")
+    group.add_argument("--zenoh-config", type=Path, help="Zenoh JSON5 config (TLS, ACL, ...)")
+    group.add_argument("--multicast", action="store_true", help="turn multicast scouting on")
+
+
+def options_from(args: argparse.Namespace, mode: str | None = None) -> ZenohOptions:
+    return ZenohOptions(
+        mode=mode or args.mode,
+        listen=tuple(args.listen),
+        connect=tuple(args.connect),
+        multicast=args.multicast,
+        config_file=args.zenoh_config,
+    )
+
+
+def zenoh_config(options: ZenohOptions) -> zenoh.Config:
+    """The Zenoh config of `options` (unknown keys in a config file are Zenoh's errors)."""
+    config = (
+        zenoh.Config.from_file(str(options.config_file)) if options.config_file else zenoh.Config()
+    )
+
+    def put(key: str, value: object) -> None:
+        config.insert_json5(key, json.dumps(value))
+
+    put("mode", options.mode)
+    if options.listen or not options.config_file:
+        put("listen/endpoints", list(options.listen))
+    if options.connect or not options.config_file:
+        put("connect/endpoints", list(options.connect))
+    put("scouting/multicast/enabled", options.multicast)
+    put("transport/link/tx/lease", options.lease_ms)
+    if options.mode == "client":
+        put("connect/timeout_ms", 30_000)  # wait for a router that starts a little later
+    return config
+
+
+def node_name(role: str, index: int = 0) -> str:
+    """A node id unique on the network: role, host, process and index, as a safe key segment."""
+    import os
+    import re
+
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:64] or "host"
+    return f"{role}-{host}-{os.getpid()}-{index}"
+
+
+class Bus:
+    """Typed messages over one Zenoh session for one run; counts what it had to reject."""
+
+    def __init__(self, session: zenoh.Session, run: str) -> None:
+        self.session = session
+        self.keys = KeySpace(run)
+        self.run = run
+        self.rejected: Counter[str] = Counter()
+        self._subscribers: list[zenoh.Subscriber] = []
+
+    def publish(self, msg: MessageBase, reliable: bool = True) -> None:
+        """Publish on the message's own key; BLOCK when `reliable` (control plane), else DROP."""
+        self.session.put(
+            self.keys.key_for(msg),
+            encode(msg),
+            encoding=MSGPACK.with_schema(msg.type),
+            congestion_control=(
+                zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+            ),
+        )
+
+    def subscribe(
+        self,
+        key_expr: str,
+        handler: Callable[[MessageBase], None],
+        kinds: tuple[type[MessageBase], ...] = (),
+    ) -> None:
+        """Decode every sample on `key_expr` and hand valid messages of this run (and of the
+        given types, if any) to `handler`; log and count the rest."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            message = self.check(sample.payload.to_bytes(), str(sample.key_expr), kinds)
+            if message is not None:
+                handler(message)
+
+        self._subscribers.append(self.session.declare_subscriber(key_expr, on_sample))
+
+    def inbox(self, key_expr: str, kinds: tuple[type[MessageBase], ...] = ()) -> queue.Queue:
+        """A queue that receives the valid messages on `key_expr`."""
+        box: queue.Queue[MessageBase] = queue.Queue()
+        self.subscribe(key_expr, box.put, kinds)
+        return box
+
+    def check(
+        self, payload: bytes, key: str, kinds: tuple[type[MessageBase], ...] = ()
+    ) -> MessageBase | None:
+        """The message in a payload received on `key`, or None (logged and counted)."""
+        try:
+            message = decode(payload)
+        except DecodeError as error:
+            return self._reject("malformed", f"{key}: {error}")
+        if message.run != self.run:
+            return self._reject("other run", f"{key}: message of run {message.run!r}")
+        if kinds and not isinstance(message, kinds):
+            return self._reject("unexpected type", f"{key}: unexpected {message.type}")
+        if self.keys.key_for(message) != key:
+            return self._reject("wrong key", f"{key}: a {message.type} belongs on another key")
+        return message
+
+    def _reject(self, why: str, detail: str) -> None:
+        self.rejected[why] += 1
+        log.warning("rejected (%s) %s", why, detail[:300])
+        return None
+
+    def token(self, role: str, node: str) -> zenoh.LivelinessToken:
+        """Announce this node alive until the session closes or the process dies."""
+        return self.session.liveliness().declare_token(self.keys.alive(role, node))
+
+    def watch_alive(self, handler: Callable[[str, str, bool], None]) -> None:
+        """Call `handler(role, node, alive)` for every token of this run, existing ones too."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            parts = str(sample.key_expr).split("/")
+            if len(parts) == 5:
+                handler(parts[3], parts[4], sample.kind == zenoh.SampleKind.PUT)
+
+        self._subscribers.append(
+            self.session.liveliness().declare_subscriber(
+                self.keys.all("alive"), on_sample, history=True
+            )
+        )
+
+
+def open_session(options: ZenohOptions) -> zenoh.Session:
+    """Open a Zenoh session; use it as a context manager (an open session blocks exit)."""
+    return zenoh.open(zenoh_config(options))
