@@ -28,6 +28,9 @@ from messages import DecodeError, KeySpace, MessageBase, decode, encode
 log = logging.getLogger("derl.bus")
 
 LEASE_MS = 2500
+# A peer must listen somewhere for the others to mesh with it (gossip tells them where): by
+# default an ephemeral loopback port; across hosts, give --listen with a routable address.
+LOOPBACK_ANY_PORT = ("tcp/127.0.0.1:0",)
 MSGPACK = zenoh.Encoding("application/msgpack")
 
 
@@ -82,7 +85,8 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
 
     put("mode", options.mode)
     if options.listen or not options.config_file:
-        put("listen/endpoints", list(options.listen))
+        listen = options.listen or (LOOPBACK_ANY_PORT if options.mode == "peer" else ())
+        put("listen/endpoints", list(listen))
     if options.connect or not options.config_file:
         put("connect/endpoints", list(options.connect))
     put("scouting/multicast/enabled", options.multicast)

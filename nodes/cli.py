@@ -7,6 +7,9 @@ import logging
 import os
 import sys
 
+# MuJoCo picks its OpenGL backend when first imported: offscreen EGL unless the user chose one.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 from nodes import bus_cli, run, train_cli, unimal_cli
 
 
@@ -24,7 +27,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display
     logging.basicConfig(
         level=logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",

@@ -1,13 +1,34 @@
-"""Tasks by name: the three evolution worlds and the eight test tasks."""
+"""Tasks by name: the three evolution worlds (`WORLDS`) and the eight test tasks (`TEST_TASKS`)."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from derl.envs.eval_tasks import (
+    Escape,
+    Exploration,
+    Incline,
+    ManipulateBall,
+    Obstacle,
+    Patrol,
+    PointNav,
+    PushBoxIncline,
+)
 from derl.envs.task import Task
 from derl.envs.worlds import Flat, Manipulation, Variable
 
-TASKS: dict[str, type[Task]] = {task.name: task for task in (Flat, Variable, Manipulation)}
+WORLDS = (Flat, Variable, Manipulation)
+TEST_TASKS = (
+    Patrol,
+    PointNav,
+    Obstacle,
+    Exploration,
+    Escape,
+    Incline,
+    PushBoxIncline,
+    ManipulateBall,
+)
+TASKS: dict[str, type[Task]] = {task.name: task for task in (*WORLDS, *TEST_TASKS)}
 
 
 def make_task(name: str, **options: Any) -> Task:
