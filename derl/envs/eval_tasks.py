@@ -30,9 +30,6 @@ start 10 m after the back edge and may overlap or run past the sides.
 from __future__ import annotations
 
 from abc import abstractmethod
-from collections.abc import Callable
-from dataclasses import replace
-from functools import partial
 from typing import TYPE_CHECKING, ClassVar
 
 import mujoco
@@ -42,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from derl.envs.heightmap import HeightmapGrid
 from derl.envs.task import Arrays
-from derl.envs.terrain import Range, TerrainConfig
+from derl.envs.terrain import Range, Segment, Terrain, TerrainConfig
 from derl.envs.terrain_stack import TerrainStack
 from derl.envs.worlds import Flat, Manipulation, RewardWeights, Variable, ctrl_cost
 
@@ -176,33 +173,6 @@ class Exploration(Flat):
 # --- heightfield tasks: obstacle and escape ------------------------------------------------------
 
 
-class _DrawnStack(TerrainStack):
-    """VT's per-copy heightfields, renewed after the episodes that came near an obstacle, but
-    drawn by ``draw(rng) -> heights`` (laid out like ``config``'s grid) instead of the corridor
-    generator; obstacles start at x = ``obstacles_from`` (-inf: everywhere)."""
-
-    def __init__(
-        self,
-        config: TerrainConfig,
-        batch: mujoco.batch.Batch,
-        draw: Callable[[np.random.Generator], np.ndarray],
-        obstacles_from: float,
-    ) -> None:
-        super().__init__(config, batch)
-        self.draw = draw
-        self.obstacles_from = obstacles_from
-
-    def renew(self, ids: np.ndarray, rng: np.random.Generator, reach: float) -> None:
-        seen = ids[self.furthest[ids] + reach >= self.first_obstacle[ids]]
-        for i in seen:
-            terrain = replace(self.layout, heights=self.draw(rng))
-            terrain.write_to(self.models[i], self.hfield)
-            self.heights[i] = terrain.heights
-        self.first_obstacle[seen] = self.obstacles_from
-        self.generated += len(seen)
-        self.furthest[ids] = -np.inf
-
-
 class ObstacleConfig(BaseModel):
     """The obstacle corridor; lengths in meters. The paper's sizes and the original's boxes."""
 
@@ -274,9 +244,17 @@ class Obstacle(Variable):
         super().__init__(self.config.terrain, weights, grid)
 
     def setup(self, env: UnimalEnv) -> None:
-        draw = partial(draw_obstacles, self.config)
-        start = -self.config.size_x / 2 + self.config.start_flat
-        self.terrains = _DrawnStack(self.terrain, env.batch, draw, start)
+        self.terrains = TerrainStack(self.terrain, env.batch, self._draw)
+
+    def _draw(self, rng: np.random.Generator) -> Terrain:
+        config, x_min = self.config, -self.config.size_x / 2
+        start = x_min + config.start_flat
+        segments = (
+            Segment("flat", x_min, start, 0.0),
+            Segment("boxes", start, -x_min, config.height),
+        )
+        heights = draw_obstacles(config, rng)
+        return Terrain(heights, config.resolution, self.terrain.max_height, segments=segments)
 
 
 class BowlConfig(BaseModel):
@@ -356,7 +334,12 @@ class Escape(Variable):
         self.rim = self.config.rim * self.config.size / 2
 
     def setup(self, env: UnimalEnv) -> None:
-        self.terrains = _DrawnStack(self.terrain, env.batch, Bowl(self.config).draw, -np.inf)
+        bowl, layout = Bowl(self.config), self.terrain
+        self.terrains = TerrainStack(
+            layout,
+            env.batch,
+            lambda rng: Terrain(bowl.draw(rng), layout.resolution, layout.max_height),
+        )
 
     def rewards(self, env: UnimalEnv) -> Arrays:
         radius = np.linalg.norm(env.head_pos[:, :2], axis=1)

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     import mujoco
 
 ObstacleKind = Literal["hills", "steps", "rubble"]
-SegmentKind = Literal["flat", "hills", "steps", "rubble"]
+SegmentKind = Literal["flat", "hills", "steps", "rubble", "boxes"]
 Range = tuple[float, float]
 
 
@@ -184,6 +184,14 @@ class Terrain:
     @property
     def y_min(self) -> float:
         return -self.size_y / 2
+
+    @property
+    def first_obstacle(self) -> float:
+        """x where the first non-flat segment starts: inf if all flat, -inf if the terrain has
+        no segment layout (obstacles may be anywhere)."""
+        if not self.segments:
+            return -np.inf
+        return min((s.x_start for s in self.segments if s.kind != "flat"), default=np.inf)
 
     def height_at(self, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
         """Ground height at world (x, y), vectorised over broadcastable arrays.

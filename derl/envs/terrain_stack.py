@@ -15,6 +15,8 @@ steps, this avoids generating a million-cell terrain for each of them.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
+from functools import partial
 
 import mujoco
 import mujoco.batch
@@ -48,10 +50,20 @@ def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig) -> None:
 
 
 class TerrainStack:
-    """The terrains of all copies of a batch, and their heightfields in the copies' models."""
+    """The terrains of all copies of a batch, and their heightfields in the copies' models.
 
-    def __init__(self, config: TerrainConfig, batch: mujoco.batch.Batch) -> None:
+    ``draw(rng)`` makes one terrain laid out like ``config`` (default: the obstacle corridor of
+    `generate_terrain`); its segments tell where its obstacles start.
+    """
+
+    def __init__(
+        self,
+        config: TerrainConfig,
+        batch: mujoco.batch.Batch,
+        draw: Callable[[np.random.Generator], Terrain] | None = None,
+    ) -> None:
         self.config = config
+        self.draw = draw or partial(generate_terrain, config)
         self.heights = np.zeros((batch.nsim, *config.grid_shape), dtype=np.float32)
         self.models = [copy.copy(batch.model) for _ in range(batch.nsim)]
         batch.set_models(self.models)
@@ -70,11 +82,10 @@ class TerrainStack:
         obstacle (or that has none yet)."""
         seen = ids[self.furthest[ids] + reach >= self.first_obstacle[ids]]
         for i in seen:
-            terrain = generate_terrain(self.config, rng)
+            terrain = self.draw(rng)
             terrain.write_to(self.models[i], self.hfield)
             self.heights[i] = terrain.heights
-            obstacles = [s.x_start for s in terrain.segments if s.kind != "flat"]
-            self.first_obstacle[i] = min(obstacles, default=np.inf)
+            self.first_obstacle[i] = terrain.first_obstacle
         self.generated += len(seen)
         self.furthest[ids] = -np.inf
 
