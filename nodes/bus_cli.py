@@ -36,12 +36,20 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
 
 
-def _coordinator(args: argparse.Namespace) -> int:
+def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
+    """The run's profile from --profile/--env, or exit with the reason it is not valid."""
     from derl.evolution import load_profile
+
+    try:
+        return load_profile(args.profile, world=args.env)
+    except (ValueError, OSError) as error:
+        raise SystemExit(f"derl: profile {args.profile!r} is not valid:\n{error}") from None
+
+
+def _coordinator(args: argparse.Namespace) -> int:
     from nodes.coordinator import serve
 
-    config = load_profile(args.profile, world=args.env)
-    serve(args.run, args.run_dir, config, options_from(args))
+    serve(args.run, args.run_dir, profile_from(args), options_from(args))
     return 0
 
 

@@ -21,7 +21,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 from messages import RunStatus
 from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.bus_cli import add_profile_arguments
+from nodes.bus_cli import add_profile_arguments, profile_from
 from nodes.processes import spawn_derl, stop_all
 
 console = Console()
@@ -43,9 +43,7 @@ def _free_port() -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from derl.evolution import load_profile
-
-    config = load_profile(args.profile, world=args.env)
+    config = profile_from(args)
     run_dir = args.run_dir or Path("runs") / f"{config.name}-{config.world}"
     run = re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
     logs = run_dir / "logs"

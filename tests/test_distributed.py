@@ -137,7 +137,7 @@ def test_smoke_run_end_to_end(tmp_path: Path) -> None:
     assert len({m.child for m in births}) == len(births) == 8
     assert len(list((run_dir / "checkpoints").glob("*.pt"))) == 8
     assert (run_dir / "summary.json").exists() and any((run_dir / "best").iterdir())
-    assert {"ft", "vt"} <= {m.task for m in replay(run_dir) if m.type == "EvalResult"}
+    assert {"patrol", "incline"} == {m.task for m in replay(run_dir) if m.type == "EvalResult"}
 
 
 @pytest.mark.slow

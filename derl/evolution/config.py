@@ -13,6 +13,8 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from derl.envs.registry import TASKS
+
 
 class EvolutionConfig(BaseModel):
     """Population, tournaments, budget and lifetime learning of one run."""
@@ -36,12 +38,27 @@ class EvolutionConfig(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> EvolutionConfig:
+        unknown = set(self.eval_tasks) - set(TASKS)
+        if unknown:
+            raise ValueError(f"unknown eval tasks {sorted(unknown)}; choose from {sorted(TASKS)}")
         if self.total < self.population:
             raise ValueError(f"total ({self.total}) < population ({self.population})")
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
         return self
 
+
+TEST_TASKS = (
+    "patrol",
+    "point_nav",
+    "obstacle",
+    "exploration",
+    "escape",
+    "incline",
+    "push_box_incline",
+    "manipulate_ball",
+)
+"""The paper's eight test tasks (appendix C)."""
 
 PROFILES: dict[str, EvolutionConfig] = {
     "smoke": EvolutionConfig(
@@ -53,7 +70,7 @@ PROFILES: dict[str, EvolutionConfig] = {
         num_envs=16,
         lease_s=30.0,
         eval_top=1,
-        eval_tasks=("ft", "vt"),
+        eval_tasks=("patrol", "incline"),
         eval_steps=4096,
     ),
     "demo": EvolutionConfig(
@@ -62,13 +79,11 @@ PROFILES: dict[str, EvolutionConfig] = {
         tournament=4,
         total=96,
         train_steps=300_000,
-        eval_top=3,
-        eval_tasks=("ft", "vt"),
-        eval_steps=200_000,
+        eval_top=2,
+        eval_tasks=TEST_TASKS,
+        eval_steps=100_000,
     ),
-    "paper": EvolutionConfig(
-        name="paper", eval_top=10, eval_tasks=("ft", "vt", "mvt"), eval_seeds=5
-    ),
+    "paper": EvolutionConfig(name="paper", eval_top=10, eval_tasks=TEST_TASKS, eval_seeds=5),
 }
 
 
