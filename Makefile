@@ -15,13 +15,11 @@ install: $(BIN)/python
 install-test: $(BIN)/python
 	$(BIN)/pip install -q -e '.[test]'
 
-# The main job (until `derl run` exists): sample a population of UNIMAL bodies, render them,
-# and train a controller for the first one on flat terrain.
+# The main job: a whole evolution run on this host (coordinator, trainers, evaluator over
+# Zenoh on loopback), then a picture of its best bodies.
 run: install
-	$(BIN)/derl unimal sample --n 16 --seed 0 --out runs/unimals
-	$(BIN)/derl unimal render runs/unimals --out runs/unimals/population.png
-	$(BIN)/derl train --genome runs/unimals/unimal_0000.json --task ft --steps 200000 --out runs/train
-	$(BIN)/derl rollout runs/train --episodes 2 --video runs/train/episode.gif
+	$(BIN)/derl run --profile smoke --run-dir runs/smoke
+	$(BIN)/derl unimal render runs/smoke/best --out runs/smoke/best.png
 
 lint: install-test
 	$(BIN)/ruff check .

@@ -93,7 +93,7 @@ def _render(args: argparse.Namespace) -> int:
 
     width, height = args.size
     if args.path.is_dir():
-        files = sorted(args.path.glob("*.json"))
+        files = sorted(args.path.rglob("*.json"))
         if not files:
             raise SystemExit(f"derl: no genome JSON files in {args.path}")
         image = render_grid([load_genome(f) for f in files], width, height)
