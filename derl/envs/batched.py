@@ -248,12 +248,12 @@ class UnimalEnv:
         return (np.abs(self.head_pos[:, :2]) > half).any(axis=1)
 
     def _proprioception(self, ids: np.ndarray) -> np.ndarray:
+        every = ids is self.all  # the common case: no row selection
+        qpos, qvel, sensors = (
+            a if every else a[ids] for a in (self.qpos, self.qvel, self.sensordata)
+        )
         return np.concatenate(
-            [
-                self.qpos[np.ix_(ids, self.joint_qpos)],
-                self.qvel[np.ix_(ids, self.agent_dofs)],
-                self.sensordata[np.ix_(ids, self.sensor_index)],
-            ],
+            [qpos[:, self.joint_qpos], qvel[:, self.agent_dofs], sensors[:, self.sensor_index]],
             axis=1,
             dtype=np.float32,
         )
