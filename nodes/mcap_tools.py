@@ -1,0 +1,332 @@
+"""Offline tools for MCAP logs: read with timing, export to JSON for Foxglove, inspect, repair.
+
+A log is one MCAP file (a journal segment or a `derl record` output) or a run directory, whose
+``journal/segment-NNNN.mcap`` files are read in order. Every reader goes through the journal's
+tolerant record reader (`nodes.journal`), so a truncated or corrupt file gives back the messages
+before the damage instead of nothing. `info` says how healthy a file is; `repair` rewrites a
+damaged one into a clean, indexed, zstd-compressed copy with `nodes.journal.compact`;
+`export_json` writes a ``json`` + ``jsonschema`` copy, the encodings Foxglove decodes (it cannot
+decode msgpack: research/bus-tech.md section 6).
+"""
+
+from __future__ import annotations
+
+import base64
+import importlib.util
+import json
+import logging
+import math
+import shutil
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Literal, NamedTuple
+
+from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Message, Schema
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+
+from messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
+from nodes.journal import _records, compact, segments
+
+log = logging.getLogger("derl.mcap")
+
+EXPORT_LIBRARY = "derl-export"
+
+
+class LogError(ValueError):
+    """A path that is not a readable log; the text says why."""
+
+
+class Logged(NamedTuple):
+    """One message of a log with its MCAP channel topic and times (ns since the epoch)."""
+
+    topic: str
+    log_time: int
+    publish_time: int
+    message: MessageBase
+
+
+def log_files(path: Path) -> list[Path]:
+    """The MCAP files of a log: the file itself, or a run directory's segments in order."""
+    path = Path(path)
+    if path.is_dir():
+        files = segments(path)
+        if not files:
+            raise LogError(f"{path} holds no journal/segment-NNNN.mcap")
+        return files
+    if not path.is_file():
+        raise LogError(f"{path}: no such file")
+    with path.open("rb") as f:
+        if f.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
+            raise LogError(f"{path} is not an MCAP file")
+    return [path]
+
+
+def read_log(path: Path) -> Iterator[Logged]:
+    """Every valid message of a log in file order; undecodable ones are logged and skipped."""
+    for file in log_files(path):
+        channels: dict[int, Channel] = {}
+        for record in _records(file):
+            if isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None or channel.message_encoding != MessageEncoding.MessagePack:
+                    log.warning("%s: a message on a non-msgpack channel skipped", file)
+                    continue
+                try:
+                    message = decode(record.data)
+                except DecodeError as error:
+                    log.warning("%s: a message on %s skipped: %s", file, channel.topic, error)
+                    continue
+                yield Logged(channel.topic, record.log_time, record.publish_time, message)
+
+
+# --- JSON ------------------------------------------------------------------------------------
+
+
+def json_data(value: object, binary: Callable[[bytes], object]) -> object:
+    """`value` (dicts, sequences, scalars, bytes) as JSON data: `binary` turns bytes into JSON,
+    NaN and infinities become null, map keys text, anything else its repr."""
+    if isinstance(value, dict):
+        return {str(key): json_data(item, binary) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_data(item, binary) for item in value]
+    if isinstance(value, bytes):
+        return binary(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value if isinstance(value, str | int | float | bool | None) else repr(value)
+
+
+def json_form(msg: MessageBase, binary: Callable[[bytes], object]) -> dict[str, object]:
+    """`msg` as JSON data (see `json_data`)."""
+    return json_data(msg.model_dump(mode="python"), binary)  # type: ignore[return-value]
+
+
+def summarise_bytes(data: bytes) -> dict[str, int]:
+    """How `derl topic echo` shows a bytes field (a policy checkpoint is about 1 MB)."""
+    return {"bytes": len(data)}
+
+
+def base64_text(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
+
+
+def json_schema(message_type: str) -> dict[str, object]:
+    """The model's JSON schema, with bytes fields as base64 strings (Foxglove's convention)."""
+
+    def fix(node: object) -> object:
+        if isinstance(node, dict):
+            if node.get("format") == "binary":
+                node = {k: v for k, v in node.items() if k not in ("format", "maxLength")}
+                node["contentEncoding"] = "base64"
+            return {key: fix(value) for key, value in node.items()}
+        if isinstance(node, list):
+            return [fix(item) for item in node]
+        return node
+
+    return fix(MESSAGE_TYPES[message_type].model_json_schema())  # type: ignore[return-value]
+
+
+def export_json(source: Path, out: Path) -> int:
+    """Write every message of `source` to a new MCAP `out` as JSON; the number written.
+
+    Same topics and times as the source; one schema per message type (its JSON schema, encoding
+    ``jsonschema``), messages ``json`` with bytes in base64; chunked, indexed, zstd-compressed
+    when the ``zstandard`` package is there.
+    """
+    files = log_files(source)  # a bad source fails before `out` is created
+    compression = (
+        CompressionType.ZSTD if importlib.util.find_spec("zstandard") else CompressionType.NONE
+    )
+    schemas: dict[str, int] = {}
+    channels: dict[tuple[str, str], int] = {}
+    written = 0
+    with Path(out).open("xb") as f:
+        writer = Writer(f, compression=compression)
+        writer.start(profile="", library=EXPORT_LIBRARY)
+        for file in files:
+            for logged in read_log(file):
+                kind = logged.message.type
+                if kind not in schemas:
+                    schemas[kind] = writer.register_schema(
+                        kind, SchemaEncoding.JSONSchema, json.dumps(json_schema(kind)).encode()
+                    )
+                channel = channels.get((logged.topic, kind))
+                if channel is None:
+                    channel = writer.register_channel(
+                        logged.topic, MessageEncoding.JSON, schemas[kind]
+                    )
+                    channels[(logged.topic, kind)] = channel
+                data = json.dumps(json_form(logged.message, base64_text), allow_nan=False)
+                writer.add_message(
+                    channel,
+                    log_time=logged.log_time,
+                    data=data.encode(),
+                    publish_time=logged.publish_time,
+                    sequence=written & 0xFFFF_FFFF,
+                )
+                written += 1
+        writer.finish()
+    return written
+
+
+# --- info and repair -------------------------------------------------------------------------
+
+Integrity = Literal["clean", "truncated", "corrupt"]
+
+
+@dataclass
+class ChannelInfo:
+    topic: str
+    schema: str
+    encoding: str
+    count: int = 0
+
+
+@dataclass
+class FileInfo:
+    """What `derl log info` says about one MCAP file."""
+
+    path: str
+    size: int
+    integrity: Integrity = "clean"
+    detail: str = ""
+    indexed: bool = False
+    compression: list[str] = field(default_factory=list)
+    messages: int = 0
+    undecodable: int = 0
+    start_ns: int | None = None
+    end_ns: int | None = None
+    channels: list[ChannelInfo] = field(default_factory=list)
+
+    @property
+    def span_s(self) -> float:
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) / 1e9
+
+
+def info(path: Path) -> list[FileInfo]:
+    """Channels, counts, time span and integrity of every file of a log."""
+    return [_file_info(file) for file in log_files(path)]
+
+
+def _file_info(path: Path) -> FileInfo:
+    result = FileInfo(path=str(path), size=path.stat().st_size)
+    schemas: dict[int, str] = {}
+    channels: dict[int, ChannelInfo] = {}
+    footer = False
+    for record in _records(path):
+        if isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel) and record.id not in channels:  # again in the summary
+            channels[record.id] = ChannelInfo(
+                record.topic, schemas.get(record.schema_id, ""), record.message_encoding
+            )
+        elif isinstance(record, Message) and record.channel_id in channels:
+            channel = channels[record.channel_id]
+            channel.count += 1
+            result.messages += 1
+            if result.start_ns is None or result.end_ns is None:
+                result.start_ns = result.end_ns = record.log_time
+            result.start_ns = min(result.start_ns, record.log_time)
+            result.end_ns = max(result.end_ns, record.log_time)
+            if channel.encoding == MessageEncoding.MessagePack:
+                try:
+                    decode(record.data)
+                except DecodeError:
+                    result.undecodable += 1
+        elif isinstance(record, Footer):
+            footer = True
+    result.channels = list(channels.values())
+    summary_count, summary_error = _summary(path, result)
+    if footer and summary_count in (None, result.messages):
+        result.integrity = "clean"
+        result.detail = "complete" if result.indexed else "complete, no index"
+    elif footer or summary_count is not None:
+        result.integrity = "corrupt"
+        result.detail = f"{result.messages} of {summary_count} messages readable (CRC or record)"
+    else:
+        result.integrity = "truncated"
+        result.detail = (
+            f"no footer ({summary_error}): the writer died or is still writing; "
+            f"{result.messages} messages recovered"
+        )
+    return result
+
+
+def _summary(path: Path, result: FileInfo) -> tuple[int | None, str]:
+    """The message count the summary section gives (None without one) and why it is missing."""
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception as error:  # the seeking reader fails in many ways on a damaged file
+        return None, type(error).__name__
+    if summary is None:
+        return None, "no summary"
+    result.indexed = bool(summary.chunk_indexes)
+    result.compression = sorted({c.compression or "none" for c in summary.chunk_indexes})
+    count = summary.statistics.message_count if summary.statistics else None
+    return count, ""
+
+
+def describe(files: list[FileInfo]) -> str:
+    """The text form of `info`."""
+    lines: list[str] = []
+    for file in files:
+        rate = file.messages / file.span_s if file.span_s else 0.0
+        lines += [
+            f"file:        {file.path} ({file.size:,} bytes)",
+            f"integrity:   {file.integrity}: {file.detail}",
+            f"indexed:     {'yes' if file.indexed else 'no'}"
+            + (f" (chunks: {', '.join(file.compression)})" if file.compression else ""),
+            f"messages:    {file.messages:,} ({rate:.1f}/s), undecodable: {file.undecodable}",
+            f"time span:   {file.span_s:.3f} s" + _clock(file),
+            "channels:",
+        ]
+        width = max((len(c.topic) for c in file.channels), default=5)
+        lines += [
+            f"  {c.topic:<{width}}  {c.schema:<18} {c.encoding:<8} {c.count:>8,}"
+            for c in sorted(file.channels, key=lambda c: (c.topic, c.schema))
+        ]
+        if file.integrity != "clean":
+            lines.append(f"repair with: derl log repair {file.path} OUT.mcap")
+        lines.append("")
+    segments_note = f"{len(files)} files, " if len(files) > 1 else ""
+    totals = Counter(f.integrity for f in files)
+    lines.append(
+        f"total: {segments_note}{sum(f.messages for f in files):,} messages; "
+        + ", ".join(f"{n} {state}" for state, n in sorted(totals.items()))
+    )
+    return "\n".join(lines)
+
+
+def _clock(file: FileInfo) -> str:
+    if file.start_ns is None or file.end_ns is None:
+        return ""
+
+    def at(ns: int) -> str:
+        return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%Y-%m-%d %H:%M:%S")
+
+    return f" ({at(file.start_ns)} to {at(file.end_ns)} UTC)"
+
+
+def repair(source: Path, out: Path) -> FileInfo:
+    """Copy what can be read of a damaged file into a new clean, indexed file `out`."""
+    if Path(source).is_dir():
+        raise LogError(f"{source}: repair takes one file (a run directory's segments one by one)")
+    (file,) = log_files(source)
+    out = Path(out)
+    if out.exists():
+        raise LogError(f"{out} exists; choose another name")
+    shutil.copyfile(file, out)
+    if not compact(out):
+        out.unlink()
+        raise LogError("repair needs the zstandard package (pip install zstandard)")
+    return _file_info(out)

@@ -1,0 +1,306 @@
+"""`derl monitor`: a live terminal view of one run, redrawn twice a second.
+
+It taps ``derl/<run>/**`` through a ring (`nodes.topic.Tap`) and follows the run's liveliness
+tokens, so a slow terminal never slows the run: the tap's thread only validates and queues, and
+the main loop folds the queue into a `RunView` and draws it with rich: a header (bodies born of
+the target, best fitness and agent, steps/s, evaluations, rejections), the workers (role, job,
+body, env steps, recent return, steps/s, last heard), the latest births with their tournament
+(parent, mutation) and a sparkline of fitness over births. It works on replayed logs too: when
+no RunStatus is heard (a journal holds none), births and the best come from fitness reports.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from itertools import pairwise
+
+import zenoh
+from rich.console import Console, Group
+from rich.live import Live
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+from messages import (
+    Ack,
+    EvalJob,
+    EvalResult,
+    FitnessReport,
+    KeySpace,
+    MessageBase,
+    PopulationSnapshot,
+    RunStatus,
+    Tournament,
+    TrainJob,
+    TrainProgress,
+    WorkerReady,
+)
+from nodes.bus import Bus, ZenohOptions, open_session
+from nodes.topic import Checker, Tap, choose_run
+
+REFRESH_S = 0.5
+RECENT_BIRTHS = 8
+MAX_WORKER_ROWS = 24
+SPARK_WIDTH = 64
+SPARK = "▁▂▃▄▅▆▇█"
+PIPED_WIDTH = 160
+"""Columns of the view when it goes to a file or a pipe (`--once` in a script)."""
+QUEUE = 10_000
+"""Messages waiting to be drawn; beyond it the oldest are dropped (the view is only a view)."""
+
+
+def sparkline(values: list[float], width: int = SPARK_WIDTH) -> str:
+    """One block per value, or per bucket (mean) when there are more values than `width`."""
+    if not values:
+        return ""
+    if len(values) > width:
+        edges = [round(i * len(values) / width) for i in range(width + 1)]
+        values = [statistics.fmean(values[a:b]) for a, b in pairwise(edges)]
+    low, high = min(values), max(values)
+    scale = (len(SPARK) - 1) / (high - low) if high > low else 0.0
+    return "".join(SPARK[round((v - low) * scale)] for v in values)
+
+
+@dataclass
+class WorkerRow:
+    node: str
+    role: str = "?"
+    state: str = "idle"  # idle | working | delivering | gone
+    job: str = ""
+    subject: str = ""  # the child trained or the agent evaluated
+    env_steps: int = 0
+    total_steps: int = 0
+    recent_return: float | None = None
+    steps_per_s: float = 0.0
+    heard: float = 0.0
+
+
+@dataclass
+class Birth:
+    child: str
+    fitness: float
+    node: str
+    parent: str | None = None
+    mutation: str = ""
+
+
+class RunView:
+    """What is known of a run, folded from its messages; `render` draws it."""
+
+    def __init__(self, run: str) -> None:
+        self.run = run
+        self.status: RunStatus | None = None
+        self.status_at = 0.0
+        self.population = 0
+        self.workers: dict[str, WorkerRow] = {}
+        self.births: list[Birth] = []
+        self.rejected = 0  # by this monitor
+        self._born: set[str] = set()
+        self._tournaments: dict[str, Tournament] = {}
+
+    def _row(self, node: str, now: float) -> WorkerRow:
+        row = self.workers.setdefault(node, WorkerRow(node))
+        row.heard = now
+        return row
+
+    def apply(self, msg: MessageBase, now: float) -> None:
+        if isinstance(msg, RunStatus):
+            self.status, self.status_at = msg, now
+        elif isinstance(msg, PopulationSnapshot):
+            self.population = len(msg.members)
+        elif isinstance(msg, Tournament):
+            self._tournaments[msg.child] = msg
+        elif isinstance(msg, WorkerReady):
+            row = self._row(msg.node, now)
+            row.role, row.state, row.job = msg.role, "idle", ""
+        elif isinstance(msg, TrainJob | EvalJob):
+            row = self._row(msg.node, now)
+            row.role = "trainer" if isinstance(msg, TrainJob) else "evaluator"
+            row.state, row.job, row.env_steps, row.total_steps = "working", msg.job, 0, msg.steps
+            row.subject = msg.child if isinstance(msg, TrainJob) else f"{msg.agent}/{msg.task}"
+            row.recent_return = None
+        elif isinstance(msg, TrainProgress):
+            row = self._row(msg.node, now)
+            row.state, row.job, row.env_steps, row.total_steps = (
+                "working",
+                msg.job,
+                msg.env_steps,
+                msg.total_steps,
+            )
+            if not row.subject.startswith(msg.child):  # keeps an evaluation's "agent/task"
+                row.subject = msg.child
+            row.steps_per_s = msg.steps_per_s
+            if msg.recent_return is not None:
+                row.recent_return = msg.recent_return
+        elif isinstance(msg, FitnessReport | EvalResult):
+            self._row(msg.node, now).state = "delivering"
+            if isinstance(msg, FitnessReport):
+                self._birth(msg)
+        elif isinstance(msg, Ack):
+            self._row(msg.node, now).state = "idle"
+
+    def _birth(self, report: FitnessReport) -> None:
+        if report.child in self._born:  # re-sent until acknowledged
+            return
+        self._born.add(report.child)
+        tournament = self._tournaments.pop(report.child, None)
+        self.births.append(
+            Birth(
+                report.child,
+                report.fitness,
+                report.node,
+                tournament.parent if tournament else None,
+                tournament.mutation if tournament else "",
+            )
+        )
+
+    def liveliness(self, role: str, node: str, up: bool, now: float) -> None:
+        row = self._row(node, now)
+        row.role = role
+        if not up:
+            row.state = "gone"
+        elif row.state == "gone":
+            row.state = "idle"
+
+    # --- drawing -----------------------------------------------------------------------------
+
+    def best(self) -> tuple[float, str] | None:
+        s = self.status
+        if s is not None and s.best_fitness is not None and s.best_agent is not None:
+            return s.best_fitness, s.best_agent
+        if self.births:
+            top = max(self.births, key=lambda b: b.fitness)
+            return top.fitness, top.child
+        return None
+
+    def render(self, now: float) -> Group:
+        return Group(self._header(now), self._workers(now), self._births(), self._spark())
+
+    def _header(self, now: float) -> Panel:
+        s = self.status
+        best = self.best()
+        working = [w for w in self.workers.values() if w.state == "working"]
+        speed = s.steps_per_s if s else sum(w.steps_per_s for w in working)
+        fields = [
+            f"born {s.born}/{s.target}" if s else f"born {len(self.births)} (no status yet)",
+            f"best {best[0]:.2f} ({best[1]})" if best else "best -",
+            f"{speed:,.0f} steps/s",
+        ]
+        if s:
+            fields += [
+                f"evaluated {s.evaluated}/{s.eval_target}",
+                f"in flight {s.in_flight}",
+                f"workers {s.workers_alive}",
+                f"rejected {s.rejected}",
+            ]
+        if self.population:
+            fields.append(f"population {self.population}")
+        if self.rejected:
+            fields.append(f"monitor rejected {self.rejected}")
+        if s:
+            fields.append("DONE" if s.done else f"status {now - self.status_at:.1f} s ago")
+        return Panel(Text("   ".join(fields)), title=f"derl run {self.run}", title_align="left")
+
+    def _workers(self, now: float) -> Table:
+        table = Table(title="workers", title_justify="left", expand=False)
+        for column in ("node", "role", "state", "job", "body"):
+            table.add_column(column)
+        for column in ("env steps", "return", "steps/s", "heard"):
+            table.add_column(column, justify="right")
+        rows = sorted(self.workers.values(), key=lambda w: w.node)[:MAX_WORKER_ROWS]
+        for w in rows:
+            share = f" ({w.env_steps / w.total_steps:.0%})" if w.total_steps else ""
+            table.add_row(
+                w.node,
+                w.role,
+                w.state,
+                w.job,
+                w.subject,
+                f"{w.env_steps:,}/{w.total_steps:,}{share}" if w.total_steps else "",
+                "" if w.recent_return is None else f"{w.recent_return:.2f}",
+                f"{w.steps_per_s:,.0f}",
+                f"{now - w.heard:.1f} s",
+                style="dim" if w.state == "gone" else None,
+            )
+        return table
+
+    def _births(self) -> Table:
+        table = Table(title="recent births", title_justify="left")
+        table.add_column("#", justify="right")
+        for column in ("child", "parent", "mutation"):
+            table.add_column(column)
+        table.add_column("fitness", justify="right")
+        table.add_column("node")
+        first = max(0, len(self.births) - RECENT_BIRTHS)
+        for number, b in enumerate(self.births[first:], start=first + 1):
+            table.add_row(
+                str(number), b.child, b.parent or "-", b.mutation, f"{b.fitness:.2f}", b.node
+            )
+        return table
+
+    def _spark(self) -> Text:
+        values = [b.fitness for b in self.births]
+        if not values:
+            return Text("fitness over births: none yet")
+        return Text(
+            f"fitness over {len(values)} births: {sparkline(values)}  "
+            f"(min {min(values):.2f}, max {max(values):.2f}, last {values[-1]:.2f})"
+        )
+
+
+def monitor(
+    options: ZenohOptions, run: str | None, once: float | None, stop: threading.Event
+) -> RunView:
+    """Watch a run (`run`, or the only one on the bus) until `stop`; with `once`, gather for
+    that many seconds and print one plain snapshot."""
+    console = Console() if sys.stdout.isatty() else Console(width=PIPED_WIDTH)
+    inbox: deque[tuple[float, MessageBase | tuple[str, str, bool]]] = deque(maxlen=QUEUE)
+    with open_session(options) as session:
+        view = RunView(choose_run(session, run))
+        checker = Checker(session)
+        rejected = 0
+
+        def on_sample(sample: zenoh.Sample, arrival: float) -> None:
+            nonlocal rejected
+            message = checker.check(str(sample.key_expr), sample.payload.to_bytes())
+            if message is None:
+                rejected += 1
+            else:
+                inbox.append((arrival, message))
+
+        tap = Tap(session, KeySpace(view.run).everything(), on_sample)
+        Bus(session, view.run).watch_alive(
+            lambda role, node, up: inbox.append((time.monotonic(), (role, node, up)))
+        )
+
+        def update() -> Group:
+            while inbox:
+                at, item = inbox.popleft()
+                if isinstance(item, MessageBase):
+                    view.apply(item, at)
+                else:
+                    view.liveliness(*item, at)
+            view.rejected = rejected
+            return view.render(time.monotonic())
+
+        if once is not None:
+            stop.wait(once)
+            console.print(update())
+        else:
+            quiet = logging.getLogger("derl")  # rejections are counted in the header instead
+            level = quiet.level
+            quiet.setLevel(logging.ERROR)
+            try:
+                with Live(update(), console=console, auto_refresh=False) as live:
+                    while not stop.wait(REFRESH_S):
+                        live.update(update(), refresh=True)
+            finally:
+                quiet.setLevel(level)
+    tap.join()
+    return view

@@ -1,0 +1,163 @@
+"""`derl record` and `derl replay`: live traffic into an MCAP log, and a log back onto the bus.
+
+Recording taps each key expression through a ring (`nodes.topic.Tap`: a recorder that falls
+behind loses the oldest samples, it never stalls the run) and appends every valid message with
+the journal's writer (`nodes.journal.JournalWriter`: msgpack messages on ``derl/<run>/<kind>``
+channels with the models' JSON schemas, flushed message by message, so a killed recorder leaves
+a readable file). Log time is the receive time; publish time is the sender's Zenoh timestamp
+when it has one. Malformed payloads are logged and counted but not kept: a recording holds only
+messages that decode, like a journal, so every reader (replay, export, `report`) can use it.
+
+Replaying reads a log with the tolerant reader and publishes each message on its own key
+(`KeySpace.key_for`) with the original gaps divided by the rate, BLOCK like the control plane:
+a subscriber that cannot keep up slows the replay, never loses messages; monitors read through
+rings and are never slowed. A replay must not pose as a live run: jobs and acks published under
+a run that has live nodes would be taken as real. So it refuses a run that has a live node or
+coordinator on the bus (unless forced), and `as_run` publishes everything under another run id.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from messages import MessageBase, kind_of
+from nodes.bus import Bus, ZenohOptions, open_session
+from nodes.journal import JournalWriter
+from nodes.mcap_tools import log_files, read_log
+from nodes.topic import Checker, Tap, live_runs, resolve
+
+log = logging.getLogger("derl.recorder")
+
+RECORD_RING = 16_384
+"""Samples the recorder may fall behind by before the oldest are dropped."""
+
+
+@dataclass
+class Recorded:
+    messages: int
+    rejected: Counter[str]
+    seconds: float
+
+
+def record(
+    options: ZenohOptions,
+    out: Path,
+    keys: list[str],
+    run: str | None,
+    duration: float | None,
+    stop: threading.Event,
+) -> Recorded:
+    """Record every valid message on `keys` into a new file `out` until `stop` or `duration`."""
+    start = time.monotonic()
+    taps: list[Tap] = []
+    writer: JournalWriter | None = None
+    written = 0
+    lock = threading.Lock()  # the taps' threads share the writer and the counts
+    try:
+        with open_session(options) as session:
+            exprs = [resolve(session, key, run) for key in keys]
+            writer = JournalWriter(out)
+            checker = Checker(session)
+
+            def on_sample(sample: zenoh.Sample, _: float) -> None:
+                nonlocal written
+                with lock:
+                    message = checker.check(str(sample.key_expr), sample.payload.to_bytes())
+                    if message is not None:
+                        writer.write(message, _publish_time(sample))
+                        written += 1
+
+            taps = [Tap(session, expr, on_sample, RECORD_RING) for expr in exprs]
+            log.info("recording %s into %s", ", ".join(exprs), out)
+            stop.wait(duration)
+    finally:  # closing the session ends the taps' threads (what their rings held is dropped)
+        for tap in taps:
+            tap.join()
+        if writer is not None:
+            writer.close()
+    return Recorded(written, checker.rejected, time.monotonic() - start)
+
+
+def _publish_time(sample: zenoh.Sample) -> int | None:
+    if sample.timestamp is None:
+        return None
+    return int(sample.timestamp.get_time().timestamp() * 1e9)
+
+
+class ReplayRefused(RuntimeError):
+    """The log's run is live on the bus: replaying it would feed its nodes old jobs and acks."""
+
+
+@dataclass
+class Replayed:
+    messages: int
+    passes: int
+    seconds: float
+
+
+def replay(
+    options: ZenohOptions,
+    source: Path,
+    stop: threading.Event,
+    rate: float = 1.0,
+    loop: bool = False,
+    kinds: frozenset[str] = frozenset(),
+    start_offset: float = 0.0,
+    as_run: str | None = None,
+    only_run: str | None = None,
+    force: bool = False,
+) -> Replayed:
+    """Publish the messages of `source` with their original timing divided by `rate` (0: at
+    once), skipping the first `start_offset` seconds; only `kinds` (key kinds) if given, only
+    `only_run` if given, under run `as_run` if given; again and again with `loop`."""
+    log_files(source)  # a bad log fails before joining the bus
+    published = passes = 0
+    with open_session(options) as session:
+        live = set() if force else set(live_runs(session))
+        buses: dict[str, Bus] = {}
+        start = time.monotonic()
+
+        def publish(message: MessageBase) -> None:
+            if as_run is not None:
+                message = message.model_copy(update={"run": as_run})
+            if message.run in live:
+                raise ReplayRefused(
+                    f"run {message.run} is live on this bus: replaying it would feed its nodes "
+                    "old jobs and acks; use --as-run NEW (or --force)"
+                )
+            bus = buses.get(message.run) or buses.setdefault(message.run, Bus(session, message.run))
+            bus.publish(message)
+
+        while not stop.is_set():
+            first: int | None = None  # log time of the log's first message
+            begun: float | None = None  # when offset 0 (log time start + start_offset) is due
+            before = published
+            for logged in read_log(source):
+                first = logged.log_time if first is None else first
+                offset = (logged.log_time - first) / 1e9 - start_offset
+                if offset < 0:
+                    continue
+                if begun is None and rate > 0:
+                    begun = time.monotonic() - offset / rate
+                message = logged.message
+                if only_run and message.run != only_run:
+                    continue
+                if kinds and kind_of(message) not in kinds:
+                    continue
+                delay = 0.0 if begun is None else begun + offset / rate - time.monotonic()
+                if stop.wait(max(0.0, delay)):
+                    break
+                publish(message)
+                published += 1
+            passes += 1
+            log.info("pass %d: %d messages published so far", passes, published)
+            if not loop or published == before:
+                break
+    return Replayed(published, passes, time.monotonic() - start)

@@ -1,0 +1,252 @@
+"""`derl monitor|topic|record|replay|export|log`: the command lines of the watch-and-replay tools.
+
+Only argument parsing and printing; the work is done by `nodes.monitor`, `nodes.topic`,
+`nodes.recorder` and `nodes.mcap_tools`. Every command that joins the bus takes the nodes'
+connection flags (`--connect`, `--mode client`, `--zenoh-config`; multicast stays off), stops
+cleanly on SIGINT/SIGTERM, and reports bad input (a damaged log, no run on the bus, an existing
+output file) in one line on stderr with exit status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+from messages import InvalidKey
+from messages.keys import ARITY
+from nodes.bus import add_bus_arguments, options_from
+
+REPLAY_KINDS = sorted(kind for kind in ARITY if kind != "alive")
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    monitor = commands.add_parser("monitor", help="live terminal view of a run")
+    monitor.add_argument(
+        "--once",
+        nargs="?",
+        const=3.0,
+        type=float,
+        metavar="S",
+        help="listen S seconds (default 3), print one snapshot and exit",
+    )
+    add_bus_arguments(monitor, run_required=False)
+    monitor.set_defaults(handler=_clearly(_monitor))
+
+    topic = commands.add_parser("topic", help="list, echo or time live keys (like ros2 topic)")
+    verbs = topic.add_subparsers(dest="topic_verb", required=True, metavar="VERB")
+    key_help = "key expression: derl/... as is, else relative to the run (fitness = fitness/**)"
+    listing = verbs.add_parser("list", help="keys heard, with message type, count and rate")
+    listing.add_argument("key", nargs="?", help=f"{key_help}; default all keys")
+    listing.add_argument("--duration", type=float, default=3.0, help="seconds to listen (3)")
+    listing.set_defaults(handler=_clearly(_topic_list))
+    echo = verbs.add_parser("echo", help="print each message as one JSON line")
+    echo.add_argument("key", help=key_help)
+    echo.add_argument("--count", type=int, help="stop after N messages")
+    echo.add_argument("--duration", type=float, help="stop after S seconds")
+    echo.add_argument("--raw", action="store_true", help="every sample, undecoded, valid or not")
+    echo.set_defaults(handler=_clearly(_echo))
+    rate = verbs.add_parser("hz", help="rate of samples and min/max/std of their intervals")
+    rate.add_argument("key", help=key_help)
+    rate.add_argument("--duration", type=float, default=10.0, help="seconds to measure (10)")
+    rate.add_argument("--window", type=int, default=1000, help="intervals kept (1000)")
+    rate.set_defaults(handler=_clearly(_hz))
+    for verb in (listing, echo, rate):
+        add_bus_arguments(verb, run_required=False)
+
+    record = commands.add_parser(
+        "record",
+        help="record live traffic into an MCAP file",
+        description="Record every valid message on the keys (default derl/**, or the run's keys "
+        "with --run) until Ctrl-C or --duration; malformed payloads are counted, not kept.",
+    )
+    record.add_argument("out", type=Path, metavar="OUT.mcap", help="new file")
+    record.add_argument("keys", nargs="*", metavar="KEY", help=f"{key_help}; default derl/**")
+    record.add_argument("--duration", type=float, help="stop after S seconds (else on Ctrl-C)")
+    add_bus_arguments(record, run_required=False)
+    record.set_defaults(handler=_clearly(_record))
+
+    replay = commands.add_parser(
+        "replay",
+        help="publish a log again with its original timing",
+        description="Publish the messages of a log on their keys, the original gaps divided by "
+        "--rate. --run R replays only run R of a log holding several. A run with live nodes on "
+        "the bus is refused (its trainers would take old jobs and acks): use --as-run NEW.",
+    )
+    replay.add_argument("log", type=Path, metavar="LOG", help="an MCAP file or a run directory")
+    replay.add_argument("--rate", type=_non_negative, default=1.0, help="speed; 0: at once")
+    replay.add_argument("--loop", action="store_true", help="start again at the end")
+    replay.add_argument(
+        "--topics",
+        type=_kinds,
+        default=frozenset(),
+        metavar="KINDS",
+        help=f"only these key kinds, e.g. fitness,status (of {','.join(REPLAY_KINDS)})",
+    )
+    replay.add_argument("--start-offset", type=_non_negative, default=0.0, metavar="S")
+    replay.add_argument("--as-run", metavar="NEW", help="publish under this run id instead")
+    replay.add_argument("--force", action="store_true", help="even into a run that is live")
+    add_bus_arguments(replay, run_required=False)
+    replay.set_defaults(handler=_clearly(_replay))
+
+    export = commands.add_parser("export", help="a json+jsonschema copy of a log, for Foxglove")
+    export.add_argument("log", type=Path, metavar="LOG", help="an MCAP file or a run directory")
+    export.add_argument("--json", type=Path, required=True, metavar="OUT.mcap", dest="out")
+    export.set_defaults(handler=_clearly(_export))
+
+    logs = commands.add_parser("log", help="inspect or repair MCAP logs")
+    log_verbs = logs.add_subparsers(dest="log_verb", required=True, metavar="VERB")
+    info = log_verbs.add_parser("info", help="channels, counts, time span, integrity")
+    info.add_argument("log", type=Path, metavar="LOG", help="an MCAP file or a run directory")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(handler=_clearly(_log_info))
+    repair = log_verbs.add_parser("repair", help="a clean, indexed copy of a damaged file")
+    repair.add_argument("source", type=Path, metavar="IN.mcap")
+    repair.add_argument("out", type=Path, metavar="OUT.mcap", help="new file")
+    repair.set_defaults(handler=_clearly(_log_repair))
+
+
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is negative")
+    return value
+
+
+def _kinds(text: str) -> frozenset[str]:
+    kinds = frozenset(k.strip() for k in text.split(",") if k.strip())
+    unknown = kinds - set(REPLAY_KINDS)
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown {', '.join(sorted(unknown))}; kinds: {', '.join(REPLAY_KINDS)}"
+        )
+    return kinds
+
+
+def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]:
+    """`handler`, with expected failures reported in one line instead of a traceback."""
+
+    @functools.wraps(handler)
+    def run(args: argparse.Namespace) -> int:
+        from nodes.mcap_tools import LogError
+        from nodes.recorder import ReplayRefused
+        from nodes.topic import RunNotFound
+
+        try:
+            return handler(args)
+        except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError) as error:
+            print(f"derl {args.command}: {error}", file=sys.stderr)
+            return 1
+        except BrokenPipeError:  # the reader of our output went away (`| head`)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 1
+
+    return run
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    from nodes.monitor import monitor
+
+    monitor(options_from(args), args.run, args.once, _stop_on_signals())
+    return 0
+
+
+def _topic_list(args: argparse.Namespace) -> int:
+    from nodes.topic import topic_list
+
+    key = args.key or ("**" if args.run else "derl/**")
+    topic_list(options_from(args), key, args.run, args.duration, _stop_on_signals())
+    return 0
+
+
+def _echo(args: argparse.Namespace) -> int:
+    from nodes.topic import echo
+
+    stop = _stop_on_signals()
+    echo(options_from(args), args.key, args.run, args.count, args.duration, args.raw, stop)
+    return 0
+
+
+def _hz(args: argparse.Namespace) -> int:
+    from nodes.topic import hz
+
+    hz(options_from(args), args.key, args.run, args.duration, args.window, _stop_on_signals())
+    return 0
+
+
+def _record(args: argparse.Namespace) -> int:
+    from nodes.recorder import record
+
+    if args.out.exists():
+        raise FileExistsError(f"{args.out} exists; choose another name")
+    keys = args.keys or (["**"] if args.run else ["derl/**"])
+    done = record(options_from(args), args.out, keys, args.run, args.duration, _stop_on_signals())
+    rejected = ", ".join(f"{why} {n}" for why, n in done.rejected.items()) or "none"
+    print(
+        f"recorded {done.messages} messages in {done.seconds:.1f} s into {args.out}; "
+        f"rejected: {rejected}"
+    )
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from nodes.recorder import replay
+
+    done = replay(
+        options_from(args),
+        args.log,
+        _stop_on_signals(),
+        rate=args.rate,
+        loop=args.loop,
+        kinds=args.topics,
+        start_offset=args.start_offset,
+        as_run=args.as_run,
+        only_run=args.run,
+        force=args.force,
+    )
+    speed = done.messages / done.seconds if done.seconds else 0.0
+    print(
+        f"replayed {done.messages} messages in {done.seconds:.2f} s ({speed:,.0f} msg/s), "
+        f"{done.passes} pass{'es' if done.passes != 1 else ''}"
+    )
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from nodes.mcap_tools import export_json
+
+    written = export_json(args.log, args.out)
+    print(f"exported {written} messages to {args.out} (json + jsonschema)")
+    return 0
+
+
+def _log_info(args: argparse.Namespace) -> int:
+    from nodes.mcap_tools import describe, info
+
+    files = info(args.log)
+    if args.json:
+        print(json.dumps([dataclasses.asdict(f) for f in files], indent=2))
+    else:
+        print(describe(files))
+    return 0 if all(f.integrity == "clean" for f in files) else 3
+
+
+def _log_repair(args: argparse.Namespace) -> int:
+    from nodes.mcap_tools import describe, repair
+
+    print(describe([repair(args.source, args.out)]))
+    return 0

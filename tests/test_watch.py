@@ -1,0 +1,376 @@
+"""The watch-and-replay tools on real Zenoh (loopback, multicast off, a fresh port and run id per
+test) with real processes: record, replay (timing, filters, refusal of a live run), topic
+echo (through a router, as clients), hz and list, monitor --once, and the example monitor."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from messages import (
+    FitnessReport,
+    MessageBase,
+    RunStatus,
+    Tournament,
+    TrainProgress,
+    encode,
+    kind_of,
+)
+from messages.examples import examples
+from nodes.bus import Bus, ZenohOptions, open_session
+from nodes.journal import JournalWriter
+from nodes.mcap_tools import read_log
+from nodes.monitor import RunView, sparkline
+from nodes.processes import spawn_derl, stop_all
+from nodes.topic import key_expression, rate_line
+
+ROOT = Path(__file__).resolve().parents[1]
+STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
+STEPS, GAP_S = 6, 0.4
+
+
+def _free_endpoint() -> str:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+
+
+def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+class Processes:
+    """Processes of one test, each in its own process group, output in a file, all stopped."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.started: list[subprocess.Popen] = []
+
+    def derl(self, name: str, args: list[str]) -> subprocess.Popen:
+        process = spawn_derl(args, self.folder / f"{name}.log")
+        self.started.append(process)
+        return process
+
+    def script(self, name: str, argv: list[str]) -> subprocess.Popen:
+        with (self.folder / f"{name}.log").open("wb") as out:
+            process = subprocess.Popen(
+                [sys.executable, *argv],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                cwd=ROOT,
+            )
+        self.started.append(process)
+        return process
+
+    def output(self, name: str) -> str:
+        return (self.folder / f"{name}.log").read_text()
+
+    def finish(self, process: subprocess.Popen, timeout: float = 30) -> int:
+        try:
+            return process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            stop_all([process], timeout=2)
+            raise
+
+    def close(self) -> None:
+        stop_all(self.started, timeout=5)
+
+
+@pytest.fixture
+def procs(tmp_path: Path) -> Iterator[Processes]:
+    started = Processes(tmp_path)
+    try:
+        yield started
+    finally:
+        started.close()
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return _free_endpoint()
+
+
+@pytest.fixture
+def bus(endpoint: str) -> Iterator[Bus]:
+    """The test's own peer session, listening on `endpoint`, for a fresh run id."""
+    with open_session(ZenohOptions(listen=(endpoint,))) as session:
+        yield Bus(session, f"w{uuid.uuid4().hex[:10]}")
+
+
+class Repeater:
+    """Publishes the same messages (and raw payloads) every `period` s until stopped."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    def start(
+        self,
+        messages: list[MessageBase],
+        period: float,
+        raw: tuple[tuple[str, bytes], ...] = (),
+    ) -> None:
+        def loop() -> None:
+            while not self._stop.wait(period):
+                for message in messages:
+                    self.bus.publish(message)
+                for key, payload in raw:
+                    self.bus.session.put(key, payload)
+
+        thread = threading.Thread(target=loop, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def stop(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(5)
+
+
+@pytest.fixture
+def repeater(bus: Bus) -> Iterator[Repeater]:
+    publisher = Repeater(bus)
+    try:
+        yield publisher
+    finally:
+        publisher.stop()
+
+
+@pytest.fixture(scope="module")
+def run_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A recorded run: STEPS steps GAP_S apart, each a tournament, progress, fitness, ack and
+    status, written by the journal's writer (its log times are the real write times)."""
+    path = tmp_path_factory.mktemp("log") / "run.mcap"
+    with JournalWriter(path) as writer:
+        for step in range(STEPS):
+            if step:
+                time.sleep(GAP_S)
+            for message in examples("recorded", step):
+                if message.type in STEP_TYPES:
+                    writer.write(message)
+    return path
+
+
+def _collector(bus: Bus, run: str) -> list[tuple[float, MessageBase]]:
+    got: list[tuple[float, MessageBase]] = []
+    watcher = Bus(bus.session, run)
+    watcher.subscribe(watcher.keys.everything(), lambda m: got.append((time.monotonic(), m)))
+    return got
+
+
+# --- record and replay -----------------------------------------------------------------------
+
+
+def test_record_keeps_every_valid_message_and_counts_garbage(
+    tmp_path: Path, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    out = tmp_path / "recorded.mcap"
+    recorder = procs.derl("record", ["record", str(out), "--connect", endpoint, "--duration", "60"])
+    probe = bus.session.declare_publisher(bus.keys.status())
+    wait_for(lambda: probe.matching_status.matching, 30, "the recorder's subscription")
+    sent = [m for i in range(3) for m in examples(bus.run, i)]
+    for message in sent:
+        bus.publish(message)
+    bus.session.put(bus.keys.fitness("x"), b"\xff\x00garbage")
+    bus.session.put(bus.keys.population(), encode(sent[-1]))  # a RunStatus on the wrong key
+    wait_for(lambda: out.exists() and len(list(read_log(out))) == len(sent), 20, "the recording")
+    stop_all([recorder])
+    assert recorder.returncode == 0, procs.output("record")
+    assert [logged.message for logged in read_log(out)] == sent
+    assert f"recorded {len(sent)} messages" in procs.output("record")
+    assert re.search(r"rejected: .*malformed 1", procs.output("record"))
+    assert "wrong key 1" in procs.output("record")
+
+
+def test_replay_keeps_order_and_scales_timing(
+    run_log: Path, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    got = _collector(bus, "recorded")
+    replay = procs.derl("replay", ["replay", str(run_log), "--rate", "10", "--connect", endpoint])
+    assert procs.finish(replay) == 0, procs.output("replay")
+    expected = [logged.message for logged in read_log(run_log)]
+    wait_for(lambda: len(got) >= len(expected), 10, "every replayed message")
+    assert [m for _, m in got] == expected
+    span = got[-1][0] - got[0][0]
+    assert 0.5 * (STEPS - 1) * GAP_S / 10 < span < 1.5, span  # 2.0 s of log at 10x: 0.2 s
+
+
+def test_replay_filters_kinds_skips_the_start_and_renames_the_run(
+    run_log: Path, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    got = _collector(bus, "renamed")
+    args = ["replay", str(run_log), "--rate", "0", "--topics", "fitness,status", "--start-offset",
+            "1.0", "--as-run", "renamed", "--force", "--connect", endpoint]  # fmt: skip
+    assert procs.finish(procs.derl("replay", args)) == 0, procs.output("replay")
+    logged = list(read_log(run_log))
+    expected = [
+        entry.message.model_copy(update={"run": "renamed"})
+        for entry in logged
+        if kind_of(entry.message) in ("fitness", "status")
+        and entry.log_time - logged[0].log_time >= 1e9
+    ]
+    assert len(expected) == 6  # fitness and status of the steps at 1.2, 1.6 and 2.0 s
+    wait_for(lambda: len(got) >= len(expected), 10, "the filtered replay")
+    time.sleep(0.3)
+    assert [m for _, m in got] == expected
+
+
+def test_replay_loops_until_stopped(
+    run_log: Path, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    got = _collector(bus, "looped")
+    args = ["replay", str(run_log), "--rate", "20", "--topics", "status", "--loop",
+            "--as-run", "looped", "--force", "--connect", endpoint]  # fmt: skip
+    replay = procs.derl("replay", args)
+    wait_for(lambda: len(got) >= 3 * STEPS, 20, "three passes")
+    stop_all([replay])
+    assert replay.returncode == 0 and "passes" in procs.output("replay")
+    one_pass = list(range(2, STEPS + 2))  # the RunStatus of examples(run, i) has born = i + 2
+    assert [m.born for _, m in got][: 2 * STEPS] == one_pass * 2
+
+
+def test_replay_refuses_a_run_with_live_nodes(
+    run_log: Path, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    live = Bus(bus.session, "recorded")
+    got = _collector(bus, "recorded")
+    token = live.token("trainer", "t0")
+    replay = procs.derl("replay", ["replay", str(run_log), "--rate", "0", "--connect", endpoint])
+    assert procs.finish(replay) == 1
+    token.undeclare()
+    assert "run recorded is live" in procs.output("replay")
+    assert "Traceback" not in procs.output("replay")
+    assert got == []
+
+
+# --- topic -----------------------------------------------------------------------------------
+
+
+def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None:
+    router = _free_endpoint()
+    procs.derl("router", ["router", "--listen", router])
+    run = f"w{uuid.uuid4().hex[:10]}"
+    with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
+        publisher = Repeater(Bus(session, run))
+        report = next(m for m in examples(run, 0, 300) if isinstance(m, FitnessReport))
+        publisher.start([report], 0.1, raw=((f"derl/{run}/fitness/x", b"\xffjunk"),))
+        try:
+            args = ["topic", "echo", "fitness", "--run", run, "--count", "3",
+                    "--mode", "client", "--connect", router]  # fmt: skip
+            echo = procs.derl("echo", args)
+            assert procs.finish(echo) == 0, procs.output("echo")
+        finally:
+            publisher.stop()
+    lines = [json.loads(line) for line in procs.output("echo").splitlines() if line[:1] == "{"]
+    assert len(lines) == 3
+    assert lines[0]["checkpoint"] == {"bytes": 300}
+    assert lines[0] == {
+        **report.model_dump(mode="json", exclude={"checkpoint"}),
+        "checkpoint": {"bytes": 300},
+    }
+    assert "rejected (malformed)" in procs.output("echo")
+
+
+def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpoint: str) -> None:
+    status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
+    repeater.start([status], 0.05, raw=((bus.keys.fitness("x"), b"\xffjunk"),))
+    flags = ["--run", bus.run, "--connect", endpoint]
+    rate = procs.derl("hz", ["topic", "hz", "status", "--duration", "3", *flags])
+    listing = procs.derl("list", ["topic", "list", "--duration", "2", *flags])
+    assert procs.finish(rate) == 0 and procs.finish(listing) == 0
+    measured = re.findall(r"average rate: ([\d.]+) Hz", procs.output("hz"))
+    assert measured and 10 < float(measured[-1]) < 30, procs.output("hz")
+    assert re.search(rf"derl/{bus.run}/status\s+RunStatus\s+\d+", procs.output("list"))
+    assert re.search(rf"derl/{bus.run}/fitness/x\s+rejected\s+\d+", procs.output("list"))
+
+
+# --- monitor and the example -----------------------------------------------------------------
+
+
+def _a_run(run: str) -> list[MessageBase]:
+    report = next(m for m in examples(run, 0) if isinstance(m, FitnessReport))
+    return [
+        RunStatus(run=run, born=7, target=40, best_fitness=12.5, best_agent="a3", in_flight=2,
+                  workers_alive=2, evaluated=1, eval_target=4, steps_per_s=2345.0),
+        TrainProgress(run=run, child="a9", job="j9", node="trainer-1", env_steps=4096,
+                      total_steps=8192, recent_return=1.5, steps_per_s=1200.0),
+        Tournament(run=run, child="a8", contestants=("a3", "a1"), fitness=(12.5, 3.0),
+                   parent="a3", mutation="grow_limb", iteration=5),
+        report.model_copy(update={"child": "a8", "fitness": 9.75}),
+    ]  # fmt: skip
+
+
+def test_monitor_once_shows_the_run(
+    procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
+) -> None:
+    repeater.start(_a_run(bus.run), 0.2)
+    monitor = procs.derl("monitor", ["monitor", "--once", "2", "--connect", endpoint])
+    assert procs.finish(monitor) == 0, procs.output("monitor")
+    text = procs.output("monitor")
+    for shown in (f"derl run {bus.run}", "born 7/40", "best 12.50 (a3)", "2,345 steps/s",
+                  "evaluated 1/4", "trainer-1", "4,096/8,192 (50%)", "1.50", "grow_limb",
+                  "9.75", "fitness over 1 births"):  # fmt: skip
+        assert shown in text, f"{shown!r} not in\n{text}"
+
+
+def test_example_monitor_prints_fitness(
+    procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
+) -> None:
+    reports = [m for i in range(3) for m in examples(bus.run, i) if isinstance(m, FitnessReport)]
+    repeater.start(reports, 0.2, raw=((bus.keys.fitness("x"), b"\xffjunk"),))
+    procs.script("example", ["examples/fitness_monitor.py", bus.run, endpoint])
+    wanted = {f"{r.child} fitness {r.fitness:.2f} ({r.node})" for r in reports}
+    wait_for(lambda: wanted <= set(procs.output("example").splitlines()), 30, "fitness lines")
+    lines = procs.output("example").splitlines()
+    assert sum(line in wanted for line in lines) == 3  # each child once
+    assert any(line.startswith("skipped derl/") for line in lines)
+
+
+# --- without a bus ---------------------------------------------------------------------------
+
+
+def test_run_view_folds_births_and_draws_them() -> None:
+    from rich.console import Console
+
+    view = RunView("r")
+    for message in _a_run("r"):
+        view.apply(message, 100.0)
+    view.apply(_a_run("r")[-1], 101.0)  # a re-sent report is one birth
+    assert [(b.child, b.parent, b.mutation, b.fitness) for b in view.births] == [
+        ("a8", "a3", "grow_limb", 9.75)
+    ]
+    assert view.best() == (12.5, "a3")
+    console = Console(width=160, record=True, file=io.StringIO())
+    console.print(view.render(102.0))
+    assert "4,096/8,192 (50%)" in console.export_text()
+
+
+def test_sparkline_key_expressions_and_rates() -> None:
+    assert sparkline([0, 1, 2, 3, 4, 5, 6, 7]) == "▁▂▃▄▅▆▇█"
+    assert sparkline([5.0, 5.0]) == "▁▁" and sparkline([]) == ""
+    assert len(sparkline(list(range(1000)), width=10)) == 10
+    assert key_expression("fitness", "r1") == "derl/r1/fitness/**"
+    assert key_expression("**", "r1") == "derl/r1/**"
+    assert key_expression("derl/*/status") == "derl/*/status"
+    assert rate_line((0.0, 0.1, 0.2, 0.3)).startswith("average rate: 10.000 Hz")
+    assert rate_line((1.0,)) == "no new messages"
