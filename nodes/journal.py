@@ -24,6 +24,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import NamedTuple
 
 from mcap.exceptions import EndOfFile
 from mcap.records import Channel, McapRecord, Message, Schema
@@ -124,10 +125,24 @@ def replay(run_dir: Path) -> Iterator[MessageBase]:
         yield from read_segment(path)
 
 
+class Logged(NamedTuple):
+    """One message of a log with its MCAP channel topic and times (ns since the epoch)."""
+
+    topic: str
+    log_time: int
+    publish_time: int
+    message: MessageBase
+
+
 def read_segment(path: Path) -> Iterator[MessageBase]:
     """The messages of one segment in file order; what does not decode is logged and skipped."""
+    return (logged.message for logged in read_logged(path))
+
+
+def read_logged(path: Path) -> Iterator[Logged]:
+    """The messages of one MCAP file in file order, with their topics and times."""
     channels: dict[int, Channel] = {}
-    for record in _records(path):
+    for record in records(path):
         if isinstance(record, Channel):
             channels[record.id] = record
         elif isinstance(record, Message):
@@ -140,14 +155,16 @@ def read_segment(path: Path) -> Iterator[MessageBase]:
                 )
                 continue
             try:
-                yield decode(record.data)
+                message = decode(record.data)
             except DecodeError as exc:
                 log.warning(
                     "%s: message %d on %s skipped: %s", path, record.sequence, channel.topic, exc
                 )
+                continue
+            yield Logged(channel.topic, record.log_time, record.publish_time, message)
 
 
-def _records(path: Path) -> Iterator[McapRecord]:
+def records(path: Path) -> Iterator[McapRecord]:
     """The records of an MCAP file in order, up to the first one that is cut or corrupt."""
     size = path.stat().st_size
     with path.open("rb") as f:
@@ -212,7 +229,7 @@ def compact(segment: Path) -> bool:
     with tmp.open("wb") as f:
         writer = Writer(f, compression=CompressionType.ZSTD)
         writer.start(profile="", library=LIBRARY)
-        for record in _records(segment):
+        for record in records(segment):
             if isinstance(record, Schema) and record.id not in schemas:
                 schemas[record.id] = writer.register_schema(
                     record.name, record.encoding, record.data

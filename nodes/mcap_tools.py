@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Literal
 
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
@@ -30,7 +30,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from nodes.journal import _records, compact, segments
+from nodes.journal import Logged, compact, read_logged, records, segments
 
 log = logging.getLogger("derl.mcap")
 
@@ -39,15 +39,6 @@ EXPORT_LIBRARY = "derl-export"
 
 class LogError(ValueError):
     """A path that is not a readable log; the text says why."""
-
-
-class Logged(NamedTuple):
-    """One message of a log with its MCAP channel topic and times (ns since the epoch)."""
-
-    topic: str
-    log_time: int
-    publish_time: int
-    message: MessageBase
 
 
 def log_files(path: Path) -> list[Path]:
@@ -69,21 +60,7 @@ def log_files(path: Path) -> list[Path]:
 def read_log(path: Path) -> Iterator[Logged]:
     """Every valid message of a log in file order; undecodable ones are logged and skipped."""
     for file in log_files(path):
-        channels: dict[int, Channel] = {}
-        for record in _records(file):
-            if isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                channel = channels.get(record.channel_id)
-                if channel is None or channel.message_encoding != MessageEncoding.MessagePack:
-                    log.warning("%s: a message on a non-msgpack channel skipped", file)
-                    continue
-                try:
-                    message = decode(record.data)
-                except DecodeError as error:
-                    log.warning("%s: a message on %s skipped: %s", file, channel.topic, error)
-                    continue
-                yield Logged(channel.topic, record.log_time, record.publish_time, message)
+        yield from read_logged(file)
 
 
 # --- JSON ------------------------------------------------------------------------------------
@@ -222,7 +199,7 @@ def _file_info(path: Path) -> FileInfo:
     schemas: dict[int, str] = {}
     channels: dict[int, ChannelInfo] = {}
     footer = False
-    for record in _records(path):
+    for record in records(path):
         if isinstance(record, Schema):
             schemas[record.id] = record.name
         elif isinstance(record, Channel) and record.id not in channels:  # again in the summary
