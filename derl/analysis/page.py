@@ -1,0 +1,88 @@
+"""The report's HTML page: the figures beside it with their captions, the run summaries, links
+to the tables and the notes (what was sampled, what had too little data). One file, no scripts,
+no external resources; the PNGs are referenced by relative path.
+"""
+
+from __future__ import annotations
+
+from html import escape
+from pathlib import Path
+
+from derl.analysis.compute import RunSummary
+from derl.analysis.records import Record
+
+STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; color: #222; }
+figure { margin: 2em 0; } img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.9em; color: #444; max-width: 900px; }
+table { border-collapse: collapse; font-size: 0.85em; }
+td, th { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
+.notes li { font-size: 0.9em; }
+"""
+
+SUMMARY_COLUMNS = {
+    "run": "run",
+    "world": "world",
+    "bodies": "bodies",
+    "population": "P",
+    "generations": "generations",
+    "surviving_lineages": "surviving lineages",
+    "beneficial_threshold": "beneficial threshold",
+    "beneficial_mutations": "beneficial mutations",
+    "gain_p75": "p75 of positive gains",
+    "criterion": "learning criterion",
+    "learning_speed_undefined": "never reached it",
+    "stability_simulated": "stability simulated",
+}
+
+
+class FigureEntry(Record):
+    """A figure on the page: its file (beside the page), title and caption."""
+
+    file: str
+    title: str
+    caption: str
+
+
+def _cell(value: object) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
+
+
+def write_page(
+    path: Path,
+    title: str,
+    figures: list[FigureEntry],
+    summaries: list[RunSummary],
+    tables: list[Path],
+    notes: list[str],
+) -> Path:
+    rows = "".join(
+        "<tr>" + "".join(f"<td>{_cell(getattr(s, key))}</td>" for key in SUMMARY_COLUMNS) + "</tr>"
+        for s in summaries
+    )
+    header = "".join(f"<th>{escape(name)}</th>" for name in SUMMARY_COLUMNS.values())
+    body = [
+        f"<h1>{escape(title)}</h1>",
+        f"<table><tr>{header}</tr>{rows}</table>",
+        "<h2>Tables</h2><ul>",
+        *(f'<li><a href="{escape(t.name)}">{escape(t.name)}</a></li>' for t in tables),
+        "</ul>",
+        '<h2>Notes</h2><ul class="notes">',
+        *(f"<li>{escape(note)}</li>" for note in notes),
+        "</ul>",
+        *(
+            f'<figure id="{escape(Path(f.file).stem)}"><h2>{escape(f.title)}</h2>'
+            f'<img src="{escape(f.file)}" alt="{escape(f.title)}">'
+            f"<figcaption>{escape(f.caption)}</figcaption></figure>"
+            for f in figures
+        ),
+    ]
+    path.write_text(
+        "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+        f"<title>{escape(title)}</title><style>{STYLE}</style></head>\n<body>\n"
+        + "\n".join(body)
+        + "\n</body></html>\n"
+    )
+    return path

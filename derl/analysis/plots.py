@@ -1,0 +1,427 @@
+"""The report's figures as PNG files, drawn with matplotlib (object API, Agg, no pyplot state).
+
+One function per paper figure; each takes computed results (`derl.analysis.compute`) and writes
+one PNG. A panel without enough data still appears, with a note saying what is missing.
+"""
+
+from __future__ import annotations
+
+from itertools import cycle
+from pathlib import Path
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection, PolyCollection
+from matplotlib.colors import to_rgba
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
+
+from derl.analysis.compute import Analysis, RunAnalysis
+from derl.analysis.morphology import DESCRIPTORS
+from derl.analysis.statistics import Point
+from derl.analysis.testsuite import METRICS, tasks_and_worlds
+from derl.unimal import Genome
+from derl.unimal.render import GRID_GAP, render_grid
+
+DPI = 110
+WORLD_COLORS = {"ft": "tab:blue", "vt": "tab:orange", "mvt": "tab:green"}
+OTHER_COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+LINESTYLES = ("-", "--", ":", "-.")
+LINEAGE_COLORS = tuple(f"C{k}" for k in range(10))
+UNITS = {
+    "length": "length (m)",
+    "width": "width (m)",
+    "height": "height (m)",
+    "coverage": "coverage",
+    "mass": "mass (kg)",
+    "dof": "DoF",
+}
+MAX_CURVES = 8
+
+
+def world_colors(worlds: list[str]) -> dict[str, str]:
+    others = cycle(OTHER_COLORS)
+    return {w: WORLD_COLORS.get(w) or next(others) for w in dict.fromkeys(worlds)}
+
+
+def run_styles(runs: list[RunAnalysis]) -> dict[str, dict[str, str]]:
+    """Colour by world, line style by run within its world."""
+    colors = world_colors([r.run.world for r in runs])
+    seen: dict[str, int] = {}
+    styles = {}
+    for r in runs:
+        k = seen[r.run.world] = seen.get(r.run.world, -1) + 1
+        styles[r.run.name] = {
+            "color": colors[r.run.world],
+            "linestyle": LINESTYLES[k % len(LINESTYLES)],
+            "label": f"{r.run.name} ({r.run.world.upper()})",
+        }
+    return styles
+
+
+def _save(figure: Figure, path: Path) -> Path:
+    figure.savefig(path, dpi=DPI)
+    return path
+
+
+def _note(axis: Axes, text: str) -> None:
+    axis.text(
+        0.5, 0.5, text, transform=axis.transAxes, ha="center", va="center", color="0.35", wrap=True
+    )
+
+
+def _band(axis: Axes, points: list[Point], style: dict[str, str]) -> bool:
+    """Mean line and CI band of `points`; False (and nothing drawn) when none has a value."""
+    shown = [p for p in points if p.value is not None]
+    if not shown:
+        return False
+    x = np.array([p.x for p in shown])
+    axis.plot(x, [p.value for p in shown], marker="o" if len(shown) < 12 else None, ms=3, **style)
+    ci = [p for p in shown if p.low is not None]
+    if ci:
+        axis.fill_between(
+            [p.x for p in ci],
+            [p.low for p in ci],
+            [p.high for p in ci],
+            color=style["color"],
+            alpha=0.2,
+            linewidth=0,
+        )
+    return True
+
+
+def _curves(
+    axis: Axes, runs: list[RunAnalysis], name: str, styles: dict, xlabel: str, ylabel: str
+) -> None:
+    drawn = [_band(axis, r.series[name], styles[r.run.name]) for r in runs]
+    axis.set(xlabel=xlabel, ylabel=ylabel)
+    axis.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axis.grid(alpha=0.3)
+    if any(drawn):
+        axis.legend(fontsize=7)
+    else:
+        _note(axis, "no values to show")
+
+
+def fitness(path: Path, analysis: Analysis) -> Path:
+    """Fig. 2a: the top of the population over time, and the top agents' ancestors."""
+    runs, styles = analysis.runs, run_styles(analysis.runs)
+    figure = Figure(figsize=(11, 4), layout="constrained")
+    left, right = figure.subplots(1, 2)
+    _curves(left, runs, "fitness_top", styles, "bodies born", "fitness")
+    tops = "/".join(str(k) for k in sorted({r.summary.top_of_population for r in runs}))
+    confidence = analysis.config.bootstrap.confidence
+    left.set_title(f"top {tops} of the population: mean, {confidence:.0%} CI", fontsize=10)
+    _curves(right, runs, "fitness_by_generation", styles, "generation", "fitness")
+    agents = "/".join(str(k) for k in sorted({r.summary.top_agents for r in runs}))
+    right.set_title(f"ancestors of the top {agents} agents, by generation", fontsize=10)
+    return _save(figure, path)
+
+
+def lineage_scatter(path: Path, analysis: Analysis) -> Path:
+    """Fig. 2b: each surviving lineage by its founder's initial rank and its final abundance;
+    dot size = beneficial mutations it accrued."""
+    styles = run_styles(analysis.runs)
+    figure = Figure(figsize=(6.5, 4.5), layout="constrained")
+    axis = figure.subplots()
+    for r in analysis.runs:
+        rows = [row for row in r.lineages if row.surviving]
+        axis.scatter(
+            [row.founder_rank for row in rows],
+            [100 * row.final_abundance for row in rows],
+            s=[20 + 40 * row.beneficial_mutations for row in rows],
+            color=styles[r.run.name]["color"],
+            alpha=0.6,
+            edgecolors="k",
+            linewidths=0.5,
+            label=f"{styles[r.run.name]['label']}: {len(rows)} lineages, "
+            f"{sum(row.beneficial_mutations for row in rows)} beneficial mutations "
+            f"(>= {r.summary.beneficial_threshold:g})",
+        )
+    axis.set(
+        xlabel="founder's fitness rank in the initial population (1 = fittest)",
+        ylabel="share of the final population (%)",
+        ylim=(0, 105),
+    )
+    axis.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axis.set_title("surviving lineages (dot size: beneficial mutations)", fontsize=10)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+    return _save(figure, path)
+
+
+def lineage_colors(result: RunAnalysis) -> dict[int, tuple[float, ...]]:
+    """Founder index -> colour for the Muller lineages (the same in the tree and the diagram)."""
+    index = {body.id: i for i, body in enumerate(result.run.bodies)}
+    return {
+        index[f]: to_rgba(LINEAGE_COLORS[k % len(LINEAGE_COLORS)])
+        for k, f in enumerate(result.muller.founders)
+    }
+
+
+def _opacity(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Fitness as opacity: 0.15 (lowest) to 1 (highest); 0.15 where missing."""
+    scaled = (values - low) / (high - low) if high > low else np.ones_like(values)
+    return np.where(np.isnan(scaled), 0.15, 0.15 + 0.85 * np.clip(scaled, 0, 1))
+
+
+def phylogeny(path: Path, analysis: Analysis) -> Path:
+    """Fig. 2c-e: every body as a dot at its birth, under its parent; size = descendants,
+    opacity = fitness; the Muller diagram's lineages in colour, the rest grey."""
+    runs = analysis.runs
+    figure = Figure(figsize=(11, 4 * len(runs)), layout="constrained")
+    for axis, r in zip(np.atleast_1d(figure.subplots(len(runs), 1)), runs, strict=True):
+        tree, n = r.tree, len(r.run.bodies)
+        y = np.empty(n)
+        y[tree.preorder()] = np.arange(n)
+        x = np.arange(n, dtype=float)
+        children = np.flatnonzero(tree.parent >= 0)
+        parents = tree.parent[children]
+        elbows = np.stack(
+            [
+                np.c_[x[parents], y[parents]],
+                np.c_[x[parents], y[children]],
+                np.c_[x[children], y[children]],
+            ],
+            axis=1,
+        )
+        axis.add_collection(LineCollection(elbows, colors="0.75", linewidths=0.5, zorder=1))
+        colors = lineage_colors(r)
+        rgba = np.array([colors.get(int(f), to_rgba("0.2")) for f in tree.founder])
+        fit = r.run.fitness
+        rgba[:, 3] = _opacity(fit, fit.min(), fit.max())
+        sizes = 6 + 150 * tree.descendants / max(1, tree.descendants.max())
+        axis.scatter(x, y, s=sizes, c=rgba, edgecolors="none", zorder=2)
+        axis.set_xlim(-1, n)
+        axis.set_ylim(n, -1)
+        axis.set_yticks([])
+        axis.set(xlabel="birth order", ylabel="lineages (each subtree contiguous)")
+        axis.set_title(
+            f"{r.run.name} ({r.run.world.upper()}): {n} bodies, {int((tree.parent < 0).sum())} "
+            "founders; dot size = descendants, opacity = fitness",
+            fontsize=10,
+        )
+    return _save(figure, path)
+
+
+def muller(path: Path, analysis: Analysis) -> Path:
+    """Fig. 2f-h: population share over time of the lineages largest at the end (stacked; white =
+    the other lineages), opacity = the lineage's mean fitness; stars = topology changes with many
+    descendants."""
+    runs = analysis.runs
+    figure = Figure(figsize=(11, 3.5 * len(runs)), layout="constrained")
+    for axis, r in zip(np.atleast_1d(figure.subplots(len(runs), 1)), runs, strict=True):
+        m = r.muller
+        times, share, fit = m.times.astype(float), m.abundance, m.fitness
+        if times.size == 1:  # one moment: a stacked bar one birth wide
+            times, share, fit = times[0] + np.array([-0.5, 0.5]), share[[0, 0]], fit[[0, 0]]
+        top = np.cumsum(share, axis=1)
+        opacity = _opacity(fit, r.run.fitness.min(), r.run.fitness.max())
+        for column, founder in enumerate(m.founders):
+            low, high = top[:, column] - share[:, column], top[:, column]
+            quads = [
+                [
+                    (times[i], low[i]),
+                    (times[i + 1], low[i + 1]),
+                    (times[i + 1], high[i + 1]),
+                    (times[i], high[i]),
+                ]
+                for i in range(times.size - 1)
+            ]
+            color = to_rgba(LINEAGE_COLORS[column % len(LINEAGE_COLORS)])
+            faces = [(*color[:3], a) for a in opacity[:-1, column]]
+            axis.add_collection(PolyCollection(quads, facecolors=faces, edgecolors=faces, lw=0.3))
+            axis.plot([], [], color=color, lw=6, label=founder)
+        for birth, column, _ in m.stars:
+            middle = top[:, column] - share[:, column] / 2
+            axis.plot(birth, np.interp(birth, times, middle), marker="*", color="k", ms=9)
+        axis.set(xlim=(times[0], times[-1]), ylim=(0, 1))
+        axis.set(xlabel="bodies born", ylabel="share of the population")
+        axis.set_title(
+            f"{r.run.name} ({r.run.world.upper()}): the {len(m.founders)} largest surviving "
+            f"lineages; {len(m.stars)} stars (limb added/removed, > "
+            f"{analysis.config.star_descendants} descendants)",
+            fontsize=10,
+        )
+        axis.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5), title="founder")
+    return _save(figure, path)
+
+
+def morphology(path: Path, analysis: Analysis) -> Path:
+    """Fig. 3: population mean (with CI) of each descriptor over time."""
+    runs, styles = analysis.runs, run_styles(analysis.runs)
+    figure = Figure(figsize=(13, 7), layout="constrained")
+    for axis, name in zip(figure.subplots(2, 3).flat, DESCRIPTORS, strict=True):
+        _curves(axis, runs, name, styles, "bodies born", UNITS[name])
+        sampled = all(r.summary.stability_simulated == r.summary.bodies for r in runs)
+        suffix = "" if name != "coverage" or sampled else " (simulated sample)"
+        axis.set_title(UNITS[name].split(" (")[0] + suffix, fontsize=10)
+    return _save(figure, path)
+
+
+def baldwin(path: Path, analysis: Analysis) -> Path:
+    """Fig. 5a-c: learning speed and cost of work of the top agents' ancestors by generation,
+    and the passively stable share of the population over time."""
+    runs, styles = analysis.runs, run_styles(analysis.runs)
+    figure = Figure(figsize=(14, 4), layout="constrained")
+    a, b, c = figure.subplots(1, 3)
+    _curves(a, runs, "steps_to_criterion", styles, "generation", "env steps to the criterion")
+    percentile = analysis.config.criterion_percentile
+    a.set_title(f"a. steps to the {percentile:g}th percentile of the initial fitness", fontsize=10)
+    _curves(b, runs, "passively_stable", styles, "bodies born", "passively stable share")
+    b.set_title("b. passively stable bodies in the population", fontsize=10)
+    _curves(c, runs, "cost_of_work", styles, "generation", "cost of work")
+    c.set_title("c. cost of work of the top agents' ancestors", fontsize=10)
+    return _save(figure, path)
+
+
+def illustrative_curves(path: Path, analysis: Analysis) -> Path:
+    """Fig. 5d: learning curves of one top agent's ancestors, one per generation."""
+    runs = analysis.runs
+    figure = Figure(figsize=(8, 4 * len(runs)), layout="constrained")
+    for axis, r in zip(np.atleast_1d(figure.subplots(len(runs), 1)), runs, strict=True):
+        chain = r.tree.ancestry(r.illustrative)
+        shown = sorted({chain[int(k)] for k in np.linspace(0, len(chain) - 1, MAX_CURVES)})
+        shades = np.linspace(0.15, 0.9, len(chain))
+        for body in shown:
+            b = r.run.bodies[body]
+            generation = int(r.tree.generation[body])
+            axis.plot(
+                b.curve_steps,
+                b.curve_returns,
+                color=colormaps["viridis"](shades[generation]),
+                label=f"generation {generation}: {b.id} ({b.fitness:.1f})",
+            )
+        axis.axhline(r.summary.criterion, color="0.4", ls="--", lw=1, label="criterion")
+        axis.set(xlabel="env steps", ylabel="mean return")
+        axis.set_title(
+            f"{r.run.name} ({r.run.world.upper()}): lineage of {r.run.bodies[chain[-1]].id}, "
+            f"{len(chain)} generations",
+            fontsize=10,
+        )
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=7)
+    return _save(figure, path)
+
+
+def energy(path: Path, analysis: Analysis) -> Path:
+    """Fig. 6: fitness and learning speed against cost of work; top agents in colour, every
+    body in grey; Pearson r and p per world in the legend."""
+    runs = analysis.runs
+    colors = world_colors([r.run.world for r in runs])
+    figure = Figure(figsize=(12, 4.5), layout="constrained")
+    panels = dict(zip(("fitness", "steps_to_criterion"), figure.subplots(1, 2), strict=True))
+    for y, axis in panels.items():
+        for r in runs:
+            axis.scatter(r.run.cost_of_work, r.values(y), s=8, color="0.75", edgecolors="none")
+        for world, color in colors.items():
+            mine = [r for r in runs if r.run.world == world]
+            stats = {
+                row.agents: row.correlation
+                for row in analysis.correlations
+                if row.world == world and row.y == y
+            }
+            label = f"{world.upper()} top agents; " + "; ".join(
+                f"{agents}: r={c.r:.2f}, p={c.p:.2g}, n={c.n}"
+                if c.r is not None
+                else f"{agents}: n={c.n} ({c.note})"
+                for agents, c in stats.items()
+            )
+            axis.scatter(
+                np.concatenate([r.run.cost_of_work[r.top] for r in mine]),
+                np.concatenate([r.values(y)[r.top] for r in mine]),
+                s=18,
+                color=color,
+                edgecolors="k",
+                linewidths=0.4,
+                label=label,
+            )
+        axis.set(
+            xlabel="cost of work",
+            ylabel="fitness" if y == "fitness" else "env steps to the criterion",
+        )
+        axis.set_title(
+            "a. fitness vs cost of work" if y == "fitness" else "b. learning speed vs cost of work",
+            fontsize=10,
+        )
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=7)
+    return _save(figure, path)
+
+
+def tests(path: Path, analysis: Analysis) -> Path:
+    """Fig. 4: median reward and cost of work per test task and world (with CI), with the
+    Mann-Whitney marks between worlds."""
+    summary = analysis.test_summary
+    figure = Figure(figsize=(12, 7), layout="constrained")
+    axes = figure.subplots(2, 1)
+    if not summary:
+        for axis in axes:
+            _note(axis, "no evaluation results in these runs")
+        return _save(figure, path)
+    tasks, worlds = tasks_and_worlds(analysis.tests)
+    colors = world_colors(worlds)
+    width = 0.8 / len(worlds)
+    for axis, metric in zip(axes, METRICS, strict=True):
+        for k, world in enumerate(worlds):
+            rows = {s.task: getattr(s, metric) for s in summary if s.world == world}
+            x = np.array([t for t, task in enumerate(tasks) if task in rows], dtype=float)
+            est = [rows[task] for task in tasks if task in rows]
+            value = np.array([np.nan if e.value is None else e.value for e in est])
+            err = np.array(
+                [[0, 0] if e.low is None else [e.value - e.low, e.high - e.value] for e in est]
+            ).T
+            axis.bar(
+                x + (k - (len(worlds) - 1) / 2) * width,
+                value,
+                width,
+                yerr=err,
+                color=colors[world],
+                label=world.upper(),
+                capsize=3,
+            )
+        for t, task in enumerate(tasks):
+            marks = [
+                f"{c.world_a.upper()}-{c.world_b.upper()} {c.test.stars}"
+                for c in analysis.comparisons
+                if c.task == task and c.metric == metric and c.test.p is not None
+            ]
+            if marks:
+                axis.annotate(
+                    "\n".join(marks),
+                    (t, 0.98),
+                    xycoords=("data", "axes fraction"),
+                    ha="center",
+                    va="top",
+                    fontsize=7,
+                )
+        axis.margins(y=0.2)  # room for the marks
+        axis.set_xticks(range(len(tasks)), tasks)
+        axis.set_ylabel(f"median {metric.replace('_', ' ')}")
+        axis.grid(alpha=0.3, axis="y")
+        axis.legend(fontsize=8)
+    return _save(figure, path)
+
+
+def bodies(path: Path, genomes: list[Genome], labels: list[str]) -> Path:
+    """The given bodies drawn offscreen in a grid, each with its label."""
+    width, height, columns = 240, 180, min(4, len(genomes))
+    image = render_grid(genomes, width, height, columns=columns)
+    figure = Figure(figsize=(image.shape[1] / 80, image.shape[0] / 80 + 0.3), layout="constrained")
+    axis = figure.subplots()
+    axis.imshow(image)
+    axis.set_axis_off()
+    for k, label in enumerate(labels):
+        row, col = divmod(k, columns)
+        axis.text(col * (width + GRID_GAP) + 4, row * (height + GRID_GAP) + 14, label, fontsize=8)
+    return _save(figure, path)
+
+
+def placeholder(path: Path, text: str) -> Path:
+    """A figure that only says why the real one could not be drawn."""
+    figure = Figure(figsize=(8, 2), layout="constrained")
+    axis = figure.subplots()
+    axis.set_axis_off()
+    _note(axis, text)
+    return _save(figure, path)

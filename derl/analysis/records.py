@@ -1,0 +1,93 @@
+"""The plain records the analyses work on: one run's bodies in birth order and its test results.
+
+Whoever reads a run builds these (`nodes/report_cli.py` folds the coordinator's journal into them);
+nothing here knows about messages, the bus or MCAP. A body's `birth` is its place in the run's
+birth order (the order in which the coordinator accepted fitness), the analyses' time axis.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, model_validator
+
+from derl.unimal import Genome
+
+
+class Record(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Body(Record):
+    """A born body: its place in the tree, its fitness and what lifetime learning measured."""
+
+    id: str
+    parent: str | None = None
+    birth: int
+    fitness: float
+    curve_steps: tuple[int, ...] = ()
+    curve_returns: tuple[float, ...] = ()
+    energy: float = float("nan")
+    cost_of_work: float = float("nan")
+    """Energy / (mass g reward); NaN when undefined (no forward progress)."""
+    mass: float = float("nan")
+    mutation: str | None = None
+    """The operator that made this body from its parent (None for the initial bodies)."""
+    genome: Genome | None = None
+
+    @model_validator(mode="after")
+    def _curve_aligned(self) -> Body:
+        if len(self.curve_steps) != len(self.curve_returns):
+            raise ValueError(f"{self.id}: curve steps and returns differ in length")
+        return self
+
+
+class Evaluation(Record):
+    """One test-task result of an agent (appendix C), trained from scratch with `seed`."""
+
+    agent: str
+    task: str
+    seed: int
+    reward: float
+    cost_of_work: float = float("nan")
+
+
+class RunLog(Record):
+    """One evolution run: its world, every body in birth order, and its evaluation results."""
+
+    name: str
+    world: str
+    """The evolution environment (``ft``, ``vt``, ``mvt``): the task of its training jobs."""
+    bodies: tuple[Body, ...]
+    evaluations: tuple[Evaluation, ...] = ()
+    train_steps: int | None = None
+    training_seed: int | None = None
+
+    @model_validator(mode="after")
+    def _a_tree_in_birth_order(self) -> RunLog:
+        seen: set[str] = set()
+        for index, body in enumerate(self.bodies):
+            if body.birth != index:
+                raise ValueError(f"{body.id}: birth {body.birth} at position {index}")
+            if body.parent is not None and body.parent not in seen:
+                raise ValueError(f"{body.id}: parent {body.parent} is not born before it")
+            if body.id in seen:
+                raise ValueError(f"{body.id} is born twice")
+            seen.add(body.id)
+        return self
+
+    @cached_property
+    def population(self) -> int:
+        """P, the aging window: the initial population is P bodies without a parent."""
+        return sum(body.parent is None for body in self.bodies)
+
+    @cached_property
+    def fitness(self) -> np.ndarray:
+        """Every body's fitness, in birth order."""
+        return np.array([body.fitness for body in self.bodies], dtype=float)
+
+    @cached_property
+    def cost_of_work(self) -> np.ndarray:
+        """Every body's cost of work, in birth order (NaN where undefined)."""
+        return np.array([body.cost_of_work for body in self.bodies], dtype=float)

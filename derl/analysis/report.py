@@ -1,0 +1,280 @@
+"""A whole report in a folder: the figures (PNG), the tables (CSV, stats.json) and index.html.
+
+`write_report(runs, out)` analyses the runs (`compute.analyse`), draws every figure of the paper
+that a run's journal supports, writes the tables and a page that shows them, and returns what it
+wrote. Captions say what each figure shows and how many bodies it covers; the notes say what was
+sampled and where the data were too few.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict
+
+from derl.analysis import plots
+from derl.analysis.compute import Analysis, RunAnalysis, analyse
+from derl.analysis.config import AnalysisConfig
+from derl.analysis.page import FigureEntry, write_page
+from derl.analysis.records import RunLog
+from derl.analysis.tables import write_tables
+
+log = logging.getLogger("derl.analysis")
+
+PAGE = "index.html"
+
+
+class ReportFiles(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    page: Path
+    figures: list[Path]
+    tables: list[Path]
+    notes: list[str]
+
+
+def write_report(
+    runs: list[RunLog], out: Path, config: AnalysisConfig | None = None
+) -> ReportFiles:
+    config = config or AnalysisConfig()
+    out.mkdir(parents=True, exist_ok=True)
+    log.info("analysing %d run(s): %d bodies", len(runs), sum(len(r.bodies) for r in runs))
+    analysis = analyse(runs, config)
+    notes = _notes(analysis)
+    log.info("drawing figures")
+    entries = _figures(analysis, out, notes)
+    tables = write_tables(analysis, out, notes)
+    title = "DERL report: " + ", ".join(f"{r.name} ({r.world.upper()})" for r in runs)
+    page = write_page(out / PAGE, title, entries, [r.summary for r in analysis.runs], tables, notes)
+    return ReportFiles(
+        page=page, figures=[out / e.file for e in entries], tables=tables, notes=notes
+    )
+
+
+def _runs_text(analysis: Analysis, what: Callable[[RunAnalysis], str]) -> str:
+    """`what` of each run, labelled with the run's name."""
+    return "; ".join(f"{r.run.name}: {what(r)}" for r in analysis.runs)
+
+
+def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntry]:
+    config = analysis.config
+    ci = (
+        f"{config.bootstrap.confidence:.0%} bootstrapped CIs (scipy, {config.bootstrap.method}, "
+        f"{config.bootstrap.n_resamples} resamples)"
+    )
+    entries = [
+        FigureEntry(
+            file=plots.fitness(out / "fitness.png", analysis).name,
+            title="Fig. 2a: fitness of the top agents",
+            caption=(
+                "Left: mean fitness of the k fittest members of the population (the P most "
+                f"recently born bodies) after each number of births, with {ci}. Right: mean "
+                "fitness, generation by generation, of the ancestors of each run's top agents "
+                "(n at generation g = top agents whose lineage is that deep). "
+                + _runs_text(
+                    analysis,
+                    lambda r: (
+                        f"{r.summary.bodies} bodies, P={r.summary.population}, "
+                        f"k={r.summary.top_of_population}, top agents={r.summary.top_agents}"
+                    ),
+                )
+            ),
+        ),
+        FigureEntry(
+            file=plots.lineage_scatter(out / "lineages.png", analysis).name,
+            title="Fig. 2b: surviving lineages",
+            caption=(
+                "Each dot is a lineage with members in the final population: its founder's "
+                "fitness rank among the initial bodies against its share of the final population; "
+                "dot size is the number of beneficial mutations in the lineage (child fitness - "
+                "parent fitness >= the world's threshold). "
+                + _runs_text(
+                    analysis,
+                    lambda r: (
+                        f"{r.summary.surviving_lineages} of {r.summary.population} lineages "
+                        f"survive, {r.summary.beneficial_mutations} beneficial mutations "
+                        f"(threshold {r.summary.beneficial_threshold:g})"
+                    ),
+                )
+            ),
+        ),
+        FigureEntry(
+            file=plots.phylogeny(out / "phylogeny.png", analysis).name,
+            title="Fig. 2c-e: phylogenetic trees",
+            caption=(
+                "Every body is a dot at its birth (x), joined to its parent; each lineage's "
+                "subtree occupies contiguous rows. Dot size: number of descendants; opacity: "
+                "fitness (darker = fitter). The Muller diagram's lineages have its colours, the "
+                "others are grey. " + _runs_text(analysis, lambda r: f"{r.summary.bodies} bodies")
+            ),
+        ),
+        FigureEntry(
+            file=plots.muller(out / "muller.png", analysis).name,
+            title="Fig. 2f-h: Muller diagrams",
+            caption=(
+                f"Share of the population over time of the (up to) {config.muller_lineages} "
+                "lineages with the largest final share, stacked; white space is all other "
+                "lineages. Opacity: the lineage's mean fitness in the population at that time. "
+                "Stars: a limb added or removed by a mutation whose sub-lineage has more than "
+                f"{config.star_descendants} descendants. "
+                + _runs_text(
+                    analysis,
+                    lambda r: (
+                        f"{len(r.muller.founders)} of {r.summary.surviving_lineages} "
+                        f"surviving lineages shown, {len(r.muller.times)} times, population "
+                        f"{r.summary.population}"
+                    ),
+                )
+            ),
+        ),
+        FigureEntry(
+            file=plots.morphology(out / "morphology.png", analysis).name,
+            title="Fig. 3: morphological descriptors",
+            caption=(
+                f"Population mean with {ci} after each number of births: bounding-box length "
+                "(forward), width and height at rest, coverage (body volume / bounding-box "
+                "volume), mass and degrees of freedom. Coverage comes from the stability "
+                "simulation: "
+                + _runs_text(
+                    analysis,
+                    lambda r: f"{r.summary.stability_simulated} of {r.summary.bodies} bodies",
+                )
+            ),
+        ),
+        FigureEntry(
+            file=plots.tests(out / "tests.png", analysis).name,
+            title="Fig. 4: the test-task suite",
+            caption=(
+                f"Median reward and cost of work per test task and evolution world, with {ci} of "
+                "the median, over every evaluated (agent, seed); marks: two-tailed Mann-Whitney U "
+                "tests between worlds (* p<0.05, ** p<0.01, *** p<0.001, **** p<0.0001, ns). "
+                f"{len(analysis.tests)} evaluation results."
+            ),
+        ),
+        FigureEntry(
+            file=plots.baldwin(out / "baldwin.png", analysis).name,
+            title="Fig. 5a-c: the morphological Baldwin effect, stability and cost of work",
+            caption=(
+                f"a: env steps until the learning curve first reaches the "
+                f"{config.criterion_percentile:g}th percentile of the initial population's "
+                "fitness, for the ancestors of the top agents by generation (bodies that never "
+                f"reach it are left out). b: share of passively stable bodies in the population "
+                f"over time ({ci}; simulated bodies only). c: mean cost of work of the same "
+                "ancestors by generation. "
+                + _runs_text(
+                    analysis,
+                    lambda r: (
+                        f"criterion {r.summary.criterion:.4g}, "
+                        f"{r.summary.learning_speed_undefined} of {r.summary.bodies} bodies never "
+                        "reach it"
+                    ),
+                )
+            ),
+        ),
+        FigureEntry(
+            file=plots.illustrative_curves(out / "curves.png", analysis).name,
+            title="Fig. 5d: learning curves across generations of one lineage",
+            caption=(
+                "Learning curves (mean return against env steps) of one top agent of each run "
+                "(the one with the most generations behind it) and of its ancestors (at most "
+                f"{plots.MAX_CURVES} generations, evenly spread), darker to lighter from founder "
+                "to descendant; dashed: the learning criterion. "
+                + _runs_text(
+                    analysis,
+                    lambda r: (
+                        f"{r.run.bodies[r.illustrative].id}, generation "
+                        f"{int(r.tree.generation[r.illustrative])}"
+                    ),
+                )
+            ),
+        ),
+        FigureEntry(
+            file=plots.energy(out / "energy.png", analysis).name,
+            title="Fig. 6: energy efficiency, fitness and learning speed",
+            caption=(
+                "a: fitness and b: env steps to the learning criterion against cost of work, for "
+                "the top agents of each world's runs (colour) and for every body (grey); "
+                "two-tailed Pearson r and p in the legends (bodies with an undefined cost of work "
+                "or learning speed are left out). "
+                + "; ".join(
+                    f"{row.world.upper()} {row.agents} {row.y}: n={row.correlation.n}, "
+                    f"excluded {row.correlation.excluded}"
+                    for row in analysis.correlations
+                )
+            ),
+        ),
+    ]
+    entries.append(_pictures(analysis, out, notes))
+    return entries
+
+
+def _pictures(analysis: Analysis, out: Path, notes: list[str]) -> FigureEntry:
+    ranked = sorted(
+        ((r.run, b) for r in analysis.runs for b in r.run.bodies), key=lambda rb: -rb[1].fitness
+    )[: analysis.config.pictures]
+    path = out / "bodies.png"
+    title = "The best bodies"
+    if not ranked:
+        plots.placeholder(path, "no bodies to draw (pictures = 0)")
+        return FigureEntry(file=path.name, title=title, caption="No pictures were asked for.")
+    try:
+        plots.bodies(
+            path,
+            [body.genome for _, body in ranked],
+            [f"{run.name}/{body.id}: {body.fitness:.4g}" for run, body in ranked],
+        )
+    except RuntimeError as error:  # no offscreen OpenGL
+        notes.append(f"the bodies could not be drawn: {error}")
+        plots.placeholder(path, f"offscreen rendering failed: {error}")
+    return FigureEntry(
+        file=path.name,
+        title=title,
+        caption=f"The {len(ranked)} fittest bodies across the runs, at rest, with run/id: fitness.",
+    )
+
+
+def _notes(analysis: Analysis) -> list[str]:
+    notes = []
+    for r in analysis.runs:
+        s = r.summary
+        if s.stability_simulated < s.bodies:
+            notes.append(
+                f"{s.run}: passive stability and coverage were simulated for "
+                f"{s.stability_simulated} of {s.bodies} bodies, evenly spaced in birth order; "
+                "population shares and means of those use the simulated members only"
+            )
+        if s.learning_speed_undefined:
+            notes.append(
+                f"{s.run}: {s.learning_speed_undefined} of {s.bodies} bodies never reached the "
+                f"learning criterion {s.criterion:.4g}; they have no learning speed and are left "
+                "out of figs. 5a and 6b"
+            )
+        if not s.beneficial_mutations and s.gain_p75 is not None:
+            notes.append(
+                f"{s.run}: no mutation gained >= {s.beneficial_threshold:g} fitness; the 75th "
+                f"percentile of the positive gains (how the paper chose its thresholds) is "
+                f"{s.gain_p75:.4g}: try --beneficial {s.world}={s.gain_p75:.3g}"
+            )
+        single = sum(p.n < 2 for points in r.series.values() for p in points)
+        if single:
+            notes.append(
+                f"{s.run}: {single} plotted points rest on fewer than 2 values and have no CI "
+                "(a CI needs >= 2 values)"
+            )
+    for row in analysis.correlations:
+        if row.correlation.r is None:
+            notes.append(
+                f"fig. 6 ({row.world.upper()}, {row.agents} bodies, cost of work vs {row.y}): "
+                f"no correlation: {row.correlation.note}"
+            )
+    worlds = {t.world for t in analysis.tests}
+    if not analysis.tests:
+        notes.append("fig. 4: these runs hold no evaluation (test-task) results")
+    elif len(worlds) < 2:
+        notes.append(
+            "fig. 4: Mann-Whitney U tests compare worlds; give runs of at least two worlds with "
+            "evaluation results (derl report A B C)"
+        )
+    return notes

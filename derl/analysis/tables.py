@@ -1,0 +1,183 @@
+"""The machine-readable tables of a report: CSV files (one pydantic row model each) and
+stats.json (run sizes and thresholds, correlations, Mann-Whitney tests, what was sampled).
+
+bodies.csv      one row per body: tree, fitness, energy, descriptors, stability, learning speed
+lineages.csv    one row per lineage: founder, rank, size, survival, beneficial mutations
+series.csv      every plotted curve: figure series, run, x, n, mean and CI
+muller.csv      abundance and mean fitness of the top lineages after each number of births
+tests.csv       one row per evaluation result; test_summary.csv medians and CIs per world/task
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterable
+from pathlib import Path
+
+from pydantic import BaseModel
+
+from derl.analysis.compute import Analysis, CorrelationRow, RunAnalysis, RunSummary
+from derl.analysis.config import AnalysisConfig
+from derl.analysis.lineage import Lineage
+from derl.analysis.records import Record
+from derl.analysis.testsuite import TaskSummary, TestResult, WorldComparison
+
+
+class BodyRow(Record):
+    run: str
+    id: str
+    parent: str | None
+    founder: str
+    generation: int
+    birth: int
+    fitness: float
+    cost_of_work: float
+    energy: float
+    mass: float
+    mutation: str | None
+    beneficial: bool
+    descendants: int
+    length: float
+    width: float
+    height: float
+    dof: int
+    limbs: int
+    coverage: float | None
+    passively_stable: bool | None
+    stability_ratio: float | None
+    steps_to_criterion: float | None
+    top_agent: bool
+
+
+class Stats(Record):
+    """stats.json: what the figures rest on and the tests of figs. 4 and 6."""
+
+    config: AnalysisConfig
+    runs: list[RunSummary]
+    correlations: list[CorrelationRow]
+    mann_whitney: list[WorldComparison]
+    notes: list[str]
+
+
+class SeriesRow(Record):
+    series: str
+    run: str
+    x: float
+    n: int
+    mean: float | None
+    low: float | None
+    high: float | None
+
+
+class MullerRow(Record):
+    run: str
+    time: int
+    founder: str
+    abundance: float
+    mean_fitness: float | None
+
+
+def body_rows(result: RunAnalysis) -> list[BodyRow]:
+    run, tree = result.run, result.tree
+    top = set(result.top.tolist())
+    return [
+        BodyRow(
+            run=run.name,
+            id=body.id,
+            parent=body.parent,
+            founder=run.bodies[tree.founder[i]].id,
+            generation=int(tree.generation[i]),
+            birth=body.birth,
+            fitness=body.fitness,
+            cost_of_work=body.cost_of_work,
+            energy=body.energy,
+            mass=body.mass,
+            mutation=body.mutation,
+            beneficial=bool(result.beneficial[i]),
+            descendants=int(tree.descendants[i]),
+            steps_to_criterion=None if math.isnan(result.speed[i]) else float(result.speed[i]),
+            top_agent=i in top,
+            **result.morphology[i].model_dump(exclude={"mass"}),
+        )
+        for i, body in enumerate(run.bodies)
+    ]
+
+
+def series_rows(result: RunAnalysis) -> list[SeriesRow]:
+    return [
+        SeriesRow(
+            series=name, run=result.run.name, x=p.x, n=p.n, mean=p.value, low=p.low, high=p.high
+        )
+        for name, points in result.series.items()
+        for p in points
+    ]
+
+
+def muller_rows(result: RunAnalysis) -> list[MullerRow]:
+    m = result.muller
+    return [
+        MullerRow(
+            run=result.run.name,
+            time=int(t),
+            founder=founder,
+            abundance=float(m.abundance[row, col]),
+            mean_fitness=None if math.isnan(m.fitness[row, col]) else float(m.fitness[row, col]),
+        )
+        for row, t in enumerate(m.times)
+        for col, founder in enumerate(m.founders)
+    ]
+
+
+def write_csv(path: Path, rows: Iterable[BaseModel], model: type[BaseModel]) -> Path:
+    """Rows as CSV with a header of `model`'s fields (nested models flattened as a_b)."""
+    flat = [_flatten(row.model_dump()) for row in rows]
+    header = list(_flatten(_example(model)).keys()) if not flat else list(flat[0])
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, header)
+        writer.writeheader()
+        writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in flat)
+    return path
+
+
+def _example(model: type[BaseModel]) -> dict:
+    """Field names of `model` (nested models expanded) for the header of an empty table."""
+    names: dict = {}
+    for name, field in model.model_fields.items():
+        annotation = field.annotation
+        is_model = isinstance(annotation, type) and issubclass(annotation, BaseModel)
+        names[name] = _example(annotation) if is_model else None
+    return names
+
+
+def _flatten(row: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in row.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}_"))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def write_tables(analysis: Analysis, out: Path, notes: list[str]) -> list[Path]:
+    """Every table of the report in `out`; the paths written."""
+    runs = analysis.runs
+    written = [
+        write_csv(out / "bodies.csv", (row for r in runs for row in body_rows(r)), BodyRow),
+        write_csv(out / "lineages.csv", (row for r in runs for row in r.lineages), Lineage),
+        write_csv(out / "series.csv", (row for r in runs for row in series_rows(r)), SeriesRow),
+        write_csv(out / "muller.csv", (row for r in runs for row in muller_rows(r)), MullerRow),
+        write_csv(out / "tests.csv", analysis.tests, TestResult),
+        write_csv(out / "test_summary.csv", analysis.test_summary, TaskSummary),
+    ]
+    stats = Stats(
+        config=analysis.config,
+        runs=[r.summary for r in runs],
+        correlations=analysis.correlations,
+        mann_whitney=analysis.comparisons,
+        notes=notes,
+    )
+    path = out / "stats.json"
+    path.write_text(stats.model_dump_json(indent=2) + "\n")  # NaN becomes null
+    return [*written, path]

@@ -1,0 +1,355 @@
+"""Every metric of `derl.analysis` on a hand-built run whose answers are worked out by hand.
+
+The tree (P = 3 founders, then 4 children, in birth order):
+
+    a (10) ── d (350, grow_limb) ──┬── f (700)
+                                   └── g (100)
+    b (20)
+    c (30) ── e (40)
+
+The final population is the last 3 born (e, f, g): lineages a (f, g) and c (e) survive, b does
+not. With the FT threshold 300, d (+340) and f (+350) are beneficial mutations, both in a's
+lineage. The learning criterion is the 75th percentile of {10, 20, 30} = 25.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from derl.analysis import AnalysisConfig, Body, Evaluation, RunLog, analyse, plan
+from derl.analysis.learning import by_generation, criterion, learning_speed, steps_to_reach
+from derl.analysis.lineage import (
+    Tree,
+    beneficial,
+    final_members,
+    fitness_gain,
+    lineages,
+    muller,
+    time_grid,
+    window,
+)
+from derl.analysis.morphology import Morphology, column, over_time, sample
+from derl.analysis.selection import new_seeds, top_of_surviving_lineages
+from derl.analysis.statistics import BootstrapConfig, estimate, mann_whitney, pearson, stars
+from derl.analysis.testsuite import compare, results, summarize
+from derl.unimal import Genome
+
+STEPS = (100, 200, 300)
+# id, parent, fitness, curve returns, cost of work, mutation
+TREE = (
+    ("a", None, 10.0, (5.0, 8.0, 10.0), 4.0, None),
+    ("b", None, 20.0, (10.0, 20.0, 20.0), 3.0, None),
+    ("c", None, 30.0, (20.0, 26.0, 30.0), 2.0, None),
+    ("d", "a", 350.0, (30.0, 300.0, 350.0), 1.0, "grow_limb"),
+    ("e", "c", 40.0, (0.0, 0.0, 40.0), float("nan"), "gear"),
+    ("f", "d", 700.0, (25.0, 500.0, 700.0), 0.5, "density"),
+    ("g", "d", 100.0, (10.0, 24.9, 100.0), 1.5, "dof"),
+)
+ORDER = "abcdefg"
+
+
+def make_run(genome: Genome | None = None, name: str = "r", world: str = "ft", evaluations=()):
+    bodies = tuple(
+        Body(
+            id=body,
+            parent=parent,
+            birth=k,
+            fitness=fitness,
+            curve_steps=STEPS,
+            curve_returns=curve,
+            cost_of_work=cost,
+            energy=100.0,
+            mass=10.0,
+            mutation=mutation,
+            genome=genome,
+        )
+        for k, (body, parent, fitness, curve, cost, mutation) in enumerate(TREE)
+    )
+    return RunLog(
+        name=name,
+        world=world,
+        bodies=bodies,
+        evaluations=evaluations,
+        train_steps=300,
+        training_seed=1409,
+    )
+
+
+@pytest.fixture
+def run() -> RunLog:
+    return make_run()
+
+
+@pytest.fixture
+def tree(run: RunLog) -> Tree:
+    return Tree.of(run)
+
+
+def ids(indices) -> list[str]:
+    return [ORDER[int(i)] for i in indices]
+
+
+# --- records -----------------------------------------------------------------------------------
+
+
+def test_records_must_form_a_tree_in_birth_order() -> None:
+    with pytest.raises(ValueError, match="parent"):
+        RunLog(name="x", world="ft", bodies=(Body(id="a", parent="z", birth=0, fitness=1),))
+    with pytest.raises(ValueError, match="birth"):
+        RunLog(name="x", world="ft", bodies=(Body(id="a", birth=1, fitness=1),))
+    with pytest.raises(ValueError, match="curve"):
+        Body(id="a", birth=0, fitness=1, curve_steps=(1, 2), curve_returns=(1.0,))
+
+
+# --- the tree ----------------------------------------------------------------------------------
+
+
+def test_founders_generations_and_descendants(run: RunLog, tree: Tree) -> None:
+    assert run.population == 3
+    assert ids(tree.founder) == list("abcacaa")
+    assert tree.generation.tolist() == [0, 0, 0, 1, 1, 2, 2]
+    assert dict(zip(ORDER, tree.descendants.tolist(), strict=True)) == dict(
+        a=3, b=0, c=1, d=2, e=0, f=0, g=0
+    )
+    assert ids(tree.ancestry(5)) == ["a", "d", "f"]
+    order = ids(tree.preorder())
+    assert order == ["a", "d", "f", "g", "b", "c", "e"]
+
+
+def test_population_windows_and_time_grid(run: RunLog) -> None:
+    assert window(7, 3) == slice(4, 7)
+    assert window(2, 3) == slice(0, 2)
+    assert time_grid(run, 50).tolist() == [3, 4, 5, 6, 7]
+    assert time_grid(run, 2).tolist() == [3, 7]
+
+
+def test_beneficial_mutations_with_a_threshold(run: RunLog, tree: Tree) -> None:
+    gain = fitness_gain(run, tree)
+    assert np.isnan(gain[:3]).all()
+    assert gain[3:].tolist() == [340.0, 10.0, 350.0, -250.0]
+    assert ids(np.flatnonzero(beneficial(run, tree, 300))) == ["d", "f"]
+    assert ids(np.flatnonzero(beneficial(run, tree, 345))) == ["f"]
+    assert ids(np.flatnonzero(beneficial(run, tree, 340))) == ["d", "f"]  # ">= threshold"
+    assert ids(np.flatnonzero(beneficial(run, tree, -1000))) == ["d", "e", "f", "g"]
+
+
+def test_lineages(run: RunLog, tree: Tree) -> None:
+    assert final_members(run, tree) == {0: 2, 2: 1}
+    rows = {row.founder: row for row in lineages(run, tree, 300)}
+    assert [row.founder for row in lineages(run, tree, 300)] == ["a", "c", "b"]
+    a, b, c = rows["a"], rows["b"], rows["c"]
+    assert (a.founder_rank, b.founder_rank, c.founder_rank) == (3, 2, 1)
+    assert (a.bodies, b.bodies, c.bodies) == (4, 1, 2)
+    assert (a.final_members, a.final_abundance) == (2, pytest.approx(2 / 3))
+    assert (c.final_members, c.final_abundance) == (1, pytest.approx(1 / 3))
+    assert (a.surviving, b.surviving, c.surviving) == (True, False, True)
+    assert (a.beneficial_mutations, b.beneficial_mutations, c.beneficial_mutations) == (2, 0, 0)
+    assert (a.best_agent, a.best_fitness, a.max_generation) == ("f", 700.0, 2)
+
+
+def test_muller_abundances(run: RunLog, tree: Tree) -> None:
+    times = time_grid(run, 50)
+    m = muller(run, tree, lineages(run, tree, 300), times, count=10, star_descendants=1)
+    assert m.founders == ["a", "c"]
+    expected = np.array([[1, 1], [1, 1], [1, 2], [2, 1], [2, 1]]) / 3
+    np.testing.assert_allclose(m.abundance, expected)
+    assert (m.abundance.sum(axis=1) <= 1 + 1e-12).all()
+    assert m.fitness[3, 0] == pytest.approx((350 + 700) / 2)  # t=6: d and f
+    assert m.fitness[4, 1] == 40.0
+    assert m.stars == [(3, 0, "d")]  # grow_limb with 2 > 1 descendants
+    only_one = muller(run, tree, lineages(run, tree, 300), times, count=1, star_descendants=20)
+    assert only_one.founders == ["a"] and only_one.stars == []
+
+
+# --- learning speed and the Baldwin effect -----------------------------------------------------
+
+
+def test_steps_to_the_criterion(run: RunLog) -> None:
+    level = criterion(run, 75)
+    assert level == 25.0
+    speed = learning_speed(run, level)
+    expected = [math.nan, math.nan, 200, 100, 300, 100, 300]
+    np.testing.assert_array_equal(speed, expected)
+    assert steps_to_reach(run.bodies[6], 24.9) == 200  # reaching the level exactly counts
+
+
+def test_by_generation_follows_the_top_agents_ancestors(run: RunLog, tree: Tree) -> None:
+    config = BootstrapConfig()
+    top = np.array([5, 3])  # f, d: the two fittest
+    points = by_generation(tree, top, run.fitness, config)
+    assert [p.x for p in points] == [0, 1, 2]
+    assert [(p.n, p.value) for p in points] == [(2, 10.0), (2, 350.0), (1, 700.0)]
+    assert (points[0].low, points[0].high) == (10.0, 10.0)  # constant values: CI is the value
+    assert points[2].low is None  # a single value has no CI
+    speed = by_generation(tree, top, learning_speed(run, 25.0), config)
+    assert [(p.n, p.value) for p in speed] == [(0, None), (2, 100.0), (1, 100.0)]
+
+
+# --- statistics --------------------------------------------------------------------------------
+
+
+def test_bootstrap_ci_is_scipys() -> None:
+    data = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 9.0])
+    config = BootstrapConfig(n_resamples=5000, seed=3)
+    for statistic, function in (("mean", np.mean), ("median", np.median)):
+        result = estimate(data, config, statistic)
+        direct = stats.bootstrap(
+            (data,), function, n_resamples=5000, method="BCa", rng=np.random.default_rng(3)
+        ).confidence_interval
+        assert result.value == function(data)
+        assert (result.low, result.high) == pytest.approx((direct.low, direct.high))
+        assert result.low < result.value < result.high
+    assert estimate([np.nan, 2.0], config).model_dump() == dict(n=1, value=2.0, low=None, high=None)
+    assert estimate([], config).n == 0
+
+
+def test_pearson_on_known_relations() -> None:
+    x = np.arange(10.0)
+    exact = pearson(x, 3 * x + 2)
+    assert exact.r == pytest.approx(1.0) and exact.p < 1e-10
+    assert pearson(x, -x).r == pytest.approx(-1.0)
+    known = pearson([1, 2, 3, 4, np.nan], [1, 3, 2, 4, 7])  # r = 0.8, t = 1.886 on 2 df
+    assert (known.n, known.excluded) == (4, 1)
+    assert known.r == pytest.approx(0.8) and known.p == pytest.approx(0.2)
+    assert pearson([1, 2], [2, 3]).r is None
+    assert pearson([1, 1, 1], [1, 2, 3]).note == "a constant variable"
+
+
+def test_mann_whitney_on_known_samples() -> None:
+    separated = mann_whitney([1, 2, 3], [4, 5, 6])
+    assert (separated.u, separated.p) == (0.0, pytest.approx(0.1))  # exact: 2 / C(6, 3)
+    assert separated.stars == "ns"
+    far = mann_whitney(np.arange(20.0), np.arange(20.0) + 100)
+    assert far.p < 1e-4 and far.stars == "****"
+    assert mann_whitney([], [1.0]).p is None
+    assert [stars(p) for p in (0.2, 0.04, 0.009, 0.0009, 0.00009)] == [
+        "ns",
+        "*",
+        "**",
+        "***",
+        "****",
+    ]
+
+
+# --- morphology over time ----------------------------------------------------------------------
+
+
+def test_population_means_over_time() -> None:
+    values = np.array([1, 2, 3, 4, 5, 6, 7], dtype=float)
+    points = over_time(values, np.array([3, 7]), 3, BootstrapConfig())
+    assert [(p.x, p.n, p.value) for p in points] == [(3, 3, 2.0), (7, 3, 6.0)]
+    stable = [True, False, None, True]
+    rows = [
+        Morphology(length=1, width=1, height=1, dof=2, limbs=2, mass=1, passively_stable=s)
+        for s in stable
+    ]
+    flags = column(rows, "passively_stable")
+    np.testing.assert_array_equal(flags, [1.0, 0.0, np.nan, 1.0])
+    (share,) = over_time(flags, np.array([4]), 4, BootstrapConfig())
+    assert (share.n, share.value) == (3, pytest.approx(2 / 3))
+
+
+def test_stability_sample_spreads_over_birth_order() -> None:
+    assert sample(10, 4).tolist() == [0, 3, 6, 9]
+    assert sample(3, 5).tolist() == [0, 1, 2]
+
+
+# --- the test-task suite -----------------------------------------------------------------------
+
+
+def test_suite_medians_and_world_comparison() -> None:
+    def evaluations(rewards):
+        return tuple(
+            Evaluation(agent=f"x{k}", task="patrol", seed=k, reward=r, cost_of_work=1.0 / r)
+            for k, r in enumerate(rewards)
+        )
+
+    ft = make_run(name="one", world="ft", evaluations=evaluations([1.0, 2.0, 3.0]))
+    vt = make_run(name="two", world="vt", evaluations=evaluations([4.0, 5.0, 6.0]))
+    rows = results([ft, vt])
+    assert len(rows) == 6 and {r.world for r in rows} == {"ft", "vt"}
+    summary = {s.world: s for s in summarize(rows, BootstrapConfig())}
+    assert summary["ft"].reward.value == 2.0 and summary["vt"].reward.value == 5.0
+    assert summary["vt"].cost_of_work.value == pytest.approx(1 / 5)
+    (reward, cost) = compare(rows)
+    assert (reward.task, reward.metric, reward.world_a, reward.world_b) == (
+        "patrol",
+        "reward",
+        "ft",
+        "vt",
+    )
+    assert (reward.test.u, reward.test.p) == (0.0, pytest.approx(0.1))
+    assert (cost.metric, cost.test.u) == ("cost_of_work", 9.0)
+
+
+# --- selection (appendix D) --------------------------------------------------------------------
+
+
+def test_top_bodies_of_surviving_lineages(run: RunLog, tree: Tree) -> None:
+    assert ids(top_of_surviving_lineages(run, tree, 2)) == ["f", "d", "e", "c"]
+    assert ids(top_of_surviving_lineages(run, tree, 1)) == ["f", "e"]
+
+
+def test_retraining_plan(quadruped: Genome) -> None:
+    result = plan([make_run(quadruped)], per_lineage=2, seeds=3, seed=7)
+    assert len(result.seeds) == 3 and 1409 not in result.seeds
+    assert len(set(result.seeds)) == 3
+    assert len(result.jobs) == 4 * 3
+    assert [j.agent for j in result.jobs[::3]] == ["f", "d", "e", "c"]
+    assert {j.lineage for j in result.jobs if j.agent in "fd"} == {"a"}
+    assert {(j.task, j.steps) for j in result.jobs} == {("ft", 300)}
+    assert {j.seed for j in result.jobs} == set(result.seeds)
+    assert result.jobs[0].genome == quadruped
+    assert new_seeds(2, {5}, 0) == new_seeds(2, {5}, 0)
+
+
+# --- everything together -----------------------------------------------------------------------
+
+
+def test_analyse_a_run(quadruped: Genome) -> None:
+    config = AnalysisConfig(time_points=5)
+    (result,) = analyse([make_run(quadruped)], config).runs
+    s = result.summary
+    assert (s.bodies, s.population, s.generations) == (7, 3, 3)
+    assert (s.top_of_population, s.top_agents) == (2, 2)
+    assert (s.beneficial_threshold, s.beneficial_mutations, s.surviving_lineages) == (300, 2, 2)
+    assert (s.learning_speed_defined, s.learning_speed_undefined) == (5, 2)
+    assert s.stability_simulated == 7
+    assert s.gain_p75 == pytest.approx(np.percentile([340, 10, 350], 75))
+    top = result.series["fitness_top"]
+    assert [p.x for p in top] == [3, 4, 5, 6, 7]
+    assert [p.value for p in top] == [25.0, 190.0, 195.0, 525.0, 400.0]  # top 2 of the window
+    assert ids(result.top) == ["f", "d"]
+    assert ORDER[result.illustrative] == "f"  # the top agent with the most generations
+    assert [p.value for p in result.series["cost_of_work"]] == [4.0, 1.0, 0.5]
+    assert [p.value for p in result.series["dof"]] == [quadruped.dof] * 5
+    assert result.morphology[0].passively_stable is not None
+
+
+def test_fig6_correlations_pool_each_world(quadruped: Genome) -> None:
+    config = AnalysisConfig(top=3, stability_sample=1)
+    analysis = analyse([make_run(quadruped, "one"), make_run(quadruped, "two")], config)
+    rows = {(r.world, r.agents, r.y): r.correlation for r in analysis.correlations}
+    top = rows[("ft", "top", "fitness")]  # f, d, g of both runs
+    expected = stats.pearsonr([0.5, 1, 1.5] * 2, [700, 350, 100] * 2)
+    assert top.n == 6 and top.r == pytest.approx(expected.statistic)
+    assert top.p == pytest.approx(expected.pvalue)
+    every = rows[("ft", "all", "steps_to_criterion")]
+    assert (every.n, every.excluded) == (8, 6)  # e has no cost of work; a, b never reach 25
+
+
+def test_thresholds_come_from_the_world() -> None:
+    config = AnalysisConfig()
+    assert (config.threshold("ft"), config.threshold("vt"), config.threshold("mvt")) == (
+        300,
+        100,
+        100,
+    )
+    with pytest.raises(ValueError, match="no beneficial-mutation threshold"):
+        config.threshold("moon")
+    assert AnalysisConfig(beneficial={"ft": 5}).threshold("ft") == 5
+    assert [config.top_of(n) for n in (3, 8, 16, 576, 4000)] == [2, 2, 4, 100, 100]

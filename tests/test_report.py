@@ -1,0 +1,242 @@
+"""`derl report` and `derl select` on journals: a hand-written one (the fold into records, every
+file of a report), and a real smoke run made by `derl run` (slow)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from derl.analysis import RetrainPlan
+from derl.unimal import Genome
+from messages import Ack, Curve, EvalResult, FitnessReport, Tournament, TrainJob
+from nodes.cli import main
+from nodes.journal import Journal, segments
+from nodes.report_cli import _thresholds, load_run, load_runs
+
+FIGURES = (
+    "fitness.png",
+    "lineages.png",
+    "phylogeny.png",
+    "muller.png",
+    "morphology.png",
+    "baldwin.png",
+    "curves.png",
+    "energy.png",
+    "tests.png",
+    "bodies.png",
+)
+TABLES = (
+    "bodies.csv",
+    "lineages.csv",
+    "series.csv",
+    "muller.csv",
+    "tests.csv",
+    "test_summary.csv",
+    "stats.json",
+)
+
+
+def _job(child: str, genome: Genome, parent: str | None, attempt: int = 1) -> TrainJob:
+    return TrainJob(
+        run="hand",
+        job=f"{child}.{attempt}",
+        child=child,
+        node="t0",
+        genome=genome,
+        task="vt",
+        steps=300,
+        seed=1409,
+        parent=parent,
+        lease_s=30,
+    )
+
+
+def _report(child: str, fitness: float, curve: tuple[float, ...], attempt: int = 1):
+    return FitnessReport(
+        run="hand",
+        child=child,
+        job=f"{child}.{attempt}",
+        node="t0",
+        fitness=fitness,
+        fitness_source="window",
+        fitness_episodes=3,
+        curve=Curve(env_steps=(100, 200, 300), returns=curve),
+        energy=50.0,
+        cost_of_work=2.0,
+        mass=12.0,
+        episodes=9,
+        env_steps=300,
+        wall_s=1.0,
+        steps_per_s=300.0,
+        checkpoint=b"",
+    )
+
+
+def write_journal(run_dir: Path, genome: Genome) -> None:
+    """P = 3 founders i0..i2, then c0 (of i2, its job reassigned once) and c1 (of c0); a repeated
+    fitness report and a repeated evaluation result, as a journal may hold after restarts."""
+    with Journal(run_dir) as journal:
+        for k, fitness in enumerate((10.0, 20.0, 30.0)):
+            journal.write(_job(f"i{k}", genome, None))
+            journal.write(_report(f"i{k}", fitness, (fitness / 2, fitness, fitness)))
+            journal.write(
+                Ack(run="hand", of="FitnessReport", job=f"i{k}.1", child=f"i{k}", node="t0")
+            )
+        journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0)))  # repeated: the first one counts
+        for child, parent, mutation, k in (("c0", "i2", "grow_limb", 0), ("c1", "c0", "gear", 1)):
+            journal.write(
+                Tournament(
+                    run="hand",
+                    child=child,
+                    contestants=(parent,),
+                    fitness=(1.0,),
+                    parent=parent,
+                    mutation=mutation,
+                    iteration=k,
+                )
+            )
+            journal.write(_job(child, genome, parent))
+        journal.write(_job("c0", genome, "i2", attempt=2))
+        journal.write(_report("c0", 150.0, (20.0, 40.0, 150.0), attempt=2))
+        journal.write(_report("c1", 400.0, (30.0, 200.0, 400.0)))
+        for task, seed, reward in (("patrol", 0, 5.0), ("patrol", 1, 7.0), ("incline", 0, 3.0)):
+            result = EvalResult(
+                run="hand",
+                agent="c1",
+                task=task,
+                seed=seed,
+                reward=reward,
+                cost_of_work=1.5,
+                curve=Curve(),
+                node="e0",
+                job=f"e-{task}-{seed}",
+            )
+            journal.write(result)
+            if seed == 1:
+                journal.write(result.model_copy(update={"reward": 0.0}))
+
+
+def test_the_journal_folds_into_records(tmp_path: Path, quadruped: Genome) -> None:
+    write_journal(tmp_path, quadruped)
+    run = load_run(tmp_path)
+    assert (run.name, run.world, run.train_steps, run.training_seed) == ("hand", "vt", 300, 1409)
+    assert [b.id for b in run.bodies] == ["i0", "i1", "i2", "c0", "c1"]
+    assert [b.parent for b in run.bodies] == [None, None, None, "i2", "c0"]
+    assert [b.mutation for b in run.bodies] == [None, None, None, "grow_limb", "gear"]
+    assert run.bodies[1].fitness == 20.0
+    assert run.bodies[4].curve_returns == (30.0, 200.0, 400.0)
+    assert run.bodies[4].genome == quadruped and run.population == 3
+    assert [(e.task, e.seed, e.reward) for e in run.evaluations] == [
+        ("patrol", 0, 5.0),
+        ("patrol", 1, 7.0),
+        ("incline", 0, 3.0),
+    ]
+    assert load_run(segments(tmp_path)[0]) == run  # one MCAP file reads the same
+    twice = load_runs([tmp_path, tmp_path])
+    assert [r.name for r in twice] == ["hand", "hand-2"]
+
+
+def test_beneficial_flag() -> None:
+    assert _thresholds("300") == {"*": 300.0}
+    assert _thresholds("FT=300, vt=50") == {"ft": 300.0, "vt": 50.0}
+    with pytest.raises(argparse.ArgumentTypeError):
+        _thresholds("ft=lots")
+
+
+def _check_report(out: Path) -> dict:
+    for name in FIGURES:
+        assert (out / name).stat().st_size > 5_000, name
+    for name in TABLES:
+        assert (out / name).stat().st_size > 50, name
+    page = (out / "index.html").read_text()
+    for name in FIGURES + TABLES:
+        assert f'"{name}"' in page, name
+    return json.loads((out / "stats.json").read_text())
+
+
+def test_report_of_a_journal(tmp_path: Path, quadruped: Genome) -> None:
+    write_journal(tmp_path / "run", quadruped)
+    out = tmp_path / "report"
+    assert (
+        main(
+            [
+                "report",
+                str(tmp_path / "run"),
+                "--out",
+                str(out),
+                "--beneficial",
+                "vt=120",
+                "--pictures",
+                "0",
+                "--processes",
+                "1",
+            ]
+        )
+        == 0
+    )
+    stats = _check_report(out)
+    (run,) = stats["runs"]
+    assert (run["bodies"], run["population"], run["generations"]) == (5, 3, 3)
+    assert (run["beneficial_threshold"], run["beneficial_mutations"]) == (120.0, 2)
+    assert run["criterion"] == 25.0  # 75th percentile of 10, 20, 30
+    rows = (out / "bodies.csv").read_text().splitlines()
+    assert len(rows) == 6 and rows[0].startswith("run,id,parent,founder,generation,birth")
+    assert "hand,c1,c0,i2,2,4,400.0" in rows[5]
+    assert len((out / "tests.csv").read_text().splitlines()) == 4
+
+
+def test_select_writes_the_retraining_jobs(tmp_path: Path, quadruped: Genome) -> None:
+    write_journal(tmp_path / "run", quadruped)
+    out = tmp_path / "plan.json"
+    assert (
+        main(
+            [
+                "select",
+                str(tmp_path / "run"),
+                "--per-lineage",
+                "2",
+                "--seeds",
+                "3",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    result = RetrainPlan.model_validate_json(out.read_text())
+    # the final population (the last 3 born: i2, c0, c1) is one lineage, i2's
+    assert [j.agent for j in result.jobs[::3]] == ["c1", "c0"]
+    assert len(result.jobs) == 6 and 1409 not in result.seeds
+    assert {(j.task, j.steps, j.lineage) for j in result.jobs} == {("vt", 300, "i2")}
+
+
+def derl(*args: str) -> subprocess.CompletedProcess[str]:
+    result = subprocess.run(
+        [sys.executable, "-m", "nodes.cli", *args], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result
+
+
+@pytest.mark.slow
+def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
+    run_dir = tmp_path / "smoke-ft"
+    derl("run", "--profile", "smoke", "--env", "ft", "--run-dir", str(run_dir))
+    out = tmp_path / "report"
+    printed = derl("report", str(run_dir), "--out", str(out)).stdout
+    assert f"wrote {out / 'index.html'}" in printed.replace("\n", "")
+    stats = _check_report(out)
+    assert stats["runs"][0]["bodies"] == 8 and stats["runs"][0]["world"] == "ft"
+    assert (out / "bodies.png").stat().st_size > 50_000  # real pictures, not the placeholder
+    assert len((out / "tests.csv").read_text().splitlines()) > 1  # the evaluator's results
+    plan = tmp_path / "plan.json"
+    derl("select", str(run_dir), "--per-lineage", "3", "--seeds", "5", "--out", str(plan))
+    result = RetrainPlan.model_validate_json(plan.read_text())
+    lineages = [line.split(",") for line in (out / "lineages.csv").read_text().splitlines()[1:]]
+    surviving = [min(3, int(row[4])) for row in lineages if row[7] == "True"]
+    assert len(result.jobs) == 5 * sum(surviving) and len(result.seeds) == 5
