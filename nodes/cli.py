@@ -10,7 +10,16 @@ import sys
 # MuJoCo picks its OpenGL backend when first imported: offscreen EGL unless the user chose one.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from nodes import bus_cli, report_cli, run, train_cli, unimal_cli, watch_cli
+from nodes import (  # noqa: E402
+    bus_cli,
+    evaluate_cli,
+    launch_cli,
+    report_cli,
+    run,
+    train_cli,
+    unimal_cli,
+    watch_cli,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,7 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     train_cli.register(commands)
     run.register(commands)
     bus_cli.register(commands)
+    launch_cli.register(commands)
     report_cli.register(commands)
+    evaluate_cli.register(commands)
     watch_cli.register(commands)
     return parser
 
