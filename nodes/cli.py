@@ -10,7 +10,7 @@ import sys
 # MuJoCo picks its OpenGL backend when first imported: offscreen EGL unless the user chose one.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from nodes import (  # noqa: E402
+from nodes import (
     bus_cli,
     evaluate_cli,
     launch_cli,
