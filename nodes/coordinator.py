@@ -128,8 +128,8 @@ class Coordinator:
                 except queue.Empty:
                     pass
                 now = time.monotonic()
-                self._check_leases(now)
                 if now >= next_status:
+                    self._check_leases(now)
                     bus.publish(self._status(), reliable=False)
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:

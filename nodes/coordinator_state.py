@@ -38,6 +38,8 @@ class CoordinatorState:
     evaluations: dict[tuple[str, str, int], EvalResult | None] = field(default_factory=dict)
     eval_waiting: deque[tuple[str, str, int]] = field(default_factory=deque)
     issued: dict[str, TrainJob | EvalJob] = field(default_factory=dict)  # every job ever sent
+    by_node: dict[str, str] = field(default_factory=dict)  # node -> its job in flight
+    by_child: dict[str, str] = field(default_factory=dict)  # child -> its training job in flight
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome]) -> CoordinatorState:
@@ -62,7 +64,7 @@ class CoordinatorState:
             self._plan_evaluations()
             if key in self.eval_waiting:
                 self.eval_waiting.remove(key)
-            self.jobs[msg.job] = Job(msg.job, msg.agent, msg.node, (msg.task, msg.seed))
+            self._add(Job(msg.job, msg.agent, msg.node, (msg.task, msg.seed)))
         elif isinstance(msg, EvalResult):
             self.evaluations[(msg.agent, msg.task, msg.seed)] = msg
             self._finished(msg.job)
@@ -83,15 +85,30 @@ class CoordinatorState:
                     tournament.iteration,
                 )
             )
-        for old in [j for j in self.jobs.values() if j.subject == child]:
-            del self.jobs[old.job]  # a reassignment supersedes the lost job
+        if child in self.by_child:
+            self._remove(self.by_child[child])  # a reassignment supersedes the lost job
         if child in self.waiting:
             self.waiting.remove(child)
         self.attempts[child] = self.attempts.get(child, 0) + 1
-        self.jobs[job.job] = Job(job.job, child, job.node)
+        self._add(Job(job.job, child, job.node))
 
     def _finished(self, job: str) -> None:
-        self.jobs.pop(job, None)
+        self._remove(job)
+
+    def _add(self, job: Job) -> None:
+        self.jobs[job.job] = job
+        self.by_node[job.node] = job.job
+        if job.evaluation is None:
+            self.by_child[job.subject] = job.job
+
+    def _remove(self, job_id: str) -> Job | None:
+        job = self.jobs.pop(job_id, None)
+        if job is not None:
+            if self.by_node.get(job.node) == job_id:
+                del self.by_node[job.node]
+            if self.by_child.get(job.subject) == job_id:
+                del self.by_child[job.subject]
+        return job
 
     # --- questions the node asks -------------------------------------------------------------
 
@@ -101,14 +118,15 @@ class CoordinatorState:
         return issued is not None and issued.node == node
 
     def job_of(self, node: str) -> Job | None:
-        return next((j for j in self.jobs.values() if j.node == node), None)
+        job = self.by_node.get(node)
+        return None if job is None else self.jobs[job]
 
     def training_in_flight(self) -> int:
-        return sum(1 for j in self.jobs.values() if j.evaluation is None)
+        return len(self.by_child)
 
     def lose(self, job: str) -> None:
         """A job's worker is gone: its body waits for the next ready worker."""
-        lost = self.jobs.pop(job, None)
+        lost = self._remove(job)
         if lost is None:
             return
         if lost.evaluation is None:

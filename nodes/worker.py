@@ -51,7 +51,7 @@ class Worker:
         self.run, self.node, self.role, self.nthread = run, node, role, nthread
         self.stop = threading.Event()
         self.run_done = threading.Event()
-        self.jobs_done = 0
+        self.done: set[str] = set()  # jobs trained: a copy sent again is not trained twice
 
     def serve(self, options: ZenohOptions, max_jobs: int | None = None) -> None:
         with open_session(options) as session:
@@ -72,11 +72,11 @@ class Worker:
                 except Stopped:
                     break
                 self._deliver(result, acks)
-                self.jobs_done += 1
+                self.done.add(job.job)
             token.undeclare()
 
     def _finished(self, max_jobs: int | None) -> bool:
-        limit = max_jobs is not None and self.jobs_done >= max_jobs
+        limit = max_jobs is not None and len(self.done) >= max_jobs
         return self.stop.is_set() or self.run_done.is_set() or limit
 
     def _status(self, status: RunStatus) -> None:
@@ -94,9 +94,13 @@ class Worker:
         )
         self.bus.publish(ready)
         try:
-            return jobs.get(timeout=READY_PERIOD_S)
+            job = jobs.get(timeout=READY_PERIOD_S)
         except queue.Empty:
             return None
+        if job.job in self.done:
+            log.info("%s: %s was sent again after it was done: ignored", self.node, job.job)
+            return None
+        return job
 
     def _work(self, job: TrainJob | EvalJob) -> FitnessReport | EvalResult:
         subject = job.child if isinstance(job, TrainJob) else job.agent

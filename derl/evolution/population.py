@@ -57,6 +57,7 @@ class Evolution:
                 f"{len(initial)} initial bodies for a population of {config.population}"
             )
         self.initial = [Child(f"i{k:04d}", genome) for k, genome in enumerate(initial)]
+        self.unborn_initial = {child.child for child in self.initial}
         self.genomes: dict[str, Genome] = {c.child: c.genome for c in self.initial}
         self.parents: dict[str, str | None] = {c.child: None for c in self.initial}
         self.born: list[Member] = []
@@ -70,7 +71,7 @@ class Evolution:
 
     @property
     def initial_born(self) -> bool:
-        return all(child.child in self.fitness for child in self.initial)
+        return not self.unborn_initial
 
     @property
     def done(self) -> bool:
@@ -123,4 +124,5 @@ class Evolution:
         member = Member(agent, fitness, self.parents[agent], len(self.born))
         self.born.append(member)
         self.fitness[agent] = fitness
+        self.unborn_initial.discard(agent)
         return member
