@@ -6,17 +6,17 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import yaml
+from nodes_fixtures import free_port, wait_for
 
 from messages import FitnessReport, RunStatus, TrainJob, TrainProgress, encode
 from messages.examples import examples
@@ -37,22 +37,6 @@ PROFILE = {
 }
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-
 class Cluster:
     """Nodes of one run on loopback, each in its own process group, all killed at the end."""
 
@@ -63,7 +47,7 @@ class Cluster:
         self.logs.mkdir()
         self.profile = tmp / "profile.yaml"
         self.profile.write_text(yaml.safe_dump(profile))
-        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.processes: list[subprocess.Popen] = []
         self.statuses: list[RunStatus] = []
         self.progress: list[TrainProgress] = []

@@ -7,16 +7,16 @@ from __future__ import annotations
 import io
 import json
 import re
-import socket
 import subprocess
 import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from nodes_fixtures import free_port, wait_for
 
 from messages import (
     FitnessReport,
@@ -38,22 +38,6 @@ from nodes.topic import key_expression, rate_line
 ROOT = Path(__file__).resolve().parents[1]
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
 STEPS, GAP_S = 6, 0.4
-
-
-def _free_endpoint() -> str:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
-
-
-def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 class Processes:
@@ -106,7 +90,7 @@ def procs(tmp_path: Path) -> Iterator[Processes]:
 
 @pytest.fixture
 def endpoint() -> str:
-    return _free_endpoint()
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 @pytest.fixture
@@ -267,7 +251,7 @@ def test_replay_refuses_a_run_with_live_nodes(
 
 
 def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None:
-    router = _free_endpoint()
+    router = f"tcp/127.0.0.1:{free_port()}"
     procs.derl("router", ["router", "--listen", router])
     run = f"w{uuid.uuid4().hex[:10]}"
     with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
