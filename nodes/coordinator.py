@@ -121,12 +121,16 @@ class Coordinator:
             while not self.stop.is_set():
                 try:
                     kind, item = inbox.get(timeout=0.2)
+                except queue.Empty:
+                    kind, item = "", None
+                try:
                     if kind == "msg":
                         self._handle(item)
-                    else:
+                    elif kind == "alive":
                         self._liveliness(*item)
-                except queue.Empty:
-                    pass
+                except Exception:  # one message must never stop the run: log it and go on
+                    bus.rejected["handler error"] += 1
+                    log.exception("handling %r failed", item)
                 now = time.monotonic()
                 if now >= next_status:
                     self._check_leases(now)
