@@ -13,7 +13,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import queue
+import re
 import socket
 from collections import Counter
 from collections.abc import Callable
@@ -98,9 +100,6 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
 
 def node_name(role: str, index: int = 0) -> str:
     """A node id unique on the network: role, host, process and index, as a safe key segment."""
-    import os
-    import re
-
     host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:64] or "host"
     return f"{role}-{host}-{os.getpid()}-{index}"
 

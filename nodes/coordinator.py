@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from derl.evolution import EvolutionConfig
-from derl.unimal import Genome, sample_population, to_mjcf
+from derl.unimal import Genome, to_mjcf
 from messages import (
     Ack,
     EvalJob,
@@ -53,7 +53,8 @@ class Coordinator:
         self.run, self.run_dir, self.config = run, run_dir, config
         run_dir.mkdir(parents=True, exist_ok=True)
         self._check_profile()
-        self.state = CoordinatorState.start(config, self._initial_population())
+        self.state = CoordinatorState.start(config, self._saved_initial_population())
+        self._save_initial_population()
         replayed = 0
         if segments(run_dir):
             for msg in replay(run_dir):
@@ -86,20 +87,21 @@ class Coordinator:
         else:
             path.write_text(self.config.model_dump_json(indent=2) + "\n")
 
-    def _initial_population(self) -> list[Genome]:
-        """The initial bodies: drawn once from the seed, then kept as a fact of the run."""
+    def _saved_initial_population(self) -> list[Genome] | None:
+        """The initial bodies, if this run drew them before (else `Evolution` draws them)."""
+        path = self.run_dir / INITIAL_FILE
+        if not path.exists():
+            return None
+        return [Genome.model_validate(g) for g in json.loads(path.read_text())]
+
+    def _save_initial_population(self) -> None:
+        """Keep the initial bodies as a fact of the run (drawing them again is slow)."""
         path = self.run_dir / INITIAL_FILE
         if path.exists():
-            return [Genome.model_validate(g) for g in json.loads(path.read_text())]
-        import numpy as np
-
-        genomes = sample_population(
-            self.config.population, np.random.default_rng([self.config.seed, 0])
-        )
+            return
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps([g.model_dump() for g in genomes]))
+        tmp.write_text(json.dumps([c.genome.model_dump() for c in self.state.evolution.initial]))
         tmp.replace(path)
-        return genomes
 
     # --- the loop ----------------------------------------------------------------------------
 

@@ -42,7 +42,7 @@ class CoordinatorState:
     by_child: dict[str, str] = field(default_factory=dict)  # child -> its training job in flight
 
     @classmethod
-    def start(cls, config: EvolutionConfig, initial: list[Genome]) -> CoordinatorState:
+    def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
         state = cls(config, Evolution(config, initial))
         state.waiting.extend(child.child for child in state.evolution.initial)
         return state

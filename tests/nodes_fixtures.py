@@ -3,7 +3,6 @@ children in their own process groups that die with the test, and what the journa
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import os
 import signal
@@ -20,6 +19,7 @@ import yaml
 
 from messages import FitnessReport, TrainJob
 from nodes.journal import replay, segments
+from nodes.processes import stop_all
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -114,21 +114,7 @@ class Processes:
 
     def close(self) -> None:
         """SIGTERM every process group, SIGKILL what is left after 5 s."""
-        for process in self.started.values():
-            if process.poll() is None:
-                _signal_group(process.pid, signal.SIGTERM)
-        deadline = time.monotonic() + 5
-        for process in self.started.values():
-            try:
-                process.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                _signal_group(process.pid, signal.SIGKILL)
-                process.wait()
-
-
-def _signal_group(pid: int, sig: int) -> None:
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(pid, sig)
+        stop_all(list(self.started.values()), timeout=5)
 
 
 def births(run_dir: Path) -> list[str]:

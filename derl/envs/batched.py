@@ -119,8 +119,9 @@ class UnimalEnv:
         terms = self.task.rewards(self)
         components = {**terms, **self.task.metrics(self, terms)}
         components["energy"] = np.abs(self.ctrl) @ self.gear
-        for values in components.values():
-            values[unstable] = 0.0
+        if unstable.any():
+            for values in components.values():
+                values[unstable] = 0.0
         reward = np.sum(list(terms.values()), axis=0) if terms else np.zeros(self.num_envs)
         terminated = unstable | self._fallen() | self._off_arena() | self.task.success(self)
         truncated = ~terminated & (self.steps >= self.config.episode_steps)
