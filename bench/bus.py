@@ -2,14 +2,16 @@
 
 1. `assignments`: a real `derl coordinator` process (paper population P=576, T=4, a budget of
    bodies that never runs out, lease 1 h) on loopback, driven by `LoadGenerator`: a LOAD-TEST
-   TOOL that simulates W workers over one Zenoh session. Nothing is trained: each simulated
-   worker sends WorkerReady (again every second while idle, like a real one), and answers each
-   TrainJob with a tiny fake FitnessReport. For W = 100, 1,000, 10,000 it measures, after the
-   initial population is born, (a) `saturated`: answers at once, i.e. the most assignments/s
-   the coordinator gives; (b) `paced`: each simulated job lasts W / R s so the workers offer
-   R = 1,000 assignments/s (the goal's load), and (c) `half_capacity`: R = half of (a). For
-   each: assignments/s, ready-to-job latency p50/p99/max (from the moment a worker became
-   idle until its job arrived), and the coordinator's CPU use.
+   TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
+   simulated worker sends WorkerReady (again every second while idle, like a real one), and
+   answers each TrainJob with a tiny fake FitnessReport (a tournament child comes back with its
+   parent's body: breeding is the trainers' work, off the coordinator). For W = 100, 1,000,
+   10,000 it measures, after the initial population is born, (a) `saturated`: answers at
+   once, i.e. the most assignments/s the coordinator gives; (b) `paced`: each simulated job
+   lasts W / R s so the workers offer R = 1,000 assignments/s (the goal's load), and
+   (c) `half_capacity`: R = half of (a). For each: assignments/s, ready-to-job latency
+   p50/p99/max (from the moment a worker became idle until its job arrived), and the
+   coordinator's CPU use.
 2. `coordinator_profile`: the coordinator's own code (no bus, no network) driven in this process
    with K jobs in flight: ms per assignment and the top functions (cProfile), to show where
    the time goes.
@@ -146,8 +148,9 @@ class LoadGenerator:
         self.repeated = 0
         self.job_s = 0.0
         self.jitter = random.Random(0)
-        self.due: list[tuple[float, int, str, str, str]] = []  # heap of answers to send
-        self.answers: queue.Queue[tuple[str, str, str]] = queue.Queue()
+        # answers to send: (node, job, child, the job's genome, bred); job "" asks for work
+        self.answers: queue.Queue[tuple[str, str, str, dict | None, bool]] = queue.Queue()
+        self.due: list[tuple[float, int, tuple]] = []  # heap of (when, order, answer)
         self.stop = threading.Event()
         self.sequence = 0
         self.subscribers = [
@@ -197,36 +200,36 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 self.received.append((now, now - since, job["child"]))
+        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"] is not None)
         if self.job_s <= 0:
-            self.answers.put((node, job["job"], job["child"]))
+            self.answers.put(answer)
         else:
             delay = self.job_s * self.jitter.uniform(0.5, 1.5)
             with self.lock:
                 self.sequence += 1
-                heapq.heappush(self.due, (now + delay, self.sequence, node, job["job"],
-                                          job["child"]))  # fmt: skip
+                heapq.heappush(self.due, (now + delay, self.sequence, answer))
 
     def _scheduler(self) -> None:
         while not self.stop.is_set():
             now = time.perf_counter()
             with self.lock:
                 while self.due and self.due[0][0] <= now:
-                    _, _, node, job, child = heapq.heappop(self.due)
-                    self.answers.put((node, job, child))
+                    self.answers.put(heapq.heappop(self.due)[2])
             time.sleep(0.002)
 
     def _answer(self) -> None:
         curve = Curve(env_steps=(1, 2), returns=(0.0, 1.0))
         while not self.stop.is_set():
             try:
-                node, job, child = self.answers.get(timeout=0.1)
+                node, job, child, genome, bred = self.answers.get(timeout=0.1)
             except queue.Empty:
                 continue
             if not job:  # acknowledged: ask for the next job
                 self._ready(node, time.perf_counter())
                 continue
             report = FitnessReport(
-                run=self.run, child=child, job=job, node=node,
+                run=self.run, child=child, job=job, node=node, genome=genome,
+                mutation="gear" if bred else None,
                 fitness=self.jitter.uniform(0, 100), fitness_source="window",
                 fitness_episodes=1, curve=curve, energy=1.0, cost_of_work=1.0, mass=1.0,
                 episodes=1, env_steps=2, wall_s=0.0, steps_per_s=0.0, checkpoint=b"",
@@ -242,7 +245,7 @@ class LoadGenerator:
         with self.lock:
             node = self.unacked.pop(ack["job"], None)
         if node is not None:
-            self.answers.put((node, "", ""))
+            self.answers.put((node, "", "", None, False))
 
     def _resend(self) -> None:
         """Idle simulated workers repeat WorkerReady every second, as real ones do."""
@@ -365,8 +368,12 @@ def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
 
 
 def _report(run: str, job: TrainJob, fitness: float) -> FitnessReport:
+    """A fake result for `job`: a tournament child is reported with its parent's body (nothing
+    is bred here: breeding is the trainers' work, not the coordinator's)."""
+    mutation = None if job.mutation_seed is None else "gear"
     return FitnessReport(
-        run=run, child=job.child, job=job.job, node=job.node, fitness=fitness,
+        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome,
+        mutation=mutation, fitness=fitness,
         fitness_source="window", fitness_episodes=10,
         curve=Curve(env_steps=tuple(range(4096, 4096 * 101, 4096)),
                     returns=tuple(float(k) for k in range(100))),
@@ -393,12 +400,12 @@ class Driver:
 
     def _ready(self, node: str) -> TrainJob | None:
         coordinator, state = self.coordinator, self.coordinator.state
-        before = len(state.issued)
         ready = WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
         coordinator._ready(ready)
         if self.lease_checks:
             coordinator._check_leases(time.monotonic())
-        return next(reversed(state.issued.values())) if len(state.issued) > before else None
+        job = state.job_of(node)
+        return None if job is None else job.order
 
     def run(self, births: int) -> list[float]:
         """`births` more births; the seconds each assignment took: a fitness report, the
@@ -430,7 +437,7 @@ class Driver:
 
 
 BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
-    "tournament (mutation + validity check)": ("evolution/population.py", "tournament"),
+    "tournament (drawing contestants)": ("evolution/population.py", "tournament"),
     "journal writes": ("nodes/journal.py", "write"),
     "checkpoint file per birth": ("nodes/coordinator.py", "_save_checkpoint"),
     "lease check after every message": ("nodes/coordinator.py", "_check_leases"),
@@ -501,7 +508,7 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
                        lease_s=60.0)  # fmt: skip
         mix += [
             Tournament(run=run, child=job.child, contestants=("i0001",) * 4,
-                       fitness=(1.0,) * 4, parent="i0001", mutation="grow_limb", iteration=k),
+                       fitness=(1.0,) * 4, parent="i0001", mutation_seed=k, iteration=k),
             job, _report(run, job, 1.0),
             _ack(run, job),
         ]  # fmt: skip

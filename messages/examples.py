@@ -54,6 +54,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             steps=5_000_000,
             seed=i,
             parent=parent,
+            mutation_seed=2**40 + i,
             lease_s=3.0,
         ),
         EvalJob(
@@ -73,8 +74,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             contestants=(parent, f"a{i + 1}", parent),
             fitness=(10.0 + i, 3.5, 10.0 + i),
             parent=parent,
-            mutation="grow_limb",
-            detail="pair on limb 0 end",
+            mutation_seed=2**40 + i,
             iteration=i,
         ),
         TrainProgress(
@@ -92,6 +92,9 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             child=child,
             job=job,
             node=node,
+            genome=GENOME,
+            mutation="grow_limb",
+            mutation_detail="pair on limb 0 end",
             fitness=123.25 + i,
             fitness_source="window",
             fitness_episodes=32,

@@ -28,7 +28,7 @@ from messages.types import (
     Text,
 )
 
-SCHEMA_VERSION: Final = 1
+SCHEMA_VERSION: Final = 2
 
 FitnessSource = Literal["window", "last_episodes", "unfinished"]
 """As `derl.rl.episodes.FitnessSource`: "window" (episodes finished in the last window of steps,
@@ -88,7 +88,12 @@ class WorkerReady(MessageBase):
 
 
 class TrainJob(MessageBase):
-    """The coordinator's order to `node`: train `child` (body `genome`) from scratch in `task`."""
+    """The coordinator's order to `node`: train `child` from scratch in `task`.
+
+    The child's body is `genome`, or, when `mutation_seed` is set (a tournament's child not yet
+    born), `derl.evolution.breed(genome, mutation_seed)`: `genome` is then the parent's body and
+    the trainer breeds the child itself (deterministic: every attempt gets the same body).
+    """
 
     type: Literal["TrainJob"] = "TrainJob"
     job: Id
@@ -99,8 +104,15 @@ class TrainJob(MessageBase):
     steps: Steps
     seed: Seed
     parent: Id | None = None
+    mutation_seed: Seed | None = None
     lease_s: LeaseSeconds
     num_envs: Annotated[int, Field(ge=1, le=65_536)] = 32
+
+    @model_validator(mode="after")
+    def _bred_from_parent(self) -> TrainJob:
+        if self.mutation_seed is not None and self.parent is None:
+            raise ValueError("a mutation_seed needs the parent it mutates")
+        return self
 
 
 class EvalJob(MessageBase):
@@ -119,7 +131,8 @@ class EvalJob(MessageBase):
 
 
 class Tournament(MessageBase):
-    """A decision, recorded as a fact: the contestants, the winner (parent) and the mutation.
+    """A decision, recorded as a fact: the contestants, the winner (parent) and the seed of the
+    child's mutation (`derl.evolution.breed`; its FitnessReport names the mutation).
 
     `iteration` counts the tournaments of the run (0 for the first).
     """
@@ -129,16 +142,8 @@ class Tournament(MessageBase):
     contestants: Annotated[tuple[Id, ...], Field(min_length=1, max_length=10_000)]
     fitness: Annotated[tuple[Finite, ...], Field(min_length=1, max_length=10_000)]
     parent: Id
-    mutation: str
-    detail: Text = ""
+    mutation_seed: Seed
     iteration: Count
-
-    @field_validator("mutation")
-    @classmethod
-    def _known_operator(cls, value: str) -> str:
-        if value not in OPERATORS:
-            raise ValueError(f"unknown mutation operator {value!r}; known: {', '.join(OPERATORS)}")
-        return value
 
     @model_validator(mode="after")
     def _parent_is_fittest(self) -> Tournament:
@@ -175,12 +180,17 @@ class TrainProgress(MessageBase):
 
 
 class FitnessReport(MessageBase):
-    """The outcome of a training job, re-sent until acknowledged; carries the policy weights."""
+    """The outcome of a training job, re-sent until acknowledged; carries the body that was
+    trained, the mutation that made it (None for a body of the initial population) and the
+    policy weights."""
 
     type: Literal["FitnessReport"] = "FitnessReport"
     child: Id
     job: Id
     node: Id
+    genome: Genome
+    mutation: str | None = None
+    mutation_detail: Text = ""
     fitness: Finite
     fitness_source: FitnessSource
     fitness_episodes: Count
@@ -194,6 +204,13 @@ class FitnessReport(MessageBase):
     steps_per_s: NonNegative
     checkpoint: Annotated[bytes, Field(strict=True, max_length=MAX_CHECKPOINT_BYTES)]
     """`derl.rl.checkpoint.Checkpoint.to_bytes()` of the trained policy."""
+
+    @field_validator("mutation")
+    @classmethod
+    def _known_operator(cls, value: str | None) -> str | None:
+        if value is not None and value not in OPERATORS:
+            raise ValueError(f"unknown mutation operator {value!r}; known: {', '.join(OPERATORS)}")
+        return value
 
 
 class Ack(MessageBase):

@@ -1,9 +1,9 @@
 """The coordinator's state as a fold over the messages it journals (event sourcing).
 
 `apply` is the only way the state changes, both live and when a restarted coordinator replays
-its journal: a TrainJob or EvalJob assigns a body to a node, a FitnessReport makes a child born,
-an EvalResult completes an evaluation. Tournaments are decided by `derl.evolution` and become
-facts through the TrainJob that carries their child. Which jobs are in flight, who holds them
+its journal: a Tournament decides a child (its parent and mutation seed), a TrainJob or EvalJob
+assigns a body to a node, a FitnessReport makes a child born with the body its trainer bred, an
+EvalResult completes an evaluation. Which jobs are in flight, who holds them
 and what waits for a worker are all derived here; time (leases) is the node's business.
 """
 
@@ -24,6 +24,7 @@ class Job:
     job: str
     subject: str  # the child (training) or agent (evaluation)
     node: str
+    order: TrainJob | EvalJob  # as sent (sent again to a worker that missed it)
     evaluation: tuple[str, int] | None = None  # (task, seed) for an evaluation
 
 
@@ -34,10 +35,9 @@ class CoordinatorState:
     jobs: dict[str, Job] = field(default_factory=dict)
     attempts: dict[str, int] = field(default_factory=dict)
     waiting: deque[str] = field(default_factory=deque)  # children to (re)assign, in order
-    tournaments: dict[str, Tournament] = field(default_factory=dict)
     evaluations: dict[tuple[str, str, int], EvalResult | None] = field(default_factory=dict)
     eval_waiting: deque[tuple[str, str, int]] = field(default_factory=deque)
-    issued: dict[str, TrainJob | EvalJob] = field(default_factory=dict)  # every job ever sent
+    issued: dict[str, str] = field(default_factory=dict)  # every job ever sent -> its node
     by_node: dict[str, str] = field(default_factory=dict)  # node -> its job in flight
     by_child: dict[str, str] = field(default_factory=dict)  # child -> its training job in flight
 
@@ -51,46 +51,42 @@ class CoordinatorState:
 
     def apply(self, msg: MessageBase) -> None:
         if isinstance(msg, Tournament):
-            self.tournaments[msg.child] = msg
+            self.evolution.record(
+                Child(
+                    msg.child,
+                    None,
+                    msg.parent,
+                    msg.contestants,
+                    msg.fitness,
+                    msg.mutation_seed,
+                    msg.iteration,
+                )
+            )
         elif isinstance(msg, TrainJob):
-            self.issued[msg.job] = msg
+            self.issued[msg.job] = msg.node
             self._assigned(msg)
         elif isinstance(msg, FitnessReport):
-            self.evolution.birth(msg.child, msg.fitness)
+            self.evolution.birth(msg.child, msg.fitness, msg.genome)
             self._finished(msg.job)
         elif isinstance(msg, EvalJob):
-            self.issued[msg.job] = msg
+            self.issued[msg.job] = msg.node
             key = (msg.agent, msg.task, msg.seed)
             self._plan_evaluations()
             if key in self.eval_waiting:
                 self.eval_waiting.remove(key)
-            self._add(Job(msg.job, msg.agent, msg.node, (msg.task, msg.seed)))
+            self._add(Job(msg.job, msg.agent, msg.node, msg, (msg.task, msg.seed)))
         elif isinstance(msg, EvalResult):
             self.evaluations[(msg.agent, msg.task, msg.seed)] = msg
             self._finished(msg.job)
 
     def _assigned(self, job: TrainJob) -> None:
         child = job.child
-        if child not in self.evolution.genomes:  # a tournament child becomes a fact
-            tournament = self.tournaments[child]
-            self.evolution.record(
-                Child(
-                    child,
-                    job.genome,
-                    job.parent,
-                    tournament.contestants,
-                    tournament.fitness,
-                    tournament.mutation,
-                    tournament.detail,
-                    tournament.iteration,
-                )
-            )
         if child in self.by_child:
             self._remove(self.by_child[child])  # a reassignment supersedes the lost job
         if child in self.waiting:
             self.waiting.remove(child)
         self.attempts[child] = self.attempts.get(child, 0) + 1
-        self._add(Job(job.job, child, job.node))
+        self._add(Job(job.job, child, job.node, job))
 
     def _finished(self, job: str) -> None:
         self._remove(job)
@@ -114,8 +110,7 @@ class CoordinatorState:
 
     def issued_to(self, job: str, node: str) -> bool:
         """Whether `job` was ever given to `node` (a result for any other is forged or lost)."""
-        issued = self.issued.get(job)
-        return issued is not None and issued.node == node
+        return self.issued.get(job) == node
 
     def job_of(self, node: str) -> Job | None:
         job = self.by_node.get(node)

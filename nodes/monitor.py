@@ -156,7 +156,7 @@ class RunView:
                 report.fitness,
                 report.node,
                 tournament.parent if tournament else None,
-                tournament.mutation if tournament else "",
+                report.mutation or "",
             )
         )
 

@@ -2,8 +2,8 @@
 
 Both read a run's journal (a run directory, or one MCAP file such as a journal segment) with
 `nodes.journal`, fold its messages into `derl.analysis` records (bodies in birth order with the
-genome and parent of their TrainJob, the mutation of their Tournament and the fitness, curve,
-energy, cost of work and mass of their FitnessReport; the EvalResults), and hand those to
+parent of their TrainJob and the body, mutation, fitness, curve, energy, cost of work and mass
+of their FitnessReport; the EvalResults), and hand those to
 `derl.analysis`. The first report of a child is its birth, as in the coordinator's fold.
 """
 
@@ -20,7 +20,7 @@ from rich.console import Console
 
 if TYPE_CHECKING:
     from derl.analysis import Body, RunLog
-    from messages import FitnessReport, Tournament, TrainJob
+    from messages import FitnessReport, TrainJob
 
 console = Console()
 log = logging.getLogger("derl.report")
@@ -114,7 +114,7 @@ def _thresholds(text: str) -> dict[str, float]:
 def load_run(path: Path) -> RunLog:
     """A run's records from its journal: a run directory or one MCAP file."""
     from derl.analysis import Evaluation, RunLog
-    from messages import EvalResult, FitnessReport, Tournament, TrainJob
+    from messages import EvalResult, FitnessReport, TrainJob
     from nodes.journal import read_segment, replay, segments
 
     if path.is_dir():
@@ -127,7 +127,6 @@ def load_run(path: Path) -> RunLog:
         raise SystemExit(f"derl: no run directory or log at {path}")
     run: str | None = None
     jobs: dict[str, TrainJob] = {}
-    tournaments: dict[str, Tournament] = {}
     bodies: list[Body] = []
     born: set[str] = set()
     evaluations: dict[tuple[str, str, int], Evaluation] = {}
@@ -139,8 +138,6 @@ def load_run(path: Path) -> RunLog:
             continue
         if isinstance(msg, TrainJob):
             jobs.setdefault(msg.child, msg)
-        elif isinstance(msg, Tournament):
-            tournaments.setdefault(msg.child, msg)
         elif isinstance(msg, FitnessReport):
             job = jobs.get(msg.child)
             if msg.child in born:
@@ -149,7 +146,7 @@ def load_run(path: Path) -> RunLog:
                 orphans += 1
                 continue
             born.add(msg.child)
-            bodies.append(_body(len(bodies), job, msg, tournaments.get(msg.child)))
+            bodies.append(_body(len(bodies), job, msg))
         elif isinstance(msg, EvalResult):
             evaluations.setdefault(
                 (msg.agent, msg.task, msg.seed),
@@ -178,7 +175,7 @@ def load_run(path: Path) -> RunLog:
     )
 
 
-def _body(birth: int, job: TrainJob, report: FitnessReport, tournament: Tournament | None) -> Body:
+def _body(birth: int, job: TrainJob, report: FitnessReport) -> Body:
     from derl.analysis import Body
 
     return Body(
@@ -191,8 +188,8 @@ def _body(birth: int, job: TrainJob, report: FitnessReport, tournament: Tourname
         energy=report.energy,
         cost_of_work=report.cost_of_work,
         mass=report.mass,
-        mutation=None if tournament is None else tournament.mutation,
-        genome=job.genome,
+        mutation=report.mutation,
+        genome=report.genome,
     )
 
 

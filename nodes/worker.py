@@ -1,7 +1,8 @@
 """Trainer and evaluator nodes: announce themselves, take a job, learn, deliver until acknowledged.
 
 A worker holds a liveliness token for its whole life, publishes WorkerReady every second while
-idle, trains one job at a time with `derl.lifetime` (one training per process), reports progress
+idle, trains one job at a time with `derl.lifetime` (one training per process; a tournament's
+child is first bred from its parent's body with `derl.evolution.breed`), reports progress
 every second (the coordinator's lease on the job), and re-sends its result every second until
 the coordinator acknowledges it, so a coordinator restart loses nothing. It stops on SIGTERM or
 SIGINT, or when the run's status says it is done.
@@ -18,8 +19,10 @@ import threading
 import time
 from typing import Literal
 
+from derl.evolution import breed
 from derl.lifetime import LifetimeResult, learn, ppo_config
 from derl.rl import Progress
+from derl.unimal import Genome, Mutation
 from messages import (
     Ack,
     Curve,
@@ -128,11 +131,16 @@ class Worker:
                     reliable=False,
                 )
 
+        genome, mutation = job.genome, None
+        if isinstance(job, TrainJob) and job.mutation_seed is not None:
+            genome, mutation = breed(job.genome, job.mutation_seed)
+            log.info("%s: %s bred from %s by %s", self.node, subject, job.parent, mutation.op)
         config = ppo_config(job.task, job.steps, job.seed, num_envs=job.num_envs)
-        summary, result = learn(job.genome, job.task, config, progress, nthread=self.nthread)
+        summary, result = learn(genome, job.task, config, progress, nthread=self.nthread)
         curve = Curve(env_steps=summary.curve_steps, returns=summary.curve_returns)
         if isinstance(job, TrainJob):
-            return self._fitness_report(job, summary, curve, result.checkpoint.to_bytes())
+            checkpoint = result.checkpoint.to_bytes()
+            return self._fitness_report(job, genome, mutation, summary, curve, checkpoint)
         return EvalResult(
             run=self.run,
             agent=job.agent,
@@ -146,13 +154,22 @@ class Worker:
         )
 
     def _fitness_report(
-        self, job: TrainJob, summary: LifetimeResult, curve: Curve, checkpoint: bytes
+        self,
+        job: TrainJob,
+        genome: Genome,
+        mutation: Mutation | None,
+        summary: LifetimeResult,
+        curve: Curve,
+        checkpoint: bytes,
     ) -> FitnessReport:
         return FitnessReport(
             run=self.run,
             child=job.child,
             job=job.job,
             node=self.node,
+            genome=genome,
+            mutation=None if mutation is None else mutation.op,
+            mutation_detail="" if mutation is None else mutation.detail,
             fitness=summary.fitness,
             fitness_source=summary.fitness_source,
             fitness_episodes=summary.fitness_episodes,

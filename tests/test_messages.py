@@ -121,7 +121,10 @@ BAD_VALUES = [
     ("Tournament", "parent", "a5"),
     ("Tournament", "fitness", (1.0, 2.0)),
     ("Tournament", "fitness", (1.0, math.nan, 1.0)),
-    ("Tournament", "mutation", "teleport"),
+    ("Tournament", "mutation_seed", -1),
+    ("TrainJob", "parent", None),  # its mutation_seed needs a parent
+    ("FitnessReport", "mutation", "teleport"),
+    ("FitnessReport", "genome.limbs", ({"id": 0},)),
     ("Tournament", "child", "a3"),
     ("Tournament", "contestants", ()),
     ("Tournament", "iteration", -1),
@@ -171,7 +174,7 @@ def test_unknown_keys_are_rejected(msg: MessageBase) -> None:
 @pytest.mark.parametrize(
     ("raw", "reason"),
     [
-        ({**_dump(SAMPLES[0]), "schema_version": 2}, "schema version 2, expected 1"),
+        ({**_dump(SAMPLES[0]), "schema_version": 1}, "schema version 1, expected 2"),
         ({k: v for k, v in _dump(SAMPLES[0]).items() if k != "schema_version"}, "schema version"),
         ({**_dump(SAMPLES[0]), "type": "Teleport"}, "unknown message type 'Teleport'"),
         ({**_dump(SAMPLES[0]), "type": [1, 2]}, "unknown message type"),
@@ -257,7 +260,7 @@ def test_junk_in_any_field_only_raises_decode_error(
 @FUZZ
 @given(st.dictionaries(st.text(max_size=12), JUNK, max_size=6), st.sampled_from(list(ROUTES)))
 def test_junk_maps_only_raise_decode_error(raw: dict[str, object], type_name: str) -> None:
-    _decode_or_reject(msgpack.packb({"schema_version": 1, "type": type_name, **raw}))
+    _decode_or_reject(msgpack.packb({"schema_version": SCHEMA_VERSION, "type": type_name, **raw}))
 
 
 def test_deep_nesting_is_a_decode_error() -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from derl.analysis import RetrainPlan
+from derl.evolution import breed
 from derl.unimal import Genome
 from messages import Ack, Curve, EvalResult, FitnessReport, Tournament, TrainJob
 from nodes.cli import main
@@ -42,6 +43,7 @@ TABLES = (
 
 
 def _job(child: str, genome: Genome, parent: str | None, attempt: int = 1) -> TrainJob:
+    """`genome` is the body for an initial one, the parent's for a tournament child."""
     return TrainJob(
         run="hand",
         job=f"{child}.{attempt}",
@@ -52,16 +54,26 @@ def _job(child: str, genome: Genome, parent: str | None, attempt: int = 1) -> Tr
         steps=300,
         seed=1409,
         parent=parent,
+        mutation_seed=None if parent is None else 7,
         lease_s=30,
     )
 
 
-def _report(child: str, fitness: float, curve: tuple[float, ...], attempt: int = 1):
+def _report(
+    child: str,
+    fitness: float,
+    curve: tuple[float, ...],
+    genome: Genome,
+    mutation: str | None = None,
+    attempt: int = 1,
+):
     return FitnessReport(
         run="hand",
         child=child,
         job=f"{child}.{attempt}",
         node="t0",
+        genome=genome,
+        mutation=mutation,
         fitness=fitness,
         fitness_source="window",
         fitness_episodes=3,
@@ -80,15 +92,17 @@ def _report(child: str, fitness: float, curve: tuple[float, ...], attempt: int =
 def write_journal(run_dir: Path, genome: Genome) -> None:
     """P = 3 founders i0..i2, then c0 (of i2, its job reassigned once) and c1 (of c0); a repeated
     fitness report and a repeated evaluation result, as a journal may hold after restarts."""
+    c0_body = breed(genome, 7)[0]
+    c1_body = breed(c0_body, 7)[0]
     with Journal(run_dir) as journal:
         for k, fitness in enumerate((10.0, 20.0, 30.0)):
             journal.write(_job(f"i{k}", genome, None))
-            journal.write(_report(f"i{k}", fitness, (fitness / 2, fitness, fitness)))
+            journal.write(_report(f"i{k}", fitness, (fitness / 2, fitness, fitness), genome))
             journal.write(
                 Ack(run="hand", of="FitnessReport", job=f"i{k}.1", child=f"i{k}", node="t0")
             )
-        journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0)))  # repeated: the first one counts
-        for child, parent, mutation, k in (("c0", "i2", "grow_limb", 0), ("c1", "c0", "gear", 1)):
+        journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0), genome))  # repeated: the first counts
+        for child, parent, body, k in (("c0", "i2", genome, 0), ("c1", "c0", c0_body, 1)):
             journal.write(
                 Tournament(
                     run="hand",
@@ -96,14 +110,14 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
                     contestants=(parent,),
                     fitness=(1.0,),
                     parent=parent,
-                    mutation=mutation,
+                    mutation_seed=7,
                     iteration=k,
                 )
             )
-            journal.write(_job(child, genome, parent))
+            journal.write(_job(child, body, parent))
         journal.write(_job("c0", genome, "i2", attempt=2))
-        journal.write(_report("c0", 150.0, (20.0, 40.0, 150.0), attempt=2))
-        journal.write(_report("c1", 400.0, (30.0, 200.0, 400.0)))
+        journal.write(_report("c0", 150.0, (20.0, 40.0, 150.0), c0_body, "grow_limb", 2))
+        journal.write(_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body, "gear"))
         for task, seed, reward in (("patrol", 0, 5.0), ("patrol", 1, 7.0), ("incline", 0, 3.0)):
             result = EvalResult(
                 run="hand",
@@ -130,7 +144,8 @@ def test_the_journal_folds_into_records(tmp_path: Path, quadruped: Genome) -> No
     assert [b.mutation for b in run.bodies] == [None, None, None, "grow_limb", "gear"]
     assert run.bodies[1].fitness == 20.0
     assert run.bodies[4].curve_returns == (30.0, 200.0, 400.0)
-    assert run.bodies[4].genome == quadruped and run.population == 3
+    assert run.bodies[3].genome == breed(quadruped, 7)[0] != quadruped  # the bodies bred
+    assert run.bodies[0].genome == quadruped and run.population == 3
     assert [(e.task, e.seed, e.reward) for e in run.evaluations] == [
         ("patrol", 0, 5.0),
         ("patrol", 1, 7.0),

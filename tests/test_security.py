@@ -9,8 +9,9 @@ Shown with real node processes on loopback (multicast off):
   delivers nothing (default deny);
 - a monitor identity (CN derl-monitor) sees the whole run, but its jobs and fitness reports reach
   nobody, while the same kind of report from a node identity is delivered;
-- a fitness report for a never-issued job, and one for a real job from a node that does not hold
-  it, are rejected by the coordinator: not acknowledged, counted in RunStatus.rejected.
+- a fitness report for a never-issued job, one for a real job from a node that does not hold
+  it, and one from the node that holds it but with another body than its job's, are rejected by
+  the coordinator: not acknowledged, counted in RunStatus.rejected.
 """
 
 from __future__ import annotations
@@ -219,6 +220,10 @@ def test_tls_and_access_control(tmp_path: Path, pki: Path, sessions: list) -> No
         job = witness.jobs.get(timeout=90)
         control.bus.publish(_report(run, job.job, job.child, "impostor"))
         control.bus.publish(_report(run, "never-issued", "c77777", "trainer-0"))
+        # from the node that holds the job, but with a body that is not its job's
+        wrong_body = _report(run, job.job, job.child, "trainer-0")
+        assert wrong_body.genome != job.genome
+        control.bus.publish(wrong_body.model_copy(update={"mutation": None}))
         nobody = job.model_copy(update={"job": "control-job", "child": "cnobody", "node": "nobody"})
         boss.bus.publish(nobody)  # to a trainer that does not exist: harmless, but delivered
         # a monitor that goes straight to the trainer, as a peer: the trainer's ACL stops it
@@ -240,8 +245,8 @@ def test_tls_and_access_control(tmp_path: Path, pki: Path, sessions: list) -> No
         assert [m.job for m in witness.of(TrainJob) if m.node == "nobody"] == ["control-job"]
         assert not [m for m in witness.seen if getattr(m, "job", "") == "monitor-job"]
         forged = [m for m in witness.of(FitnessReport) if m.fitness == FORGED_FITNESS]
-        assert {m.node for m in forged} == {"impostor", "trainer-0"}  # the control's two reports
-        assert len(forged) == 2 and not [m for m in forged if m.job == "monitor-forged"]
+        assert {m.node for m in forged} == {"impostor", "trainer-0"}  # the control's reports
+        assert len(forged) == 3 and not [m for m in forged if m.job == "monitor-forged"]
 
         # (a) the run ends, every body born once, over TLS only
         coordinator = processes.started["coordinator"]
@@ -258,7 +263,8 @@ def test_tls_and_access_control(tmp_path: Path, pki: Path, sessions: list) -> No
         log = processes.log("coordinator")
         assert f"job {job.job} was never issued to impostor" in log
         assert "job never-issued was never issued to trainer-0" in log
-        assert max(s.rejected for s in monitor.of(RunStatus)) == 2
+        assert f"rejected fitness of {job.child} from trainer-0" in log
+        assert max(s.rejected for s in monitor.of(RunStatus)) == 3
         assert "monitor-forged" not in log and "monitor-job" not in processes.log("trainer")
 
         # (c) the monitor saw the whole run; the stranger saw nothing

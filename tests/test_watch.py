@@ -299,7 +299,7 @@ def _a_run(run: str) -> list[MessageBase]:
         TrainProgress(run=run, child="a9", job="j9", node="trainer-1", env_steps=4096,
                       total_steps=8192, recent_return=1.5, steps_per_s=1200.0),
         Tournament(run=run, child="a8", contestants=("a3", "a1"), fitness=(12.5, 3.0),
-                   parent="a3", mutation="grow_limb", iteration=5),
+                   parent="a3", mutation_seed=5, iteration=5),
         report.model_copy(update={"child": "a8", "fitness": 9.75}),
     ]  # fmt: skip
 

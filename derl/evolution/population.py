@@ -3,9 +3,14 @@
 The population is the P most recently born agents, in birth order. The initial P bodies come from
 the run's seed; afterwards each tournament draws T members with replacement, the fittest is the
 parent (the first drawn among equals), and one mutation of its body is the child. Tournament k
-draws from its own generator seeded by (seed, k), so a decision depends only on the state it was
-made in: replaying recorded decisions and births rebuilds the same state, and the next decision
-is the one the crashed run would have made.
+draws from its own generator seeded by (seed, 1, k), so a decision depends only on the state it
+was made in: replaying recorded decisions and births rebuilds the same state, and the next
+decision is the one the crashed run would have made.
+
+A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child.
+Breeding (a mutation and its validity check, a few ms) is deterministic, so it can run wherever
+the child is trained, as in the original DERL where every worker mutated its own child: the
+coordinator only draws contestants, and a child's body becomes known when it is born.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from derl.evolution.config import EvolutionConfig
-from derl.unimal import Genome, MutationFailed, mutate, sample_population
+from derl.unimal import Genome, Mutation, MutationFailed, mutate, sample_population
 
 MAX_DRAWS = 100
 
@@ -32,16 +37,28 @@ class Member:
 
 @dataclass(frozen=True)
 class Child:
-    """A body to train: an initial one (no parent) or a tournament's mutated winner."""
+    """A body to train: an initial one (its genome, no parent) or a tournament's winner to
+    breed (`breed(genome of parent, mutation_seed)`; the genome is known once it is born)."""
 
     child: str
-    genome: Genome
+    genome: Genome | None
     parent: str | None = None
     contestants: tuple[str, ...] = ()
     fitness: tuple[float, ...] = ()
-    mutation: str = ""
-    detail: str = ""
+    mutation_seed: int | None = None
     iteration: int = -1
+
+
+def breed(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
+    """The child of a tournament: one valid mutation of `parent`, the same for the same seed."""
+    rng = np.random.default_rng(seed)
+    reason = ""
+    for _ in range(MAX_DRAWS):
+        try:
+            return mutate(parent, rng)
+        except MutationFailed as failure:
+            reason = str(failure)
+    raise MutationFailed("every drawn operator", MAX_DRAWS, reason)
 
 
 class Evolution:
@@ -60,6 +77,7 @@ class Evolution:
         self.unborn_initial = {child.child for child in self.initial}
         self.genomes: dict[str, Genome] = {c.child: c.genome for c in self.initial}
         self.parents: dict[str, str | None] = {c.child: None for c in self.initial}
+        self.seeds: dict[str, int | None] = {c.child: None for c in self.initial}
         self.born: list[Member] = []
         self.fitness: dict[str, float] = {}
         self.iterations = 0
@@ -86,41 +104,39 @@ class Evolution:
             raise RuntimeError("tournaments start once the initial population is born")
         rng = np.random.default_rng([self.config.seed, 1, self.iterations])
         population = self.population
-        reason = ""
-        for _ in range(MAX_DRAWS):
-            drawn = [
-                population[i] for i in rng.integers(len(population), size=self.config.tournament)
-            ]
-            parent = max(drawn, key=lambda m: m.fitness)
-            try:
-                genome, mutation = mutate(self.genomes[parent.agent], rng)
-            except MutationFailed as failure:
-                reason = str(failure)
-                continue
-            return Child(
-                child=f"c{self.iterations:05d}",
-                genome=genome,
-                parent=parent.agent,
-                contestants=tuple(m.agent for m in drawn),
-                fitness=tuple(m.fitness for m in drawn),
-                mutation=mutation.op,
-                detail=mutation.detail,
-                iteration=self.iterations,
-            )
-        raise RuntimeError(f"no tournament produced a valid child in {MAX_DRAWS} draws: {reason}")
+        drawn = [population[i] for i in rng.integers(len(population), size=self.config.tournament)]
+        parent = max(drawn, key=lambda m: m.fitness)
+        return Child(
+            child=f"c{self.iterations:05d}",
+            genome=None,
+            parent=parent.agent,
+            contestants=tuple(m.agent for m in drawn),
+            fitness=tuple(m.fitness for m in drawn),
+            mutation_seed=int(rng.integers(2**63)),
+            iteration=self.iterations,
+        )
 
     def record(self, child: Child) -> None:
         """A decided tournament becomes a fact (idempotent)."""
-        if child.child in self.genomes:
+        if child.child in self.parents:
             return
-        self.genomes[child.child] = child.genome
         self.parents[child.child] = child.parent
+        self.seeds[child.child] = child.mutation_seed
         self.iterations = max(self.iterations, child.iteration + 1)
 
-    def birth(self, agent: str, fitness: float) -> Member | None:
-        """`agent` is born with `fitness`; None if it was born already or is unknown."""
-        if agent in self.fitness or agent not in self.genomes:
+    def to_train(self, child: str) -> tuple[Genome, int | None]:
+        """What a trainer needs for `child`: its body, or its parent's body and the seed to
+        breed it with (until it is born)."""
+        if child in self.genomes:
+            return self.genomes[child], None
+        return self.genomes[self.parents[child]], self.seeds[child]
+
+    def birth(self, agent: str, fitness: float, genome: Genome) -> Member | None:
+        """`agent` is born with body `genome` and `fitness`; None if it was born already or is
+        unknown."""
+        if agent in self.fitness or agent not in self.parents:
             return None
+        self.genomes.setdefault(agent, genome)
         member = Member(agent, fitness, self.parents[agent], len(self.born))
         self.born.append(member)
         self.fitness[agent] = fitness

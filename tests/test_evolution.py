@@ -1,0 +1,84 @@
+"""Aging tournament evolution without a bus: decisions, breeding, births, and their replay."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from derl.evolution import Child, Evolution, breed, load_profile
+from derl.unimal import Genome, check_body, sample_population
+from derl.unimal.mutations import OPERATORS
+
+
+@pytest.fixture(scope="module")
+def initial() -> list[Genome]:
+    return sample_population(4, np.random.default_rng(3))
+
+
+def _evolution(initial: list[Genome]) -> Evolution:
+    config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
+    return Evolution(config, initial)
+
+
+def test_breeding_is_one_valid_mutation_and_the_same_for_a_seed(initial: list[Genome]) -> None:
+    parent = initial[0]
+    children = {}
+    for seed in range(12):
+        child, mutation = breed(parent, seed)
+        assert mutation.op in OPERATORS and child != parent
+        check_body(child)  # raises if the body is impossible
+        assert breed(parent, seed) == (child, mutation)  # wherever it runs
+        children[seed] = child
+    assert len({c.model_dump_json() for c in children.values()}) > 6
+
+
+def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body(
+    initial: list[Genome],
+) -> None:
+    evolution = _evolution(initial)
+    with pytest.raises(RuntimeError, match="initial population"):
+        evolution.tournament()
+    for k, child in enumerate(evolution.initial):
+        assert evolution.to_train(child.child) == (initial[k], None)
+        assert evolution.birth(child.child, float(k), initial[k]) is not None
+    assert evolution.birth("i0000", 99.0, initial[0]) is None  # born already
+    assert evolution.birth("c77777", 1.0, initial[0]) is None  # never decided
+
+    decided = evolution.tournament()
+    assert decided == evolution.tournament()  # a decision depends on the state only
+    assert decided.genome is None and decided.mutation_seed is not None
+    assert (
+        decided.parent
+        == max(zip(decided.contestants, decided.fitness, strict=True), key=lambda c: c[1])[0]
+    )
+    evolution.record(decided)
+    assert evolution.tournament().child != decided.child  # the next decision
+    parent_body = evolution.genomes[decided.parent]
+    assert evolution.to_train(decided.child) == (parent_body, decided.mutation_seed)
+
+    child_body, _ = breed(parent_body, decided.mutation_seed)
+    member = evolution.birth(decided.child, 50.0, child_body)
+    assert member is not None and member.parent == decided.parent
+    assert evolution.to_train(decided.child) == (child_body, None)
+    assert [m.agent for m in evolution.population] == ["i0001", "i0002", "i0003", decided.child]
+
+
+def test_replaying_decisions_and_births_rebuilds_the_state(initial: list[Genome]) -> None:
+    live, replayed = _evolution(initial), _evolution(initial)
+    facts: list[tuple[Child | None, str, float, Genome]] = []
+    for k, child in enumerate(live.initial):
+        live.birth(child.child, float(k), initial[k])
+        facts.append((None, child.child, float(k), initial[k]))
+    for k in range(6):
+        decided = live.tournament()
+        live.record(decided)
+        body = breed(*live.to_train(decided.child))[0]
+        live.birth(decided.child, 10.0 + k, body)
+        facts.append((decided, decided.child, 10.0 + k, body))
+    for decided, agent, fitness, body in facts:
+        if decided is not None:
+            replayed.record(decided)
+            replayed.record(decided)  # a fact recorded twice is one fact
+        replayed.birth(agent, fitness, body)
+    assert replayed.born == live.born and replayed.genomes == live.genomes
+    assert replayed.tournament() == live.tournament()
