@@ -354,7 +354,7 @@ class _NoBus:
     def __init__(self) -> None:
         self.rejected: Counter[str] = Counter()
 
-    def publish(self, msg: object, reliable: bool = True) -> None:
+    def publish(self, msg: object, reliable: bool = True, data: bytes | None = None) -> None:
         pass
 
 

@@ -114,11 +114,12 @@ class Bus:
         self.rejected: Counter[str] = Counter()
         self._subscribers: list[zenoh.Subscriber] = []
 
-    def publish(self, msg: MessageBase, reliable: bool = True) -> None:
-        """Publish on the message's own key; BLOCK when `reliable` (control plane), else DROP."""
+    def publish(self, msg: MessageBase, reliable: bool = True, data: bytes | None = None) -> None:
+        """Publish on the message's own key; BLOCK when `reliable` (control plane), else DROP.
+        `data` is the message's encoding, if the caller has it already."""
         self.session.put(
             self.keys.key_for(msg),
-            encode(msg),
+            encode(msg) if data is None else data,
             encoding=MSGPACK.with_schema(msg.type),
             congestion_control=(
                 zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP

@@ -35,6 +35,7 @@ from messages import (
     TrainJob,
     TrainProgress,
     WorkerReady,
+    encode,
 )
 from nodes.bus import Bus, ZenohOptions, open_session
 from nodes.coordinator_state import CoordinatorState
@@ -158,10 +159,11 @@ class Coordinator:
 
     def _commit(self, msg: MessageBase, publish: bool = True) -> None:
         """Journal, apply, then (for what the coordinator says) publish."""
-        self.journal.write(msg)
+        data = encode(msg)
+        self.journal.write(msg, data=data)
         self.state.apply(msg)
         if publish:
-            self.bus.publish(msg)
+            self.bus.publish(msg, data=data)
 
     def _handle(self, msg: object) -> None:
         if isinstance(msg, WorkerReady):

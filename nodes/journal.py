@@ -55,9 +55,12 @@ class JournalWriter:
         self._lock = threading.Lock()
         self._closed = False
 
-    def write(self, msg: MessageBase, publish_time_ns: int | None = None) -> None:
-        """Append `msg` (log time now; publish time, e.g. the sender's, defaults to it)."""
-        data = encode(msg)
+    def write(
+        self, msg: MessageBase, publish_time_ns: int | None = None, data: bytes | None = None
+    ) -> None:
+        """Append `msg` (log time now; publish time, e.g. the sender's, defaults to it);
+        `data` is its encoding, if the caller has it already."""
+        data = encode(msg) if data is None else data
         with self._lock:
             if self._closed:
                 raise ValueError(f"{self.path} is closed")
@@ -195,8 +198,10 @@ class Journal:
         """The segment being written."""
         return self._writer.path
 
-    def write(self, msg: MessageBase, publish_time_ns: int | None = None) -> None:
-        self._writer.write(msg, publish_time_ns)
+    def write(
+        self, msg: MessageBase, publish_time_ns: int | None = None, data: bytes | None = None
+    ) -> None:
+        self._writer.write(msg, publish_time_ns, data)
 
     def replay(self) -> Iterator[MessageBase]:
         """Every message journaled in this run so far, this segment's included."""

@@ -140,7 +140,9 @@ class _Trainer:
         self.env = env
         self.config = config
         self.net = ActorCritic(env.obs_spaces, env.action_dim)
-        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=config.lr, eps=config.adam_eps)
+        self.optimizer = torch.optim.Adam(  # fused: one kernel per step, ~10% off the update
+            self.net.parameters(), lr=config.lr, eps=config.adam_eps, fused=True
+        )
         self.noise = torch.Generator().manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
         self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip, config.unnormalized_obs)
