@@ -4,7 +4,9 @@ Per world (FT, VT, MVT) and body (6 and 10 limbs), on one core, medians over rep
 two measurements interleaved: the raw physics rate (the same `mujoco.batch.Batch` stepping 4
 substeps per control step, nothing else: the ceiling), the environment's rate with observations,
 rewards, endings and resets (random actions in [-1, 1], episodes ending as they do), their
-ratio, and the cost of one new terrain against the cost of one episode.
+ratio, the time the heightmap lookups take per environment step (timed in a separate run, as
+they run between physics steps: with cold caches), and the cost of one new terrain against the
+cost of one episode.
 Run: python bench/envs.py [--repeats 5] [--steps 300]
 """
 
@@ -15,6 +17,7 @@ import json
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
@@ -23,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
-from derl.envs import make_env
+from derl.envs import UnimalEnv, make_env
 from derl.envs.terrain import TerrainConfig, generate_terrain
 
 
@@ -56,7 +59,7 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
         raw.append(_rate(physics, steps, env.num_envs))
         env.reset(1)
         full.append(_rate(environment, steps, env.num_envs))
-    return {
+    result = {
         "world": world,
         "limbs": limbs,
         "motors": env.action_dim,
@@ -65,6 +68,27 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
         "ratio": round(statistics.median(f / r for f, r in zip(full, raw, strict=True)), 3),
         "terrains_generated": getattr(getattr(env.task, "terrains", None), "generated", 0),
     }
+    if hasattr(env.task, "terrains"):
+        result["heightmap_ms_per_step"] = round(_heightmap_ms(env, environment, steps), 3)
+    return result
+
+
+def _heightmap_ms(env: UnimalEnv, environment: Callable[[int], None], steps: int) -> float:
+    """Milliseconds per environment step spent in heightmap lookups (all of a step's calls)."""
+    terrains, spent = env.task.terrains, [0.0]
+    lookup = terrains.heightmap
+
+    def timed(*args: object) -> np.ndarray:
+        start = time.perf_counter()
+        heightmap = lookup(*args)
+        spent[0] += time.perf_counter() - start
+        return heightmap
+
+    terrains.heightmap = timed
+    env.reset(1)
+    environment(steps)
+    del terrains.heightmap
+    return spent[0] * 1e3 / steps
 
 
 def bench_terrain(repeats: int) -> dict[str, float]:

@@ -9,8 +9,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
-from derl.envs.heightmap import sample_stack
-from derl.envs.terrain import TerrainConfig
+from derl.envs.heightmap import sample
+from derl.envs.terrain import Terrain, TerrainConfig
 from derl.unimal import Genome
 
 SMALL_VT = TerrainConfig.variable(size_x=30.0, size_y=10.0)
@@ -156,11 +156,11 @@ def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
     env.qpos[1, env.root + 3 : env.root + 7] = [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
     env.batch.forward()
     assert env.yaw[1] == pytest.approx(yaw)
-    stack = env.task.terrains
-    expected = sample_stack(
-        stack.heights, stack.layout, env.head_pos[:, :2], env.yaw, env.task.grid
-    )
-    np.testing.assert_array_equal(env.task.observe(env, env.all)["heightmap"], expected)
+    observed = env.task.observe(env, env.all)["heightmap"]
+    for i in range(2):  # each copy reads its own terrain
+        terrain = Terrain(env.task.terrains.heights[i], SMALL_VT.resolution, SMALL_VT.max_height)
+        expected = sample(terrain, env.head_pos[[i], :2], env.yaw[[i]], env.task.grid)
+        np.testing.assert_array_equal(observed[i], expected[0])
 
 
 def test_new_terrain_after_every_episode_that_saw_it(quadruped: Genome) -> None:
@@ -182,9 +182,7 @@ def test_new_terrain_after_every_episode_that_saw_it(quadruped: Genome) -> None:
     np.testing.assert_array_equal(before[2], after[2])  # still running
     model_heights = stack.models[0].hfield_data.reshape(after[0].shape)
     np.testing.assert_allclose(model_heights * SMALL_VT.max_height, after[0], atol=1e-6)
-    spawn_view = sample_stack(
-        stack.heights, stack.layout, np.array([env.task.spawn] * 3), np.zeros(3), env.task.grid
-    )
+    spawn_view = stack.heightmap(np.array([env.task.spawn] * 3), np.zeros(3))
     assert not spawn_view.any()  # from the spawn point no obstacle is in sight
 
 

@@ -260,3 +260,29 @@ def test_batched_heightmap_equals_single_calls() -> None:
     np.testing.assert_array_equal(batch, singles)
     assert batch.any()
     np.testing.assert_array_equal(batch[:, grid.offsets.tolist().index([0.0, 0.0])], 0.0)
+
+
+def test_heightmap_reads_within_one_cell_of_the_exact_nearest_vertex() -> None:
+    """The yaw-binned table lookup against exact rotation and rounding over random heads and
+    yaws, on terrains whose heights are their row (column) index: every point reads a vertex at
+    most one cell from the exact nearest one along each axis, and only the yaw bins make it differ
+    from an exact rotation about the head's nearest vertex."""
+    grid, n = HeightmapGrid(), 301
+    index = np.arange(n, dtype=np.float32)
+    rows = Terrain(heights=np.repeat(index[:, None], n, axis=1), max_height=n)
+    cols = Terrain(heights=rows.heights.T, max_height=n)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-9.0, 9.0, (200, 2))  # the grid stays inside the 30 x 30 m world
+    yaw = rng.uniform(-np.pi, np.pi, 200)
+    head = (xy - rows.x_min) / rows.resolution  # (column, row) in cells
+    head_vertex = np.floor(head + 0.5)
+    forward, left = grid.offsets.T / rows.resolution
+    cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    rotated = np.stack([cos * forward - sin * left, sin * forward + cos * left], axis=2)
+    relative = np.stack([sample(cols, xy, yaw, grid), sample(rows, xy, yaw, grid)], axis=2)
+    read = relative + head_vertex[:, None]
+    exact = np.floor(head[:, None] + rotated + 0.5)
+    assert np.abs(read - exact).max() <= 1
+    assert (read == exact).all(axis=2).mean() > 0.5
+    about_head_vertex = head_vertex[:, None] + np.floor(rotated + 0.5)
+    assert (read == about_head_vertex).all(axis=2).mean() > 0.95

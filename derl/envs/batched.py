@@ -11,7 +11,9 @@ Finished copies reset themselves inside `step`, which satisfies `derl.rl.Batched
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
+from functools import reduce
 
 import mujoco
 import mujoco.batch
@@ -73,6 +75,8 @@ class UnimalEnv:
         self._bind()
         task.setup(self)
         self.all = np.arange(self.num_envs)
+        self.fall_height = self.config.fall_ratio * self.rest_height  # head below it: fallen
+        self.arena_inside = np.array(task.arena) - ARENA_MARGIN  # head beyond it: off the arena
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self.unstable_count = 0
         self._obs_spaces = {"proprioception": self._proprioception(self.all).shape[1]}
@@ -102,30 +106,29 @@ class UnimalEnv:
     def step(self, actions: np.ndarray) -> StepResult:
         """Apply (N, A) actions for one control step."""
         np.clip(actions, -1.0, 1.0, out=self.ctrl)
-        self.prev_head = self.head_pos.copy()
+        self.prev_head[:] = self.head_pos
         warnings_before = self.warnings[:, :, 1].sum(axis=1)
-        failed = np.zeros(self.num_envs, dtype=bool)
+        failed = None
         try:
             self.batch.step(nstep=self.config.frame_skip, stage=mujoco.mjtStage.mjSTAGE_VEL)
         except mujoco.batch.SimulationError as error:
-            failed[error.ids] = True
-        unstable = (
-            failed
-            | (self.warnings[:, :, 1].sum(axis=1) > warnings_before)
-            | ~np.isfinite(self.qpos).all(axis=1)
-            | ~np.isfinite(self.qvel).all(axis=1)
-        )
+            failed = error.ids
+        unstable = self._unstable(warnings_before, failed)
+        unstable_count = np.count_nonzero(unstable)
+        self.unstable_count += unstable_count
         self.steps += 1
         terms = self.task.rewards(self)
         components = {**terms, **self.task.metrics(self, terms)}
         components["energy"] = np.abs(self.ctrl) @ self.gear
-        if unstable.any():
+        if unstable_count:
             for values in components.values():
                 values[unstable] = 0.0
-        reward = np.sum(list(terms.values()), axis=0) if terms else np.zeros(self.num_envs)
-        terminated = unstable | self._fallen() | self._off_arena() | self.task.success(self)
+        reward = reduce(operator.add, terms.values()) if terms else np.zeros(self.num_envs)
+        terminated = self._fallen()
+        terminated |= unstable
+        terminated |= self._off_arena()
+        terminated |= self.task.success(self)
         truncated = ~terminated & (self.steps >= self.config.episode_steps)
-        self.unstable_count += int(unstable.sum())
         obs = self._observe(self.all)
         final_obs = obs
         done = np.flatnonzero(terminated | truncated)
@@ -222,31 +225,39 @@ class UnimalEnv:
         batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
         self.task.reset(self, ids)
         n, noise = len(ids), config.reset_noise
-        spawn = np.tile(np.array(self.task.spawn, dtype=np.float64), (n, 1))
         qpos = self.qpos[ids]
-        qpos[:, self.root : self.root + 2] = spawn
+        spawn = qpos[:, self.root : self.root + 2]
+        spawn[:] = self.task.spawn
         ground = self.task.ground(self, spawn, ids)
         qpos[:, self.root + 2] = ground + self.rest_height + config.spawn_clearance
         qpos[:, self.agent_qpos] += self.rng.uniform(-noise, noise, (n, len(self.agent_qpos)))
         quat = qpos[:, self.root + 3 : self.root + 7]
-        quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+        quat /= np.sqrt(np.square(quat).sum(axis=1, keepdims=True))
         self.qpos[ids] = qpos
-        qvel = self.qvel[ids]
-        qvel[:, self.agent_dofs] = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
-        self.qvel[ids] = qvel
-        self.ctrl[ids] = 0.0
+        # batch.reset zeroed qvel and ctrl
+        qvel_noise = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
+        self.qvel[ids[:, None], self.agent_dofs] = qvel_noise
         batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
         self.steps[ids] = 0
         self.prev_head[ids] = self.head_pos[ids]
         self.task.placed(self, ids)
 
+    def _unstable(self, warnings_before: np.ndarray, failed: np.ndarray | None) -> np.ndarray:
+        """(N,) copies whose last step failed (``failed`` ids), warned, or left a non-finite
+        state."""
+        unstable = self.warnings[:, :, 1].sum(axis=1) > warnings_before
+        unstable |= ~np.isfinite(self.qpos).all(axis=1)
+        unstable |= ~np.isfinite(self.qvel).all(axis=1)
+        if failed is not None:
+            unstable[failed] = True
+        return unstable
+
     def _fallen(self) -> np.ndarray:
         height = self.head_pos[:, 2] - self.task.ground(self, self.head_pos[:, :2])
-        return height < self.config.fall_ratio * self.rest_height
+        return height < self.fall_height
 
     def _off_arena(self) -> np.ndarray:
-        half = np.array(self.task.arena) - ARENA_MARGIN
-        return (np.abs(self.head_pos[:, :2]) > half).any(axis=1)
+        return (np.abs(self.head_pos[:, :2]) > self.arena_inside).any(axis=1)
 
     def _proprioception(self, ids: np.ndarray) -> np.ndarray:
         every = ids is self.all  # the common case: no row selection

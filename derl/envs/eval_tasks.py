@@ -244,7 +244,7 @@ class Obstacle(Variable):
         super().__init__(self.config.terrain, weights, grid)
 
     def setup(self, env: UnimalEnv) -> None:
-        self.terrains = TerrainStack(self.terrain, env.batch, self._draw)
+        self.terrains = TerrainStack(self.terrain, env.batch, self.grid, self._draw)
 
     def _draw(self, rng: np.random.Generator) -> Terrain:
         config, x_min = self.config, -self.config.size_x / 2
@@ -338,6 +338,7 @@ class Escape(Variable):
         self.terrains = TerrainStack(
             layout,
             env.batch,
+            self.grid,
             lambda rng: Terrain(bowl.draw(rng), layout.resolution, layout.max_height),
         )
 

@@ -5,8 +5,30 @@ Paper, appendix B: a 2-D heightmap on a non-uniform grid, denser near the body, 
 rotated with the yaw of the head, heights relative to the ground right under the head. As in the
 original DERL (``HfieldObs2D``) the points are looked up directly in the height array (nearest
 vertex, no ray casting); the default grid reproduces its 30 x 47 = 1410 points.
+
+Lookup. The grid is anchored at the vertex nearest the head, and its offsets, rotated by each of
+`YAW_BINS` evenly spaced yaws and rounded to whole cells, are precomputed as offsets of flat
+indices (`offset_table`, once per `HeightStack`: about 20 ms). A lookup for N bodies is then: the
+yaw bin and the head's vertex of each body (N numbers), one (N, K) gather from the table, an add,
+one gather from the heights, and the ground under the head subtracted: no per-point arithmetic.
+
+Accuracy. The yaw is rounded to the nearest bin (0.125 degree at most), which moves the
+furthest point (5.7 m) by at most 1/8 of a cell, and the grid is anchored at the head's nearest
+vertex instead of the head itself (up to half a cell along each axis). So a point may read a
+vertex one cell (0.1 m) away, along each axis, from the vertex nearest its exact position, never
+further. Over random positions and yaws about 57% of the points read exactly that vertex, and
+about 97% read the vertex that an exact rotation about the head's vertex would. The original
+truncated coordinates to whole cells, an error of the same order (it reads the nearest vertex
+for only about a quarter of the points).
+
+Edges. Heights are stored padded on every side by `HeightStack.margin` cells that repeat the edge
+values, further than the grid reaches, so every point reads a vertex of its own terrain, and
+points outside the world read the nearest edge vertex (the world continues flat at its edge
+heights) instead of the original's -10 m gap: it keeps observations in the terrain's own range,
+and episodes end before bodies get there. A head outside the world counts as on its edge.
 """
 
+import math
 from functools import cached_property
 
 import numpy as np
@@ -14,6 +36,10 @@ from numpy.typing import ArrayLike
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from derl.envs.terrain import Terrain
+
+# 0.25 degree apart: the default grid's furthest point (5.7 m) moves at most 1/8 of a 0.1 m cell;
+# under half a cell for any grid reaching less than 22 m.
+YAW_BINS = 1440
 
 
 class HeightmapGrid(BaseModel):
@@ -69,12 +95,6 @@ class HeightmapGrid(BaseModel):
         return self.nx * self.ny
 
     @cached_property
-    def cell_offsets(self) -> tuple[np.ndarray, np.ndarray]:
-        """(forward, left) offsets in cells, float32 rows of shape (1, K), for lookups."""
-        cells = (self.offsets / self.resolution).astype(np.float32)
-        return cells[None, :, 0].copy(), cells[None, :, 1].copy()
-
-    @cached_property
     def reach(self) -> float:
         """Distance (m) from the body to the furthest point of the grid."""
         return float(np.hypot(self.offsets[:, 0], self.offsets[:, 1]).max())
@@ -87,67 +107,95 @@ class HeightmapGrid(BaseModel):
         return np.stack((forward.ravel(), left.ravel()), axis=1)
 
 
+def offset_table(grid: HeightmapGrid, resolution: float, row_length: int) -> np.ndarray:
+    """(YAW_BINS, K) int32 flat-index offsets of the grid's points, rotated by yaw
+    ``2 pi b / YAW_BINS`` in row b, in a row-major height array of rows of ``row_length`` vertices
+    ``resolution`` m apart: round(d_row) * row_length + round(d_col)."""
+    yaw = np.arange(YAW_BINS) * (2 * np.pi / YAW_BINS)
+    cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    forward, left = grid.offsets.T / resolution
+    d_col = np.rint(cos * forward - sin * left).astype(np.int32)
+    d_row = np.rint(sin * forward + cos * left).astype(np.int32)
+    return d_row * np.int32(row_length) + d_col
+
+
+class HeightStack:
+    """M terrains laid out like ``layout`` (its shape, resolution and extent), stored padded by
+    `margin` edge-valued cells on every side, and the heightmap and ground lookups on them.
+
+    Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
+    stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
+    """
+
+    def __init__(self, layout: Terrain, count: int, grid: HeightmapGrid) -> None:
+        self.layout = layout
+        self.margin = math.ceil(grid.reach / layout.resolution) + 1  # beyond any rounded point
+        m = self.margin
+        self.padded = np.zeros((count, layout.nrow + 2 * m, layout.ncol + 2 * m), np.float32)
+        if self.padded.size > np.iinfo(np.int32).max:
+            raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
+        row_length = self.padded.shape[2]
+        self._flat = self.padded.reshape(-1)
+        self._table = offset_table(grid, layout.resolution, row_length)
+        first = np.arange(count) * self.padded[0].size + m * row_length + m
+        self._first = first.astype(np.int32)  # flat index of each terrain's vertex (0, 0)
+        self._strides = np.array([1, row_length], np.int32)  # flat index step per column, row
+        self._origin = np.array([layout.x_min, layout.y_min])
+        self._last = np.array([layout.ncol - 1, layout.nrow - 1])
+
+    @property
+    def heights(self) -> np.ndarray:
+        """(M, nrow, ncol) the terrains without their padding (a view)."""
+        m = self.margin
+        return self.padded[:, m:-m, m:-m]
+
+    def write(self, i: int, heights: np.ndarray) -> None:
+        """Terrain ``i`` becomes ``heights`` (nrow, ncol); its padding repeats its edges."""
+        m, padded = self.margin, self.padded[i]
+        padded[m:-m, m:-m] = heights
+        padded[:m, m:-m] = heights[0]
+        padded[-m:, m:-m] = heights[-1]
+        padded[:, :m] = padded[:, m : m + 1]
+        padded[:, -m:] = padded[:, -m - 1 : -m]
+
+    def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (clamped to the terrain)
+        on terrain ``which[n]`` (default: terrain n)."""
+        cells = (xy - self._origin) / self.layout.resolution
+        cells.clip(0, self._last, out=cells)
+        cells += 0.5
+        first = self._first[: len(xy)] if which is None else self._first[which]
+        return first + cells.astype(np.int32) @ self._strides
+
+    def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        """(N,) height of the vertex nearest each point, as the heightmap reads it."""
+        return self._flat[self.vertices(xy, which)]
+
+    def heightmap(
+        self, xy: np.ndarray, yaw: np.ndarray, which: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(N, K) float32 heightmaps of heads at ``xy`` (N, 2) facing ``yaw`` (N,), head n on
+        terrain ``which[n]`` (default: n), relative to the ground under each head. ``yaw`` is the
+        angle of the head's x-axis projected on the ground, from world +x towards +y."""
+        centre = self.vertices(xy, which)
+        bins = np.rint(yaw * (YAW_BINS / (2 * np.pi))).astype(np.intp)
+        index = self._table.take(bins, axis=0, mode="wrap")
+        index += centre[:, None]
+        heights = self._flat.take(index)
+        heights -= self._flat[centre][:, None]
+        return heights
+
+
 def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid) -> np.ndarray:
-    """Heightmaps of N bodies on one terrain: (N, K) float32, relative to the ground under each.
-
-    ``xy`` (N, 2) are the world positions of the heads and ``yaw`` (N,) their headings (angle
-    of the head's x-axis projected on the ground, from world +x towards +y). See `sample_stack`.
-    """
-    n = np.asarray(yaw).shape[0]
-    return sample_stack(terrain.heights[None], terrain, xy, yaw, grid, np.zeros(n, np.intp))
-
-
-def sample_stack(
-    heights: np.ndarray,
-    layout: Terrain,
-    xy: ArrayLike,
-    yaw: ArrayLike,
-    grid: HeightmapGrid,
-    which: np.ndarray | None = None,
-) -> np.ndarray:
-    """Heightmaps of N bodies, body n on terrain ``heights[which[n]]`` (default: ``heights[n]``).
-
-    ``heights`` is a stack (M, nrow, ncol) of terrains laid out like ``layout`` (its resolution
-    and extent). Offsets are rotated by yaw, then every point reads its nearest vertex; the entry
-    at offset (0, 0) is therefore always 0. Points outside the world read the nearest edge vertex
-    (the world continues flat at its edge heights), instead of the original's -10 m gap: it
-    keeps observations in the terrain's own range, and episodes end before bodies get there.
-    One set of numpy operations for all bodies.
-    """
+    """Heightmaps (N, K) float32 of N bodies on one terrain, heads at ``xy`` (N, 2) facing
+    ``yaw`` (N,); see `HeightStack.heightmap`. The entry at offset (0, 0) is always 0."""
     xy = np.asarray(xy, dtype=np.float64)
     yaw = np.asarray(yaw, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or yaw.shape != (xy.shape[0],):
         raise ValueError(f"need xy (N, 2) and yaw (N,), got {xy.shape} and {yaw.shape}")
-    which = np.arange(xy.shape[0]) if which is None else which
-    nrow, ncol = layout.nrow, layout.ncol
-    forward, left = grid.cell_offsets
-    cos, sin = np.cos(yaw).astype(np.float32)[:, None], np.sin(yaw).astype(np.float32)[:, None]
-    col0 = ((xy[:, 0] - layout.x_min) / layout.resolution).astype(np.float32)[:, None]
-    row0 = ((xy[:, 1] - layout.y_min) / layout.resolution).astype(np.float32)[:, None]
-    index = _nearest(row0 + sin * forward + cos * left, nrow)  # float32 throughout: 2x faster
-    index *= ncol
-    index += _nearest(col0 + cos * forward - sin * left, ncol)
-    index += (which * (nrow * ncol))[:, None]
-    heights_at = heights.reshape(-1)[index]
-    heights_at -= ground_stack(heights, layout, xy, which)[:, None]
-    return heights_at
-
-
-def ground_stack(
-    heights: np.ndarray, layout: Terrain, xy: np.ndarray, which: np.ndarray | None = None
-) -> np.ndarray:
-    """(N,) height of the nearest vertex under each body, as the heightmap reads it."""
-    which = np.arange(xy.shape[0]) if which is None else which
-    col = _nearest((xy[:, 0] - layout.x_min) / layout.resolution, layout.ncol)
-    row = _nearest((xy[:, 1] - layout.y_min) / layout.resolution, layout.nrow)
-    return heights[which, row, col]
-
-
-def _nearest(coord: np.ndarray, n: int) -> np.ndarray:
-    """Index of the nearest of n vertices to fractional vertex coordinates, clamped to the grid."""
-    np.clip(coord, 0, n - 1, out=coord)
-    coord += 0.5
-    return coord.astype(np.intp)
+    stack = HeightStack(terrain, 1, grid)
+    stack.write(0, terrain.heights)
+    return stack.heightmap(xy, yaw, np.zeros(len(xy), dtype=np.intp))
 
 
 def _axis(low: float, high: float, resolution: float) -> np.ndarray:

@@ -2,8 +2,9 @@
 
 `mujoco.batch` shares asset data such as ``hfield_data`` between the simulations of a batch, so
 each copy runs on its own shallow copy of the compiled model (``Batch.set_models``); a new terrain
-is written into that copy's ``hfield_data`` in place (no recompile) and into a stacked height
-array that the heightmap observation and the fall test read for all copies at once.
+is written into that copy's ``hfield_data`` in place (no recompile) and into a stacked, padded
+height array (`HeightStack`) that the heightmap observation and the fall test read for all copies
+at once.
 
 A terrain is renewed after every episode in which its copy could have perceived or touched an
 obstacle: the head came within `reach` m (the heightmap's range plus a body's size) of the first
@@ -22,7 +23,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from derl.envs.heightmap import HeightmapGrid, ground_stack, sample_stack
+from derl.envs.heightmap import HeightmapGrid, HeightStack
 from derl.envs.terrain import Terrain, TerrainConfig, generate_terrain
 
 HFIELD_NAME = "terrain"
@@ -49,26 +50,31 @@ def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig) -> None:
     )
 
 
-class TerrainStack:
-    """The terrains of all copies of a batch, and their heightfields in the copies' models.
+class TerrainStack(HeightStack):
+    """The terrains of all copies of a batch (their heights, `HeightStack`'s lookups on them), and
+    their heightfields in the copies' models.
 
     ``draw(rng)`` makes one terrain laid out like ``config`` (default: the obstacle corridor of
-    `generate_terrain`); its segments tell where its obstacles start.
+    `generate_terrain`); its segments tell where its obstacles start. ``grid`` is the heightmap
+    that will be read from the stack (it sizes the padding).
     """
 
     def __init__(
         self,
         config: TerrainConfig,
         batch: mujoco.batch.Batch,
+        grid: HeightmapGrid,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
     ) -> None:
+        layout = Terrain(
+            np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
+        )
+        super().__init__(layout, batch.nsim, grid)
         self.config = config
         self.draw = draw or partial(generate_terrain, config)
-        self.heights = np.zeros((batch.nsim, *config.grid_shape), dtype=np.float32)
         self.models = [copy.copy(batch.model) for _ in range(batch.nsim)]
         batch.set_models(self.models)
         self.hfield = batch.model.hfield(HFIELD_NAME).id
-        self.layout = Terrain(self.heights[0], config.resolution, config.max_height)
         self.first_obstacle = np.full(batch.nsim, -np.inf)  # x where each copy's course starts
         self.furthest = np.full(batch.nsim, np.inf)  # furthest head x in the current episode
         self.generated = 0
@@ -84,7 +90,7 @@ class TerrainStack:
         for i in seen:
             terrain = self.draw(rng)
             terrain.write_to(self.models[i], self.hfield)
-            self.heights[i] = terrain.heights
+            self.write(i, terrain.heights)
             self.first_obstacle[i] = terrain.first_obstacle
         self.generated += len(seen)
         self.furthest[ids] = -np.inf
@@ -92,13 +98,3 @@ class TerrainStack:
     def forget(self) -> None:
         """Make every copy's next reset draw a fresh terrain (a new seeded run)."""
         self.furthest[:] = np.inf
-
-    def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
-        """Ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
-        return ground_stack(self.heights, self.layout, xy, ids)
-
-    def heightmap(
-        self, xy: np.ndarray, yaw: np.ndarray, grid: HeightmapGrid, ids: np.ndarray
-    ) -> np.ndarray:
-        """Heightmaps of copies ``ids`` at heads ``xy`` facing ``yaw``."""
-        return sample_stack(self.heights, self.layout, xy, yaw, grid, ids)

@@ -95,7 +95,7 @@ class Variable(Flat):
         add_hfield(spec, self.terrain)
 
     def setup(self, env: UnimalEnv) -> None:
-        self.terrains = TerrainStack(self.terrain, env.batch)
+        self.terrains = TerrainStack(self.terrain, env.batch, self.grid)
 
     def obs_spaces(self) -> dict[str, int]:
         return {"heightmap": self.grid.size}
@@ -111,8 +111,10 @@ class Variable(Flat):
 
     def observe(self, env: UnimalEnv, ids: np.ndarray) -> Arrays:
         self.terrains.track(env.head_pos[:, 0])
+        if ids is env.all:  # the common case: no row selection
+            return {"heightmap": self.terrains.heightmap(env.head_pos[:, :2], env.yaw)}
         xy, yaw = env.head_pos[ids, :2], env.yaw[ids]
-        return {"heightmap": self.terrains.heightmap(xy, yaw, self.grid, ids)}
+        return {"heightmap": self.terrains.heightmap(xy, yaw, ids)}
 
 
 class BoxPlacement(BaseModel):
