@@ -62,6 +62,8 @@ class CoordinatorState:
                     msg.iteration,
                 )
             )
+            if msg.child not in self.by_child and msg.child not in self.waiting:
+                self.waiting.append(msg.child)  # until its TrainJob (lost if the node died)
         elif isinstance(msg, TrainJob):
             self.issued[msg.job] = msg.node
             self._assigned(msg)

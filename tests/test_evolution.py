@@ -82,3 +82,74 @@ def test_replaying_decisions_and_births_rebuilds_the_state(initial: list[Genome]
         replayed.birth(agent, fitness, body)
     assert replayed.born == live.born and replayed.genomes == live.genomes
     assert replayed.tournament() == live.tournament()
+
+
+def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
+    initial: list[Genome],
+) -> None:
+    """A coordinator that died between journaling a Tournament and its TrainJob: the replayed
+    fold keeps the child waiting (it is trained next), never decides past it."""
+    from messages import FitnessReport, Tournament, TrainJob
+    from messages.examples import examples
+    from nodes.coordinator_state import CoordinatorState
+
+    config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
+    state = CoordinatorState.start(config, initial)
+    template = next(m for m in examples("r") if isinstance(m, FitnessReport))
+    for k, child in enumerate(state.evolution.initial):
+        job = TrainJob(
+            run="r",
+            job=f"{child.child}.1",
+            child=child.child,
+            node="t0",
+            genome=child.genome,
+            task="ft",
+            steps=4096,
+            seed=0,
+            lease_s=10.0,
+        )
+        state.apply(job)
+        state.apply(
+            template.model_copy(
+                update={
+                    "child": child.child,
+                    "job": job.job,
+                    "node": "t0",
+                    "genome": child.genome,
+                    "mutation": None,
+                    "fitness": k,
+                }
+            )
+        )
+    assert state.wants_tournament()
+    decided = state.evolution.tournament()
+    tournament = Tournament(
+        run="r",
+        child=decided.child,
+        contestants=decided.contestants,
+        fitness=decided.fitness,
+        parent=decided.parent,
+        mutation_seed=decided.mutation_seed,
+        iteration=decided.iteration,
+    )
+    state.apply(tournament)
+    state.apply(tournament)  # replayed twice: still one waiting child
+    assert list(state.waiting) == [decided.child] and not state.wants_tournament()
+    genome, seed = state.evolution.to_train(decided.child)
+    assert seed == decided.mutation_seed
+    state.apply(
+        TrainJob(
+            run="r",
+            job=f"{decided.child}.1",
+            child=decided.child,
+            node="t1",
+            genome=genome,
+            task="ft",
+            steps=4096,
+            seed=0,
+            parent=decided.parent,
+            mutation_seed=seed,
+            lease_s=10.0,
+        )
+    )
+    assert not state.waiting and state.job_of("t1").subject == decided.child
