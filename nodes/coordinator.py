@@ -31,14 +31,13 @@ from messages import (
     MessageBase,
     PopulationSnapshot,
     RunStatus,
-    Tournament,
     TrainJob,
     TrainProgress,
     WorkerReady,
     encode,
 )
 from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.coordinator_state import CoordinatorState
+from nodes.coordinator_state import CoordinatorState, tournament_message
 from nodes.journal import Journal, replay, segments
 
 log = logging.getLogger("derl.coordinator")
@@ -196,16 +195,7 @@ class Coordinator:
             child = state.waiting[0]
         elif state.wants_tournament():
             decided = evolution.tournament()
-            tournament = Tournament(
-                run=self.run,
-                child=decided.child,
-                contestants=decided.contestants,
-                fitness=decided.fitness,
-                parent=decided.parent,
-                mutation_seed=decided.mutation_seed,
-                iteration=decided.iteration,
-            )
-            self._commit(tournament)
+            self._commit(tournament_message(self.run, decided))
             child = decided.child
         else:
             return

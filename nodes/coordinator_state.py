@@ -17,6 +17,20 @@ from derl.unimal import Genome
 from messages import EvalJob, EvalResult, FitnessReport, MessageBase, Tournament, TrainJob
 
 
+def tournament_message(run: str, decided: Child) -> Tournament:
+    """A decided tournament (`Evolution.tournament`) as the fact the coordinator journals; `apply`
+    turns it back into the `Child` it records."""
+    return Tournament(
+        run=run,
+        child=decided.child,
+        contestants=decided.contestants,
+        fitness=decided.fitness,
+        parent=decided.parent,
+        mutation_seed=decided.mutation_seed,
+        iteration=decided.iteration,
+    )
+
+
 @dataclass
 class Job:
     """An assignment in flight."""

@@ -89,9 +89,9 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
 ) -> None:
     """A coordinator that died between journaling a Tournament and its TrainJob: the replayed
     fold keeps the child waiting (it is trained next), never decides past it."""
-    from messages import FitnessReport, Tournament, TrainJob
+    from messages import FitnessReport, TrainJob
     from messages.examples import examples
-    from nodes.coordinator_state import CoordinatorState
+    from nodes.coordinator_state import CoordinatorState, tournament_message
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
     state = CoordinatorState.start(config, initial)
@@ -123,15 +123,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
         )
     assert state.wants_tournament()
     decided = state.evolution.tournament()
-    tournament = Tournament(
-        run="r",
-        child=decided.child,
-        contestants=decided.contestants,
-        fitness=decided.fitness,
-        parent=decided.parent,
-        mutation_seed=decided.mutation_seed,
-        iteration=decided.iteration,
-    )
+    tournament = tournament_message("r", decided)
     state.apply(tournament)
     state.apply(tournament)  # replayed twice: still one waiting child
     assert list(state.waiting) == [decided.child] and not state.wants_tournament()

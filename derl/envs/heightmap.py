@@ -188,7 +188,8 @@ class HeightStack:
 
 def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid) -> np.ndarray:
     """Heightmaps (N, K) float32 of N bodies on one terrain, heads at ``xy`` (N, 2) facing
-    ``yaw`` (N,); see `HeightStack.heightmap`. The entry at offset (0, 0) is always 0."""
+    ``yaw`` (N,); see `HeightStack.heightmap`. The entry at offset (0, 0) is always 0. For one-off
+    lookups: it builds the yaw tables (~20 ms) on every call; environments keep a `HeightStack`."""
     xy = np.asarray(xy, dtype=np.float64)
     yaw = np.asarray(yaw, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or yaw.shape != (xy.shape[0],):
