@@ -2,7 +2,10 @@
 
 It runs one loop over an inbox that every subscription feeds, so the state has one writer.
 Every message it accepts or sends is first appended to the run's MCAP journal and applied to
-`CoordinatorState` (the same `apply` that rebuilds the state on restart), then published. A
+`CoordinatorState` (the same `apply` that rebuilds the state on restart), then published. It
+takes what the inbox holds as a group (group commit): the group's messages are journaled, the
+journal is flushed once, and only then is what they made the coordinator say published, so
+nothing is seen that a crash could forget, at one file write per group instead of per message. A
 trainer that loses its liveliness token, or sends no progress for its job's lease, loses the
 job; the child goes to the next ready worker. Fitness reports are acknowledged when accepted, and
 also when they repeat a birth or come for a job that was taken back (so the sender stops),
@@ -18,6 +21,7 @@ import queue
 import signal
 import threading
 import time
+from concurrent.futures import Future
 from pathlib import Path
 
 from derl.evolution import EvolutionConfig
@@ -37,6 +41,7 @@ from messages import (
     encode,
 )
 from nodes.bus import Bus, ZenohOptions, open_session
+from nodes.checkpoints import CheckpointFiles
 from nodes.coordinator_state import CoordinatorState, tournament_message
 from nodes.journal import Journal, replay, segments
 
@@ -45,15 +50,15 @@ log = logging.getLogger("derl.coordinator")
 STATUS_PERIOD_S = 1.0
 SNAPSHOT_PERIOD_S = 5.0
 DONE_ANNOUNCEMENTS = 5
+GROUP_S = 0.005  # the longest a group is handled before its journal flush and replies
 PROFILE_FILE = "profile.json"
 INITIAL_FILE = "initial_population.json"
-CHECKPOINTS = "checkpoints"
 
 
 class Coordinator:
     def __init__(self, run: str, run_dir: Path, config: EvolutionConfig) -> None:
         self.run, self.run_dir, self.config = run, run_dir, config
-        (run_dir / CHECKPOINTS).mkdir(parents=True, exist_ok=True)
+        run_dir.mkdir(parents=True, exist_ok=True)
         self._check_profile()
         self.state = CoordinatorState.start(config, self._saved_initial_population())
         self._save_initial_population()
@@ -64,6 +69,9 @@ class Coordinator:
                 replayed += 1
         self.replayed = replayed
         self.journal = Journal(run_dir)
+        self.checkpoints = CheckpointFiles(run_dir)
+        # published after the journal flush (and, for an Ack, once its checkpoint is on disk)
+        self.outbox: list[tuple[MessageBase, bytes, Future[None] | None]] = []
         now = time.monotonic()
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.alive: dict[str, str] = {}  # node -> role
@@ -124,17 +132,13 @@ class Coordinator:
             announced = 0
             while not self.stop.is_set():
                 try:
-                    kind, item = inbox.get(timeout=0.2)
+                    self._take(*inbox.get(timeout=0.2))
+                    until = time.monotonic() + GROUP_S
+                    while time.monotonic() < until:
+                        self._take(*inbox.get_nowait())
                 except queue.Empty:
-                    kind, item = "", None
-                try:
-                    if kind == "msg":
-                        self._handle(item)
-                    elif kind == "alive":
-                        self._liveliness(*item)
-                except Exception:  # one message must never stop the run: log it and go on
-                    bus.rejected["handler error"] += 1
-                    log.exception("handling %r failed", item)
+                    pass
+                self._flush()
                 now = time.monotonic()
                 if now >= next_status:
                     # The state only grows (every body, every job) and its handling makes no
@@ -154,15 +158,40 @@ class Coordinator:
                 if now >= next_snapshot:
                     bus.publish(self._snapshot(), reliable=False)
                     next_snapshot = now + SNAPSHOT_PERIOD_S
+        self.checkpoints.close()
         self.journal.close()
 
-    def _commit(self, msg: MessageBase, publish: bool = True) -> None:
-        """Journal, apply, then (for what the coordinator says) publish."""
+    def _take(self, kind: str, item: object) -> None:
+        try:
+            if kind == "msg":
+                self._handle(item)
+            elif kind == "alive":
+                self._liveliness(*item)
+        except Exception:  # one message must never stop the run: log it and go on
+            self.bus.rejected["handler error"] += 1
+            log.exception("handling %r failed", item)
+
+    def _commit(
+        self, msg: MessageBase, publish: bool = True, after: Future[None] | None = None
+    ) -> None:
+        """Journal and apply; what the coordinator says is published by the next `_flush`
+        (once `after` is done, and not if it failed)."""
         data = encode(msg)
-        self.journal.write(msg, data=data)
+        self.journal.write(msg, data=data, flush=False)
         self.state.apply(msg)
         if publish:
-            self.bus.publish(msg, data=data)
+            self.outbox.append((msg, data, after))
+
+    def _flush(self) -> None:
+        """The group's messages into the journal file, then its replies onto the bus."""
+        self.journal.flush()
+        for msg, data, after in self.outbox:
+            failed = None if after is None else after.exception()
+            if failed is None:
+                self.bus.publish(msg, data=data)
+            else:  # unacknowledged: its trainer sends the report again, and the write is retried
+                log.error("%s not acknowledged: its checkpoint was not written: %s", msg, failed)
+        self.outbox.clear()
 
     def _handle(self, msg: object) -> None:
         if isinstance(msg, WorkerReady):
@@ -183,7 +212,7 @@ class Coordinator:
         self.alive.setdefault(ready.node, ready.role)
         current = self.state.job_of(ready.node)
         if current is not None:  # it missed its job (e.g. the coordinator restarted)
-            self.bus.publish(current.order)
+            self.outbox.append((current.order, encode(current.order), None))
         elif ready.role == "trainer":
             self._assign_training(ready.node)
         else:
@@ -240,23 +269,28 @@ class Coordinator:
 
     # --- results -----------------------------------------------------------------------------
 
-    def _ack(self, msg: FitnessReport | EvalResult, subject: str) -> None:
+    def _ack(
+        self, msg: FitnessReport | EvalResult, subject: str, after: Future[None] | None = None
+    ) -> None:
         ack = Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node)
-        self._commit(ack)
+        self._commit(ack, after=after)
 
     def _fitness(self, report: FitnessReport) -> None:
         state = self.state
         job = state.jobs.get(report.job)
         if report.child in state.evolution.fitness:
             log.info("%s already born: repeated report acknowledged", report.child)
-            self._ack(report, report.child)
+            saved = None  # a crash (or a failed write) may have lost its checkpoint file
+            if report.checkpoint and not self.checkpoints.path(report.child).exists():
+                saved = self.checkpoints.save(report.child, report.checkpoint)
+            self._ack(report, report.child, after=saved)
         elif job is not None and job.node == report.node and job.subject == report.child:
             wrong = self._wrong_body(report)
             if wrong:
                 self.bus.rejected["wrong body"] += 1
                 log.warning("rejected fitness of %s from %s: %s", report.child, report.node, wrong)
                 return
-            self._save_checkpoint(report.child, report.checkpoint)
+            saved = self.checkpoints.save(report.child, report.checkpoint)
             self._commit(report.model_copy(update={"checkpoint": b""}), publish=False)
             member = state.evolution.population[-1]
             log.info(
@@ -266,7 +300,7 @@ class Coordinator:
                 self.born,
                 self.config.total,
             )
-            self._ack(report, report.child)
+            self._ack(report, report.child, after=saved)
         elif state.issued_to(report.job, report.node):
             log.info(
                 "report for %s taken back from %s: acknowledged, not used", report.job, report.node
@@ -310,12 +344,6 @@ class Coordinator:
             log.warning(
                 "rejected evaluation: job %s was never issued to %s", result.job, result.node
             )
-
-    def _save_checkpoint(self, child: str, checkpoint: bytes) -> None:
-        folder = self.run_dir / CHECKPOINTS
-        tmp = folder / f"{child}.pt.tmp"
-        tmp.write_bytes(checkpoint)
-        tmp.replace(folder / f"{child}.pt")
 
     # --- workers and leases ------------------------------------------------------------------
 
@@ -378,7 +406,7 @@ class Coordinator:
             genome = evolution.genomes[member.agent]
             (folder / "genome.json").write_text(genome.model_dump_json(indent=2) + "\n")
             (folder / "body.xml").write_text(to_mjcf(genome))
-            checkpoint = self.run_dir / CHECKPOINTS / f"{member.agent}.pt"
+            checkpoint = self.checkpoints.path(member.agent)
             if checkpoint.exists():
                 (folder / "checkpoint.pt").write_bytes(checkpoint.read_bytes())
         summary = {

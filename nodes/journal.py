@@ -6,10 +6,12 @@ appended to. Each message type has its own channel (topic ``derl/<run>/<kind>``,
 ``msgpack``, schema encoding ``jsonschema`` with the model's JSON schema, schema name = type).
 
 Durability (research/bus-tech.md 5.3): chunked, uncompressed, and ``Writer.flush()`` after every
-message, which closes the chunk (each message gets its own CRC) and flushes the file. A SIGKILL
-then loses at most the message being written (no fsync: power loss is not covered). Reading goes
-record by record without the summary, so a segment cut at any byte gives back every message
-written before the cut; a closed segment can be compacted into zstd chunks.
+message, which closes the chunk (its messages get their CRC) and flushes the file. A SIGKILL then
+loses at most the message being written (no fsync: power loss is not covered). A writer that
+handles messages in groups (the coordinator) appends a group with ``flush=False`` and flushes it
+once, before it publishes anything of the group: a SIGKILL loses at most a group nobody saw.
+Reading goes record by record without the summary, so a segment cut at any byte gives back every
+message written before the cut; a closed segment can be compacted into zstd chunks.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ _SEGMENT = re.compile(r"segment-(\d+)\.mcap")
 
 
 class JournalWriter:
-    """One segment file, written message by message, each one flushed before `write` returns."""
+    """One segment file, written message by message, each one (or group) flushed to the file."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
@@ -56,10 +58,15 @@ class JournalWriter:
         self._closed = False
 
     def write(
-        self, msg: MessageBase, publish_time_ns: int | None = None, data: bytes | None = None
+        self,
+        msg: MessageBase,
+        publish_time_ns: int | None = None,
+        data: bytes | None = None,
+        flush: bool = True,
     ) -> None:
         """Append `msg` (log time now; publish time, e.g. the sender's, defaults to it);
-        `data` is its encoding, if the caller has it already."""
+        `data` is its encoding, if the caller has it already. Unless `flush` is False, it is in
+        the file when this returns; else it is with the next `flush()`."""
         data = encode(msg) if data is None else data
         with self._lock:
             if self._closed:
@@ -72,8 +79,15 @@ class JournalWriter:
                 publish_time=now if publish_time_ns is None else publish_time_ns,
                 sequence=self._sequence & 0xFFFF_FFFF,
             )
-            self._writer.flush()
+            if flush:
+                self._writer.flush()
             self._sequence += 1
+
+    def flush(self) -> None:
+        """Close the chunk of the messages appended since the last flush and flush the file."""
+        with self._lock:
+            if not self._closed:
+                self._writer.flush()
 
     def _channel(self, msg: MessageBase) -> int:
         channel = self._channels.get((msg.type, msg.run))
@@ -199,9 +213,16 @@ class Journal:
         return self._writer.path
 
     def write(
-        self, msg: MessageBase, publish_time_ns: int | None = None, data: bytes | None = None
+        self,
+        msg: MessageBase,
+        publish_time_ns: int | None = None,
+        data: bytes | None = None,
+        flush: bool = True,
     ) -> None:
-        self._writer.write(msg, publish_time_ns, data)
+        self._writer.write(msg, publish_time_ns, data, flush)
+
+    def flush(self) -> None:
+        self._writer.flush()
 
     def replay(self) -> Iterator[MessageBase]:
         """Every message journaled in this run so far, this segment's included."""
