@@ -10,13 +10,14 @@
    once, i.e. the most assignments/s the coordinator gives; (b) `paced`: each simulated job
    lasts W / R s so the workers offer R = 1,000 assignments/s (the goal's load), and
    (c) `half_capacity`: R = half of (a). For each: assignments/s, ready-to-job latency
-   p50/p99/max (from the moment a worker became idle until its job arrived), and the
-   coordinator's CPU use.
+   p50/p99/max (from the moment a worker became idle until its job arrived), and the CPU use
+   of the coordinator and of the load generator (on a small machine they share the cores).
 2. `coordinator_profile`: the coordinator's own code (no bus, no network) driven in this process
    with K jobs in flight: ms per assignment and the top functions (cProfile), to show where
    the time goes.
 3. `journal`: write and replay rates of the MCAP journal (`nodes.journal`) for its real mix
-   (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack).
+   (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack), flushed
+   after every message and after groups of 4 and 16 (the coordinator's group commit).
 4. `recovery`: a synthetic 4,000-body journal of the paper's profile (made by driving the
    coordinator's own handlers), and the time `Coordinator(run, run_dir, config)` takes to
    replay it: the restart time of a paper-sized run.
@@ -325,11 +326,14 @@ def _phase(
 ) -> dict[str, object]:
     generator.job_s = job_s
     time.sleep(min(settle, 10.0))
-    cpu0, start = _cpu_s(pid), time.perf_counter()
+    own = os.getpid()
+    cpu0, generator0, start = _cpu_s(pid), _cpu_s(own), time.perf_counter()
     time.sleep(duration)
     end = time.perf_counter()
     out = generator.window(start, end)
     out["coordinator_cpu_share"] = round((_cpu_s(pid) - cpu0) / (end - start), 2)
+    # the load generator shares the machine's cores with the coordinator
+    out["load_generator_cpu_share"] = round((_cpu_s(own) - generator0) / (end - start), 2)
     # every simulated worker went through a few jobs before the window (Little's law: one
     # cycle lasts W / rate): else the latencies still hold the start's queue
     rate = max(float(out["assignments_per_s"]), 1e-9)
@@ -507,23 +511,29 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
             job, _report(run, job, 1.0),
             _ack(run, job),
         ]  # fmt: skip
-    path = work / "journal-bench.mcap"
-    start = time.perf_counter()
-    with JournalWriter(path) as writer:
-        for msg in mix:
-            writer.write(msg)
-    written = time.perf_counter() - start
+    rates = {}
+    for group in (1, 4, 16):  # messages per flush: 1 = each on its own, 4 = one assignment's
+        path = work / f"journal-bench-{group}.mcap"
+        start = time.perf_counter()
+        with JournalWriter(path) as writer:
+            for k, msg in enumerate(mix, 1):
+                writer.write(msg, flush=k % group == 0)
+        rates[group] = len(mix) / (time.perf_counter() - start)
+    path = work / "journal-bench-1.mcap"  # sizes and replay: a chunk per message, the most
     start = time.perf_counter()
     count = sum(1 for _ in read_segment(path))
     read = time.perf_counter() - start
     size = path.stat().st_size
     return {
         "messages": len(mix),
-        "write_messages_per_s": round(len(mix) / written),
-        "write_mb_per_s": round(size / written / 1e6, 1),
+        "write_messages_per_s": round(rates[1]),
+        "write_mb_per_s": round(size * rates[1] / len(mix) / 1e6, 1),
         "bytes_per_message": round(size / len(mix)),
+        "write_messages_per_s_flushed_per_4": round(rates[4]),
+        "write_messages_per_s_flushed_per_16": round(rates[16]),
         "replay_messages_per_s": round(count / read),
-        "flush": "every message (crash-safe: a SIGKILL loses at most the message being written)",
+        "flush": "every message or group (crash-safe: a SIGKILL loses at most the message or "
+        "group being written, which was not published yet)",
     }
 
 

@@ -68,6 +68,7 @@ class Coordinator:
                 self.state.apply(msg)
                 replayed += 1
         self.replayed = replayed
+        self.logged_born = self.born
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
         # published after the journal flush (and, for an Ack, once its checkpoint is on disk)
@@ -146,6 +147,7 @@ class Coordinator:
                     # care: else its full passes over a large run's state stall the loop for
                     # hundreds of ms (measured: 0.5 s at 20k births).
                     gc.freeze()
+                    self._log_births()
                     self._check_leases(now)
                     bus.publish(self._status(), reliable=False)
                     next_status = now + STATUS_PERIOD_S
@@ -292,14 +294,7 @@ class Coordinator:
                 return
             saved = self.checkpoints.save(report.child, report.checkpoint)
             self._commit(report.model_copy(update={"checkpoint": b""}), publish=False)
-            member = state.evolution.population[-1]
-            log.info(
-                "born %s fitness %.2f (%d/%d)",
-                member.agent,
-                member.fitness,
-                self.born,
-                self.config.total,
-            )
+            log.debug("born %s fitness %.2f", report.child, report.fitness)
             self._ack(report, report.child, after=saved)
         elif state.issued_to(report.job, report.node):
             log.info(
@@ -344,6 +339,24 @@ class Coordinator:
             log.warning(
                 "rejected evaluation: job %s was never issued to %s", result.job, result.node
             )
+
+    def _log_births(self) -> None:
+        """One line for the births since the last call (a line per birth would be a thousand a
+        second on a large cluster)."""
+        new = self.state.evolution.born[self.logged_born :]
+        if not new:
+            return
+        fittest = max(new, key=lambda m: m.fitness)
+        also = f" (the fittest of {len(new)} new)" if len(new) > 1 else ""
+        log.info(
+            "born %d/%d: %s fitness %.2f%s",
+            self.born,
+            self.config.total,
+            fittest.agent,
+            fittest.fitness,
+            also,
+        )
+        self.logged_born = self.born
 
     # --- workers and leases ------------------------------------------------------------------
 

@@ -31,9 +31,7 @@ def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[Messa
     run = run_id()
     config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
     initial = sample_population(2, np.random.default_rng(3))
-    (tmp_path / INITIAL_FILE).write_text(
-        "[" + ",".join(g.model_dump_json() for g in initial) + "]"
-    )
+    (tmp_path / INITIAL_FILE).write_text("[" + ",".join(g.model_dump_json() for g in initial) + "]")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     heard: queue.Queue[MessageBase] = queue.Queue()
     with (
@@ -65,10 +63,12 @@ def _journaled(coordinator: Coordinator) -> list[MessageBase]:
     return list(read_segment(coordinator.journal.segment))
 
 
+def _ready(coordinator: Coordinator, node: str) -> None:
+    coordinator._ready(WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1))
+
+
 def _job_for(coordinator: Coordinator, node: str) -> TrainJob:
-    coordinator._ready(
-        WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
-    )
+    _ready(coordinator, node)
     coordinator._flush()
     job = coordinator.state.job_of(node)
     assert job is not None and isinstance(job.order, TrainJob)
@@ -88,9 +88,7 @@ def test_a_job_is_published_only_once_the_journal_file_holds_it(
     coordinator: tuple[Coordinator, queue.Queue[MessageBase]],
 ) -> None:
     node, (coordinator, heard) = "w1", coordinator
-    coordinator._ready(
-        WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
-    )
+    _ready(coordinator, node)
     assert not [m for m in _journaled(coordinator) if isinstance(m, TrainJob)]
     assert _quiet(heard), "a job went out before the journal file had it"
 
