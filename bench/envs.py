@@ -6,7 +6,10 @@ substeps per control step, nothing else: the ceiling), the environment's rate wi
 rewards, endings and resets (random actions in [-1, 1], episodes ending as they do), their
 ratio, the time the heightmap lookups take per environment step (timed in a separate run, as
 they run between physics steps: with cold caches), and the cost of one new terrain against the
-cost of one episode.
+cost of one episode. Random bodies seldom leave the flat start area, where heightmaps are zeros
+without reading the terrain; for worlds with terrain, ``ratio_uneven`` and
+``heightmap_uneven_ms_per_step`` are the ratio and the lookup time with every heightmap read
+point by point, as for bodies walking over obstacles.
 Run: python bench/envs.py [--repeats 5] [--steps 300]
 """
 
@@ -17,7 +20,8 @@ import json
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import mujoco
@@ -53,12 +57,17 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
 
     env.reset(0)
     environment(20)  # warm-up
-    raw, full = [], []
+    terrain = hasattr(env.task, "terrains")
+    raw, full, uneven = [], [], []
     for _ in range(repeats):
         env.reset(1)
         raw.append(_rate(physics, steps, env.num_envs))
         env.reset(1)
         full.append(_rate(environment, steps, env.num_envs))
+        if terrain:
+            with _uneven(env):
+                env.reset(1)
+                uneven.append(_rate(environment, steps, env.num_envs))
     result = {
         "world": world,
         "limbs": limbs,
@@ -68,9 +77,29 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
         "ratio": round(statistics.median(f / r for f, r in zip(full, raw, strict=True)), 3),
         "terrains_generated": getattr(getattr(env.task, "terrains", None), "generated", 0),
     }
-    if hasattr(env.task, "terrains"):
+    if terrain:
+        result["ratio_uneven"] = round(
+            statistics.median(u / r for u, r in zip(uneven, raw, strict=True)), 3
+        )
         result["heightmap_ms_per_step"] = round(_heightmap_ms(env, environment, steps), 3)
+        with _uneven(env):
+            result["heightmap_uneven_ms_per_step"] = round(
+                _heightmap_ms(env, environment, steps), 3
+            )
     return result
+
+
+@contextmanager
+def _uneven(env: UnimalEnv) -> Iterator[None]:
+    """Every heightmap read point by point, as if no head stood above level ground."""
+    terrains = env.task.terrains
+    terrains.heightmap = lambda xy, yaw, which=None: terrains.lookup(
+        terrains.vertices(xy, which), yaw
+    )
+    try:
+        yield
+    finally:
+        del terrains.heightmap
 
 
 def _heightmap_ms(env: UnimalEnv, environment: Callable[[int], None], steps: int) -> float:
@@ -87,7 +116,7 @@ def _heightmap_ms(env: UnimalEnv, environment: Callable[[int], None], steps: int
     terrains.heightmap = timed
     env.reset(1)
     environment(steps)
-    del terrains.heightmap
+    terrains.heightmap = lookup
     return spent[0] * 1e3 / steps
 
 

@@ -149,6 +149,51 @@ def test_batch_matches_single_simulations(quadruped: Genome) -> None:
         np.testing.assert_allclose(env.qpos[i], data.qpos, atol=1e-9)
 
 
+def _fresh_observation(env: UnimalEnv, data: mujoco.MjData) -> np.ndarray:
+    """Proprioception of a reset MjData placed at ``data.qpos``/``qvel``, as `Batch.reset` and a
+    forward pass to mjSTAGE_VEL leave it."""
+    qpos, qvel = data.qpos.copy(), data.qvel.copy()
+    mujoco.mj_resetData(env.model, data)
+    data.qpos[:], data.qvel[:] = qpos, qvel
+    for stage in (mujoco.mj_fwdPosition, mujoco.mj_sensorPos, mujoco.mj_fwdVelocity):
+        stage(env.model, data)
+    mujoco.mj_sensorVel(env.model, data)
+    parts = (
+        data.qpos[env.joint_qpos],
+        data.qvel[env.agent_dofs],
+        data.sensordata[env.sensor_index],
+    )
+    return np.concatenate(parts).astype(np.float32)
+
+
+def test_reset_copy_matches_a_freshly_reset_simulation(quadruped: Genome) -> None:
+    """A copy reset in `step` (its state rows rewritten) observes and moves as a reset MjData."""
+    env = _env(quadruped, "ft", n=2)
+    env.reset(0)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        env.step(rng.uniform(-0.3, 0.3, (2, env.action_dim)).astype(np.float32))
+    env.qpos[0, env.root + 2] = 0.3 * env.rest_height
+    env.batch.forward()
+    result = env.step(np.zeros((2, env.action_dim), np.float32))
+    assert result.terminated.tolist() == [True, False]
+    data = mujoco.MjData(env.model)
+    data.qpos[:], data.qvel[:] = env.qpos[0], env.qvel[0]
+    fresh = _fresh_observation(env, data)
+    np.testing.assert_array_equal(result.obs["proprioception"][0], fresh)
+    assert (result.final_obs["proprioception"][0] != fresh).any()  # accelerations before reset
+    running = (env.qpos[1, env.joint_qpos], env.qvel[1, env.agent_dofs], env.sensordata[1])
+    expected = np.concatenate([*running[:2], running[2][env.sensor_index]]).astype(np.float32)
+    np.testing.assert_array_equal(result.obs["proprioception"][1], expected)
+    np.testing.assert_array_equal(env._qpos_qvel, np.hstack([env.qpos, env.qvel]))
+    for _ in range(30):
+        actions = rng.uniform(-0.3, 0.3, (2, env.action_dim)).astype(np.float32)
+        assert not env.step(actions).terminated[0]
+        data.ctrl[:] = actions[0]
+        mujoco.mj_step(env.model, data, nstep=4)
+    np.testing.assert_allclose(env.qpos[0], data.qpos, atol=1e-9)
+
+
 def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
     env = _env(quadruped, "vt", n=2)
     env.reset(0)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from derl.envs.heightmap import HeightmapGrid, sample
-from derl.envs.terrain import Terrain, TerrainConfig, generate_terrain
+from derl.envs.heightmap import HeightmapGrid, HeightStack, rough_columns, sample
+from derl.envs.terrain import Terrain, TerrainConfig, _rubble, _triangle, generate_terrain
 
 SEEDS = range(25)
 
@@ -186,6 +186,25 @@ def test_height_at_interpolates_on_mujoco_triangles() -> None:
     )
 
 
+def test_rubble_equals_its_float64_formula() -> None:
+    """The float32 computation of rubble against the formula in float64, rounded once."""
+    config = TerrainConfig.variable()
+    for seed in range(5):
+        block = np.zeros((101, 57), np.float32)
+        _rubble(block, config, np.random.default_rng(seed))
+        rng = np.random.default_rng(seed)  # the same draws as _rubble's, in its order
+        nrow, n = block.shape
+        bumps_x = max(1, round(n * config.resolution / rng.uniform(*config.rubble_bump)))
+        bumps_y = max(1, round((nrow - 1) * config.resolution / rng.uniform(*config.rubble_bump)))
+        clip = rng.uniform(*config.rubble_clip, size=(bumps_y, bumps_x))
+        ix, tx = _triangle(np.arange(n) * (bumps_x / n), bumps_x)
+        iy, ty = _triangle(np.arange(nrow) * (bumps_y / (nrow - 1)), bumps_y)
+        pyramids = config.rubble_peak * np.minimum(ty[:, None], tx[None, :])
+        expected = np.minimum(pyramids, clip[iy[:, None], ix[None, :]]).astype(np.float32)
+        np.testing.assert_array_equal(block, expected)
+        assert len(np.unique(block)) > 10
+
+
 # --- heightmap ----------------------------------------------------------------------------------
 
 
@@ -286,3 +305,37 @@ def test_heightmap_reads_within_one_cell_of_the_exact_nearest_vertex() -> None:
     assert (read == exact).all(axis=2).mean() > 0.5
     about_head_vertex = head_vertex[:, None] + np.floor(rotated + 0.5)
     assert (read == about_head_vertex).all(axis=2).mean() > 0.95
+
+
+def test_rough_columns_match_a_direct_window_check() -> None:
+    rng = np.random.default_rng(0)
+    heights = np.zeros((6, 80), np.float32)
+    heights[:, 20:30] = 0.5  # a level stretch at another height
+    heights[:, 45] = 0.2  # one level column
+    heights[3, 60] = 0.1  # a column that varies along y
+    heights[:, 70:] = rng.uniform(0, 1, (6, 10)).astype(np.float32)
+    for reach in (1, 3, 7):
+        expected = [
+            len(np.unique(heights[:, max(c - reach, 0) : c + reach + 1])) > 1 for c in range(80)
+        ]
+        np.testing.assert_array_equal(rough_columns(heights, reach), expected)
+
+
+def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
+    """Skipping heads above level stretches gives what reading every point gives."""
+    config = TerrainConfig(size_x=30.0, size_y=10.0, start_flat=8.0)
+    terrains = [generate_terrain(config, np.random.default_rng(seed)) for seed in range(4)]
+    stack = HeightStack(terrains[0], 4, HeightmapGrid())
+    for i, terrain in enumerate(terrains):
+        stack.write(i, terrain.heights)
+    rng = np.random.default_rng(1)
+    for which in (None, rng.integers(0, 4, 64)):
+        n = 4 if which is None else 64
+        xy = rng.uniform((-16.0, -6.0), (16.0, 6.0), (n, 2))
+        yaw = rng.uniform(-np.pi, np.pi, n)
+        heightmaps = stack.heightmap(xy, yaw, which)
+        np.testing.assert_array_equal(heightmaps, stack.lookup(stack.vertices(xy, which), yaw))
+    column = np.clip(np.rint((xy[:, 0] - terrains[0].x_min) / 0.1), 0, 300).astype(int)
+    rough = stack.rough[which, column]
+    assert rough.any() and not rough.all()
+    assert heightmaps[rough].any() and not heightmaps[~rough].any()

@@ -74,6 +74,9 @@ class UnimalEnv:
         self._index_model()
         self._bind()
         task.setup(self)
+        self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+        # Each copy's state rows as `Batch.reset` leaves them: `_reset` writes them directly.
+        self._initial_state = self.batch.state.copy()
         self.all = np.arange(self.num_envs)
         self.fall_height = self.config.fall_ratio * self.rest_height  # head below it: fallen
         self.arena_inside = np.array(task.arena) - ARENA_MARGIN  # head beyond it: off the arena
@@ -100,14 +103,14 @@ class UnimalEnv:
         """Start a new episode in every copy; deterministic for a given seed."""
         self.rng = np.random.default_rng(seed)
         self.task.start(self)
-        self._reset(self.all)
-        return self._observe(self.all)
+        return self._reset(self.all)
 
     def step(self, actions: np.ndarray) -> StepResult:
         """Apply (N, A) actions for one control step."""
-        np.clip(actions, -1.0, 1.0, out=self.ctrl)
-        self.prev_head[:] = self.head_pos
-        warnings_before = self.warnings[:, :, 1].sum(axis=1)
+        # np.clip(actions, -1, 1) without its Python wrappers (ufunc calls here and below)
+        np.minimum(np.maximum(actions, -1.0, out=self.ctrl), 1.0, out=self.ctrl)
+        np.copyto(self.prev_head, self.head_pos)
+        warnings_before = np.add.reduce(self._warning_counts, axis=1)
         failed = None
         try:
             self.batch.step(nstep=self.config.frame_skip, stage=mujoco.mjtStage.mjSTAGE_VEL)
@@ -131,30 +134,17 @@ class UnimalEnv:
         truncated = ~terminated & (self.steps >= self.config.episode_steps)
         obs = self._observe(self.all)
         final_obs = obs
-        done = np.flatnonzero(terminated | truncated)
+        done = (terminated | truncated).nonzero()[0]
         if len(done):
             final_obs = {key: value.copy() for key, value in obs.items()}
-            self._reset(done)
-            for key, value in self._observe(done).items():
+            for key, value in self._reset(done).items():
                 obs[key][done] = value
         return StepResult(obs, reward, terminated, truncated, final_obs, components)
 
     # --- state the tasks read -----------------------------------------------------------------
 
-    @property
-    def head_pos(self) -> np.ndarray:
-        """(N, 3) head centre in the world (a live view)."""
-        return self.qpos[:, self.root : self.root + 3]
-
-    @property
-    def head_rot(self) -> np.ndarray:
-        """(N, 3, 3) head orientation: columns are the head's axes in the world."""
-        return self.xmat[:, self.head].reshape(-1, 3, 3)
-
-    @property
-    def head_vel(self) -> np.ndarray:
-        """(N, 3) linear velocity of the head in the world."""
-        return self.qvel[:, self.root_dof : self.root_dof + 3]
+    # head_pos (N, 3): head centre in the world; head_vel (N, 3): its linear velocity; head_rot
+    # (N, 3, 3): its orientation, columns are the head's axes in the world. Live views (`_bind`).
 
     def to_head_frame(self, vectors: np.ndarray) -> np.ndarray:
         """World vectors (N, 3) expressed in each copy's head frame."""
@@ -194,6 +184,14 @@ class UnimalEnv:
         self.sensor_index = np.concatenate(
             [np.arange(s.adr[0], s.adr[0] + s.dim[0]) for s in agent_sensors]
         )
+        acc = np.concatenate(
+            [
+                np.full(s.dim[0], model.sensor_needstage[s.id] == mujoco.mjtStage.mjSTAGE_ACC)
+                for s in agent_sensors
+            ]
+        )
+        # proprioception columns of the sensors that need accelerations
+        self._acc_columns = len(self.joint_qpos) + len(self.agent_dofs) + np.flatnonzero(acc)
         sites = ["head_imu"] + [
             f"{model.body(b).name}_{kind}"
             for b in sorted(agent_bodies - {self.head})
@@ -218,11 +216,25 @@ class UnimalEnv:
         self.xmat = batch.bind("xmat")
         self.site_xpos = batch.bind("site_xpos")
         self.warnings = batch.warning  # (N, warning kinds, [last info, count])
+        self._warning_counts = self.warnings[:, :, 1]
+        # qpos and qvel: adjacent in the state rows, after the time (MuJoCo's state order)
+        state = mujoco.mjtState
+        start = mujoco.mj_stateSize(self.model, state.mjSTATE_TIME)
+        end = mujoco.mj_stateSize(
+            self.model, state.mjSTATE_TIME | state.mjSTATE_QPOS | state.mjSTATE_QVEL
+        )
+        self._qpos_qvel = batch.state[:, start:end]
+        # the joints' qpos and the body's qvel, as columns of _qpos_qvel
+        self._state_obs = np.concatenate([self.joint_qpos, self.model.nq + self.agent_dofs])
+        self.head_pos = self.qpos[:, self.root : self.root + 3]
+        self.head_vel = self.qvel[:, self.root_dof : self.root_dof + 3]
+        self.head_rot = self.xmat[:, self.head].reshape(-1, 3, 3)
         self.prev_head = np.zeros((self.num_envs, 3))
 
-    def _reset(self, ids: np.ndarray) -> None:
+    def _reset(self, ids: np.ndarray) -> Arrays:
+        """New episodes for copies ``ids``; their first observations."""
         batch, config = self.batch, self.config
-        batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        batch.state[ids] = self._initial_state[ids]  # as batch.reset(ids), without its checks
         self.task.reset(self, ids)
         n, noise = len(ids), config.reset_noise
         qpos = self.qpos[ids]
@@ -234,20 +246,24 @@ class UnimalEnv:
         quat = qpos[:, self.root + 3 : self.root + 7]
         quat /= np.sqrt(np.square(quat).sum(axis=1, keepdims=True))
         self.qpos[ids] = qpos
-        # batch.reset zeroed qvel and ctrl
+        # the initial state has zero qvel and ctrl
         qvel_noise = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
         self.qvel[ids[:, None], self.agent_dofs] = qvel_noise
         batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
         self.steps[ids] = 0
         self.prev_head[ids] = self.head_pos[ids]
         self.task.placed(self, ids)
+        obs = self._observe(ids)
+        # The copies' MjData still hold their last acceleration-stage sensor values, which the
+        # forward pass to mjSTAGE_VEL does not compute: they read 0, as after mj_resetData.
+        obs["proprioception"][:, self._acc_columns] = 0.0
+        return obs
 
     def _unstable(self, warnings_before: np.ndarray, failed: np.ndarray | None) -> np.ndarray:
         """(N,) copies whose last step failed (``failed`` ids), warned, or left a non-finite
         state."""
-        unstable = self.warnings[:, :, 1].sum(axis=1) > warnings_before
-        unstable |= ~np.isfinite(self.qpos).all(axis=1)
-        unstable |= ~np.isfinite(self.qvel).all(axis=1)
+        unstable = ~np.logical_and.reduce(np.isfinite(self._qpos_qvel), axis=1)
+        unstable |= np.add.reduce(self._warning_counts, axis=1) > warnings_before
         if failed is not None:
             unstable[failed] = True
         return unstable
@@ -257,17 +273,15 @@ class UnimalEnv:
         return height < self.fall_height
 
     def _off_arena(self) -> np.ndarray:
-        return (np.abs(self.head_pos[:, :2]) > self.arena_inside).any(axis=1)
+        return np.logical_or.reduce(np.abs(self.head_pos[:, :2]) > self.arena_inside, axis=1)
 
     def _proprioception(self, ids: np.ndarray) -> np.ndarray:
-        every = ids is self.all  # the common case: no row selection
-        qpos, qvel, sensors = (
-            a if every else a[ids] for a in (self.qpos, self.qvel, self.sensordata)
-        )
+        """Joint positions, body velocities and sensors of copies ``ids``."""
+        state, sensors = self._qpos_qvel, self.sensordata
+        if ids is not self.all:  # the common case needs no row selection
+            state, sensors = state[ids], sensors[ids]
         return np.concatenate(
-            [qpos[:, self.joint_qpos], qvel[:, self.agent_dofs], sensors[:, self.sensor_index]],
-            axis=1,
-            dtype=np.float32,
+            [state[:, self._state_obs], sensors[:, self.sensor_index]], axis=1, dtype=np.float32
         )
 
     def _observe(self, ids: np.ndarray) -> Arrays:

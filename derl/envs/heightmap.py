@@ -11,6 +11,8 @@ Lookup. The grid is anchored at the vertex nearest the head, and its offsets, ro
 indices (`offset_table`, once per `HeightStack`: about 20 ms). A lookup for N bodies is then: the
 yaw bin and the head's vertex of each body (N numbers), one (N, K) gather from the table, an add,
 one gather from the heights, and the ground under the head subtracted: no per-point arithmetic.
+Heads whose whole grid lies on one height (a flat start area) skip it: their heightmap is
+zeros. (Right after a physics step, reading 32 heads' grids takes 0.1-0.3 ms, mostly cache misses.)
 
 Accuracy. The yaw is rounded to the nearest bin (0.125 degree at most), which moves the
 furthest point (5.7 m) by at most 1/8 of a cell, and the grid is anchored at the head's nearest
@@ -125,6 +127,10 @@ class HeightStack:
 
     Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
     stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
+
+    A head whose grid lies on one height (a stretch of columns, each the same height from edge
+    to edge, such as a flat start area) sees all zeros: its heightmap is not looked up, which
+    saves the cache misses of reading its part of the stack (`rough` tells which columns need it).
     """
 
     def __init__(self, layout: Terrain, count: int, grid: HeightmapGrid) -> None:
@@ -134,20 +140,25 @@ class HeightStack:
         self.padded = np.zeros((count, layout.nrow + 2 * m, layout.ncol + 2 * m), np.float32)
         if self.padded.size > np.iinfo(np.int32).max:
             raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
+        # (M, ncol) whether a head above the column reads more than one height (all zeros: no)
+        self.rough = np.zeros((count, layout.ncol), bool)
         row_length = self.padded.shape[2]
         self._flat = self.padded.reshape(-1)
         self._table = offset_table(grid, layout.resolution, row_length)
         first = np.arange(count) * self.padded[0].size + m * row_length + m
         self._first = first.astype(np.int32)  # flat index of each terrain's vertex (0, 0)
+        self._terrains = np.arange(count)
         self._strides = np.array([1, row_length], np.int32)  # flat index step per column, row
         self._origin = np.array([layout.x_min, layout.y_min])
         self._last = np.array([layout.ncol - 1, layout.nrow - 1])
 
     @property
     def heights(self) -> np.ndarray:
-        """(M, nrow, ncol) the terrains without their padding (a view)."""
+        """(M, nrow, ncol) the terrains without their padding (a read-only view: see `write`)."""
         m = self.margin
-        return self.padded[:, m:-m, m:-m]
+        view = self.padded[:, m:-m, m:-m]
+        view.flags.writeable = False
+        return view
 
     def write(self, i: int, heights: np.ndarray) -> None:
         """Terrain ``i`` becomes ``heights`` (nrow, ncol); its padding repeats its edges."""
@@ -157,15 +168,12 @@ class HeightStack:
         padded[-m:, m:-m] = heights[-1]
         padded[:, :m] = padded[:, m : m + 1]
         padded[:, -m:] = padded[:, -m - 1 : -m]
+        self.rough[i] = rough_columns(heights, m)
 
     def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (clamped to the terrain)
         on terrain ``which[n]`` (default: terrain n)."""
-        cells = (xy - self._origin) / self.layout.resolution
-        cells.clip(0, self._last, out=cells)
-        cells += 0.5
-        first = self._first[: len(xy)] if which is None else self._first[which]
-        return first + cells.astype(np.int32) @ self._strides
+        return self._vertices(self._cells(xy), self._which(xy, which))
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) height of the vertex nearest each point, as the heightmap reads it."""
@@ -177,13 +185,50 @@ class HeightStack:
         """(N, K) float32 heightmaps of heads at ``xy`` (N, 2) facing ``yaw`` (N,), head n on
         terrain ``which[n]`` (default: n), relative to the ground under each head. ``yaw`` is the
         angle of the head's x-axis projected on the ground, from world +x towards +y."""
-        centre = self.vertices(xy, which)
+        cells, terrains = self._cells(xy), self._which(xy, which)
+        rough = np.flatnonzero(self.rough[terrains, cells[:, 0]])
+        if len(rough) == len(xy):
+            return self.lookup(self._vertices(cells, terrains), yaw)
+        heights = np.zeros((len(xy), self._table.shape[1]), np.float32)
+        if len(rough):
+            centre = self._vertices(cells[rough], terrains[rough])
+            heights[rough] = self.lookup(centre, yaw[rough])
+        return heights
+
+    def lookup(self, centre: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        """(N, K) float32 heightmaps around the vertices ``centre`` (N,) (flat indices) facing
+        ``yaw`` (N,), relative to those vertices: the stack read at every point of the grid."""
         bins = np.rint(yaw * (YAW_BINS / (2 * np.pi))).astype(np.intp)
         index = self._table.take(bins, axis=0, mode="wrap")
         index += centre[:, None]
         heights = self._flat.take(index)
         heights -= self._flat[centre][:, None]
         return heights
+
+    def _cells(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) int32 (column, row) of the vertex nearest each point, clamped to the terrain."""
+        cells = (xy - self._origin) / self.layout.resolution
+        np.minimum(np.maximum(cells, 0.0, out=cells), self._last, out=cells)  # clip, as ufuncs
+        cells += 0.5
+        return cells.astype(np.int32)
+
+    def _which(self, xy: np.ndarray, which: np.ndarray | None) -> np.ndarray:
+        return self._terrains[: len(xy)] if which is None else which
+
+    def _vertices(self, cells: np.ndarray, terrains: np.ndarray) -> np.ndarray:
+        return self._first[terrains] + cells @ self._strides
+
+
+def rough_columns(heights: np.ndarray, reach: int) -> np.ndarray:
+    """(ncol,) bool: whether columns ``c - reach .. c + reach`` of ``heights`` (clamped to the
+    array) hold more than one height, for each column c; repeated edges add no new height."""
+    level = (heights == heights[0]).all(axis=0)  # each column one height
+    same = level[:-1] & level[1:] & (heights[0, :-1] == heights[0, 1:])  # columns c, c + 1
+    changes = np.concatenate(([0], np.cumsum(~same)))  # changes[c]: pairs before column c
+    ncol = heights.shape[1]
+    column = np.arange(ncol)
+    low, high = np.maximum(column - reach, 0), np.minimum(column + reach, ncol - 1)
+    return changes[high] > changes[low]
 
 
 def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid) -> np.ndarray:

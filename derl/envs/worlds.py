@@ -42,7 +42,7 @@ class RewardWeights(BaseModel):
 
 
 def ctrl_cost(env: UnimalEnv, weights: RewardWeights) -> np.ndarray:
-    return -weights.ctrl * np.square(env.ctrl).sum(axis=1)
+    return -weights.ctrl * np.add.reduce(np.square(env.ctrl), axis=1)
 
 
 class Flat(Task):
