@@ -13,7 +13,8 @@
    p50/p99/max (from the moment a worker became idle until its job arrived), and the CPU use
    of the coordinator and of the load generator (on a small machine they share the cores).
 2. `coordinator_profile`: the coordinator's own code (no bus, no network) driven in this process
-   with K jobs in flight: ms per assignment and the top functions (cProfile), to show where
+   with K jobs in flight: CPU ms of its loop's thread per assignment (what bounds its rate; the
+   checkpoint files are written by another thread) and the top functions (cProfile), to show where
    the time goes.
 3. `journal`: write and replay rates of the MCAP journal (`nodes.journal`) for its real mix
    (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack), flushed
@@ -410,8 +411,9 @@ class Driver:
         return None if job is None else job.order
 
     def run(self, births: int) -> list[float]:
-        """`births` more births; the seconds each assignment took: a fitness report and the
-        worker's next WorkerReady, each one a group of its own (the most journal flushes)."""
+        """`births` more births; the CPU seconds of this thread each assignment took (a fitness
+        report and the worker's next WorkerReady, each one a group of its own: the most journal
+        flushes; the checkpoint files are written by the coordinator's other thread)."""
         coordinator = self.coordinator
         times: list[float] = []
         target = coordinator.born + births
@@ -427,11 +429,11 @@ class Driver:
                     raise RuntimeError("the coordinator gives no work")
                 continue
             job = self.busy.popleft()
-            start = time.perf_counter()
+            start = time.thread_time()
             coordinator._fitness(_report(coordinator.run, job, self.rng.uniform(0, 100)))
             coordinator._flush()
             following = self._ready(job.node)
-            times.append(time.perf_counter() - start)
+            times.append(time.thread_time() - start)
             self.busy.append(following) if following else self.idle.append(job.node)
         return times
 
@@ -461,7 +463,7 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
         driver.run(20)
         assert len(coordinator.state.jobs) == k, len(coordinator.state.jobs)
         times = driver.run(births)
-        profiler = cProfile.Profile()
+        profiler = cProfile.Profile(time.thread_time)
         profiler.enable()
         profiled = driver.run(births)
         profiler.disable()
