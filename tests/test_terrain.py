@@ -8,7 +8,7 @@ import pytest
 from pydantic import ValidationError
 
 from derl.envs.heightmap import HeightmapGrid, HeightStack, rough_columns, sample
-from derl.envs.terrain import Terrain, TerrainConfig, _rubble, _triangle, generate_terrain
+from derl.envs.terrain import Terrain, TerrainConfig, _rubble, _rubble_layout, generate_terrain
 
 SEEDS = range(25)
 
@@ -192,13 +192,7 @@ def test_rubble_equals_its_float64_formula() -> None:
     for seed in range(5):
         block = np.zeros((101, 57), np.float32)
         _rubble(block, config, np.random.default_rng(seed))
-        rng = np.random.default_rng(seed)  # the same draws as _rubble's, in its order
-        nrow, n = block.shape
-        bumps_x = max(1, round(n * config.resolution / rng.uniform(*config.rubble_bump)))
-        bumps_y = max(1, round((nrow - 1) * config.resolution / rng.uniform(*config.rubble_bump)))
-        clip = rng.uniform(*config.rubble_clip, size=(bumps_y, bumps_x))
-        ix, tx = _triangle(np.arange(n) * (bumps_x / n), bumps_x)
-        iy, ty = _triangle(np.arange(nrow) * (bumps_y / (nrow - 1)), bumps_y)
+        clip, (ix, tx), (iy, ty) = _rubble_layout(block.shape, config, np.random.default_rng(seed))
         pyramids = config.rubble_peak * np.minimum(ty[:, None], tx[None, :])
         expected = np.minimum(pyramids, clip[iy[:, None], ix[None, :]]).astype(np.float32)
         np.testing.assert_array_equal(block, expected)

@@ -308,14 +308,23 @@ def _steps(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -
     return config.steps_top
 
 
-def _rubble(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
-    """A grid of pyramids over x and y, each clipped at its own height U[rubble_clip]."""
-    nrow, n = block.shape
+def _rubble_layout(
+    shape: tuple[int, ...], config: TerrainConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """Rubble's draws for a (nrow, n) block: the bumps' clip heights (bumps_y, bumps_x), and
+    along x and along y each vertex's bump and its rise within it (`_triangle`)."""
+    nrow, n = shape
     bumps_x = max(1, round(n * config.resolution / rng.uniform(*config.rubble_bump)))
     bumps_y = max(1, round((nrow - 1) * config.resolution / rng.uniform(*config.rubble_bump)))
     clip = rng.uniform(*config.rubble_clip, size=(bumps_y, bumps_x))
-    ix, tx = _triangle(np.arange(n) * (bumps_x / n), bumps_x)
-    iy, ty = _triangle(np.arange(nrow) * (bumps_y / (nrow - 1)), bumps_y)
+    along_x = _triangle(np.arange(n) * (bumps_x / n), bumps_x)
+    along_y = _triangle(np.arange(nrow) * (bumps_y / (nrow - 1)), bumps_y)
+    return clip, along_x, along_y
+
+
+def _rubble(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+    """A grid of pyramids over x and y, each clipped at its own height U[rubble_clip]."""
+    clip, (ix, tx), (iy, ty) = _rubble_layout(block.shape, config, rng)
     # min(peak * min(ty, tx), clip) computed in float32: scaling by peak and rounding to float32
     # preserve order, so this is the float64 result rounded, with less memory traffic
     rows = (config.rubble_peak * ty).astype(np.float32)
