@@ -197,47 +197,24 @@ def records(path: Path) -> Iterator[McapRecord]:
                 log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size, exc)
 
 
-class Journal:
-    """A run's journal: opens the next segment for writing; `replay` reads all of them."""
+class Journal(JournalWriter):
+    """A run's journal: writes the run's next segment; `replay` reads all of them."""
 
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = Path(run_dir)
         folder = self.run_dir / "journal"
         folder.mkdir(parents=True, exist_ok=True)
         number = max((n for n, _ in _numbered(self.run_dir)), default=0) + 1
-        self._writer = JournalWriter(folder / f"segment-{number:04d}.mcap")
+        super().__init__(folder / f"segment-{number:04d}.mcap")
 
     @property
     def segment(self) -> Path:
         """The segment being written."""
-        return self._writer.path
-
-    def write(
-        self,
-        msg: MessageBase,
-        publish_time_ns: int | None = None,
-        data: bytes | None = None,
-        flush: bool = True,
-    ) -> None:
-        self._writer.write(msg, publish_time_ns, data, flush)
-
-    def flush(self) -> None:
-        self._writer.flush()
+        return self.path
 
     def replay(self) -> Iterator[MessageBase]:
         """Every message journaled in this run so far, this segment's included."""
         return replay(self.run_dir)
-
-    def close(self) -> None:
-        self._writer.close()
-
-    def __enter__(self) -> Journal:
-        return self
-
-    def __exit__(
-        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
 
 def compact(segment: Path) -> bool:
