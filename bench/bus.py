@@ -16,7 +16,7 @@
    with K jobs in flight: CPU ms of its loop's thread per assignment (what bounds its rate; the
    checkpoint files are written by another thread) and the top functions (cProfile), to show where
    the time goes.
-3. `journal`: write and replay rates of the MCAP journal (`nodes.journal`) for its real mix
+3. `journal`: write and replay rates of the MCAP journal (`nodes.journal.segments`) for its real mix
    (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack), flushed
    after every message and after groups of 4 and 16 (the coordinator's group commit).
 4. `recovery`: a synthetic 4,000-body journal of the paper's profile (made by driving the
@@ -71,7 +71,7 @@ from messages import (
     WorkerReady,
     encode,
 )
-from nodes.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
 
 SCALE_PROFILE = {
     "profile": "paper",
@@ -133,7 +133,7 @@ def seed_run_dir(run_dir: Path, population: int) -> None:
 class LoadGenerator:
     """LOAD-TEST TOOL: W simulated workers on one Zenoh session; they never train.
 
-    Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker` minus the
+    Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker.node` minus the
     training: it announces WorkerReady, re-sends it every second while idle, answers each new
     TrainJob after `job_s` (0: at once) with a fake FitnessReport (random fitness, a two-point
     curve, no checkpoint), and asks for work again once the report is acknowledged."""
@@ -279,13 +279,13 @@ class LoadGenerator:
 
 
 def _peer_config(endpoint: str) -> zenoh.Config:
-    from nodes.bus import zenoh_config
+    from nodes.runtime.bus import zenoh_config
 
     return zenoh_config(ZenohOptions(connect=(endpoint,)))
 
 
 def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, object]:
-    from nodes.processes import spawn_derl, stop_all
+    from nodes.runtime.processes import spawn_derl, stop_all
 
     run = f"bench-{workers}"
     run_dir = work / run
@@ -364,7 +364,7 @@ class _NoBus:
 
 
 def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
-    from nodes.coordinator import Coordinator
+    from nodes.coordinator.node import Coordinator
 
     seed_run_dir(run_dir, config.population)
     coordinator = Coordinator(run, run_dir, config)
@@ -498,7 +498,7 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
 
 
 def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
-    from nodes.journal import JournalWriter, read_segment
+    from nodes.journal.segments import JournalWriter, read_segment
 
     run = "bench-journal"
     genome = bodies()[0]
@@ -549,8 +549,8 @@ def _ack(run: str, job: TrainJob):
 
 
 def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> dict[str, object]:
-    from nodes.coordinator import Coordinator
-    from nodes.journal import segments
+    from nodes.coordinator.node import Coordinator
+    from nodes.journal.segments import segments
 
     config = load_profile("paper").model_copy(update={"total": bodies_total})
     run_dir = work / "recovery"
@@ -636,7 +636,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             timed(WorkerReady(run=run, node=node, role="trainer", host="h", pid=os.getpid()))
             last = 0.0
 
-            def progress(p) -> None:  # as nodes.worker: at most one TrainProgress a second
+            def progress(p) -> None:  # as nodes.worker.node: at most one TrainProgress a second
                 nonlocal last
                 now = time.monotonic()
                 if now - last >= 1.0 or p.iteration == p.iterations:

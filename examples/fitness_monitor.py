@@ -15,7 +15,7 @@ import time
 import zenoh
 
 from messages import DecodeError, FitnessReport, KeySpace, decode
-from nodes.bus import ZenohOptions, open_session
+from nodes.runtime.bus import ZenohOptions, open_session
 
 run, endpoint = sys.argv[1], (sys.argv[2:] or ["tcp/127.0.0.1:7447"])[0]
 seen: set[str] = set()

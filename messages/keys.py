@@ -1,4 +1,4 @@
-"""The key expressions of the bus (DESIGN.md section 3), built and parsed in one place.
+"""The key expressions of the bus (docs/architecture.md), built and parsed in one place.
 
 Every key is ``derl/<run>/<kind>/<id>...`` with a fixed number of id segments per kind. Ids must
 be safe key segments (`messages.types.ID_PATTERN`), so a built key never holds a wildcard or an

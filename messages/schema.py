@@ -1,4 +1,4 @@
-"""The message models of the bus (DESIGN.md section 3), one frozen pydantic model per type.
+"""The message models of the bus (docs/architecture.md), one frozen pydantic model per type.
 
 Every message carries `schema_version`, its `type` (the discriminator, equal to the class name)
 and the `run` it belongs to. Unknown fields and out-of-range values are validation errors. Ids

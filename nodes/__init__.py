@@ -1,1 +1,1 @@
-"""The processes of derl: the `derl` command line and, later, the bus nodes."""
+"""The processes of derl: the `derl` command line, the bus nodes and the tools around them."""

@@ -18,8 +18,8 @@ from pathlib import Path
 import yaml
 
 from messages import FitnessReport, TrainJob
-from nodes.journal import replay, segments
-from nodes.processes import stop_all
+from nodes.journal.segments import replay, segments
+from nodes.runtime.processes import stop_all
 
 REPO = Path(__file__).resolve().parents[1]
 

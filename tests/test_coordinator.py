@@ -16,9 +16,9 @@ import pytest
 from derl.evolution import load_profile
 from derl.unimal import sample_population
 from messages import Ack, Curve, FitnessReport, MessageBase, TrainJob, WorkerReady, decode
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.coordinator import INITIAL_FILE, Coordinator
-from nodes.journal import read_segment
+from nodes.coordinator.node import INITIAL_FILE, Coordinator
+from nodes.journal.segments import read_segment
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
 from tests.nodes_fixtures import free_port, run_id
 
 QUIET_S = 0.5  # how long "nothing was published" is watched for

@@ -20,9 +20,9 @@ from nodes_fixtures import free_port, wait_for
 
 from messages import FitnessReport, RunStatus, TrainJob, TrainProgress, encode
 from messages.examples import examples
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.journal import replay, segments
-from nodes.processes import spawn_derl, stop_all
+from nodes.journal.segments import replay, segments
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.processes import spawn_derl, stop_all
 
 PROFILE = {
     "profile": "smoke",
@@ -217,7 +217,7 @@ def test_garbage_on_every_key_is_rejected(cluster: Cluster, observer: Bus) -> No
 
 
 def test_worker_defaults_keep_multicast_off() -> None:
-    from nodes.bus import zenoh_config
+    from nodes.runtime.bus import zenoh_config
 
     config = zenoh_config(ZenohOptions())
     assert '"enabled":false' in config.get_json("scouting/multicast").replace(" ", "")

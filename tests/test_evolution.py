@@ -91,7 +91,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     fold keeps the child waiting (it is trained next), never decides past it."""
     from messages import FitnessReport, TrainJob
     from messages.examples import examples
-    from nodes.coordinator_state import CoordinatorState, tournament_message
+    from nodes.coordinator.state import CoordinatorState, tournament_message
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
     state = CoordinatorState.start(config, initial)

@@ -28,8 +28,9 @@ from nodes_fixtures import (
     write_profile,
 )
 
-from nodes.cli import build_parser
-from nodes.launch import LaunchFile, build_commands, dry_run_text, load, plan
+from nodes.cli.main import build_parser
+from nodes.launch.commands import build_commands, dry_run_text, plan
+from nodes.launch.model import LaunchFile, load
 
 LOCAL = REPO / "launch" / "local.yaml"
 CLUSTER = REPO / "launch" / "cluster.example.yaml"
@@ -260,7 +261,7 @@ def test_slurm_script_starts_one_trainer_per_task(tmp_path: Path) -> None:
     fake = bin_dir / "derl"
     fake.write_text(  # the real parser, printing what it was given
         f"#!{sys.executable}\nimport json, sys\nsys.path.insert(0, {str(REPO)!r})\n"
-        "from nodes.cli import build_parser\n"
+        "from nodes.cli.main import build_parser\n"
         "build_parser().parse_args(sys.argv[1:])\nprint(json.dumps(sys.argv[1:]))\n"
     )
     for stub in (bin_dir / "srun", fake):

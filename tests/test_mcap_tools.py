@@ -18,8 +18,8 @@ from mcap.writer import Writer
 
 from messages import FitnessReport, MessageBase, encode
 from messages.examples import examples
-from nodes.journal import Journal, JournalWriter
-from nodes.mcap_tools import LogError, export_json, info, read_log, repair
+from nodes.journal.segments import Journal, JournalWriter
+from nodes.tools.logs import LogError, export_json, info, read_log, repair
 
 STEPS = 5
 

@@ -15,9 +15,9 @@ from derl.analysis import RetrainPlan
 from derl.evolution import breed
 from derl.unimal import Genome
 from messages import Ack, Curve, EvalResult, FitnessReport, Tournament, TrainJob
-from nodes.cli import main
-from nodes.journal import Journal, segments
-from nodes.report_cli import _thresholds, load_run, load_runs
+from nodes.cli.main import main
+from nodes.cli.report import _thresholds, load_run, load_runs
+from nodes.journal.segments import Journal, segments
 
 FIGURES = (
     "fitness.png",

@@ -39,8 +39,8 @@ from nodes_fixtures import (
 
 from messages import Ack, FitnessReport, MessageBase, RunStatus, TrainJob, decode
 from messages.examples import examples
-from nodes.bus import Bus, ZenohOptions, zenoh_config
-from nodes.journal import replay
+from nodes.journal.segments import replay
+from nodes.runtime.bus import Bus, ZenohOptions, zenoh_config
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
 

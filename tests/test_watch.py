@@ -28,12 +28,12 @@ from messages import (
     kind_of,
 )
 from messages.examples import examples
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.journal import JournalWriter
-from nodes.mcap_tools import read_log
-from nodes.monitor import RunView, sparkline
-from nodes.processes import spawn_derl, stop_all
-from nodes.topic import key_expression, rate_line
+from nodes.journal.segments import JournalWriter
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.processes import spawn_derl, stop_all
+from nodes.tools.logs import read_log
+from nodes.tools.monitor import RunView, sparkline
+from nodes.tools.topic import key_expression, rate_line
 
 ROOT = Path(__file__).resolve().parents[1]
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}

@@ -44,7 +44,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     from derl.lifetime import learn, ppo_config
-    from nodes.unimal_cli import load_genome
+    from nodes.cli.unimal import load_genome
 
     genome = load_genome(args.genome)
     config = ppo_config(args.task, args.steps, args.seed, num_envs=args.envs)
@@ -106,7 +106,7 @@ def _rollout(args: argparse.Namespace) -> int:
 
     from derl.envs import make_env
     from derl.rl import Policy
-    from nodes.unimal_cli import load_genome
+    from nodes.cli.unimal import load_genome
 
     try:
         result = json.loads((args.dir / RESULT).read_text())

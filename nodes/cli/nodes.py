@@ -8,7 +8,8 @@ import signal
 import sys
 from pathlib import Path
 
-from nodes.bus import add_bus_arguments, node_name, options_from
+from nodes.cli.options import add_bus_arguments, add_profile_arguments, options_from, profile_from
+from nodes.runtime.bus import node_name
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -31,23 +32,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     router.set_defaults(handler=_router)
 
 
-def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
-    parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
-
-
-def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
-    """The run's profile from --profile/--env, or exit with the reason it is not valid."""
-    from derl.evolution import load_profile
-
-    try:
-        return load_profile(args.profile, world=args.env)
-    except (ValueError, OSError) as error:
-        raise SystemExit(f"derl: profile {args.profile!r} is not valid:\n{error}") from None
-
-
 def _coordinator(args: argparse.Namespace) -> int:
-    from nodes.coordinator import serve
+    from nodes.coordinator.node import serve
 
     serve(args.run, args.run_dir, profile_from(args), options_from(args))
     return 0
@@ -56,7 +42,7 @@ def _coordinator(args: argparse.Namespace) -> int:
 def _worker(args: argparse.Namespace) -> int:
     if args.workers > 1:
         return _fan_out(args)
-    from nodes.worker import serve
+    from nodes.worker.node import serve
 
     name = args.name or node_name(args.role)
     serve(args.run, name, args.role, options_from(args), nthread=args.threads)
@@ -65,7 +51,7 @@ def _worker(args: argparse.Namespace) -> int:
 
 def _fan_out(args: argparse.Namespace) -> int:
     """`--workers K`: K single-worker processes, stopped together."""
-    from nodes.processes import spawn_derl, stop_all
+    from nodes.runtime.processes import spawn_derl, stop_all
 
     rest = [a for a in sys.argv[1:] if a not in ("--workers", str(args.workers))]
     children = [spawn_derl([*rest, "--workers", "1"]) for _ in range(args.workers)]
@@ -81,7 +67,7 @@ def _fan_out(args: argparse.Namespace) -> int:
 
 
 def _router(args: argparse.Namespace) -> int:
-    from nodes.bus import open_session
+    from nodes.runtime.bus import open_session
 
     options = options_from(args, mode="router")
     if not options.listen and not options.config_file:

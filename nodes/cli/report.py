@@ -1,7 +1,7 @@
 """`derl report` and `derl select`: the paper's analyses of finished (or running) runs.
 
 Both read a run's journal (a run directory, or one MCAP file such as a journal segment) with
-`nodes.journal`, fold its messages into `derl.analysis` records (bodies in birth order with the
+`nodes.journal.segments`, fold its messages into `derl.analysis` records (bodies in birth order with the
 parent of their TrainJob and the body, mutation, fitness, curve, energy, cost of work and mass
 of their FitnessReport; the EvalResults), and hand those to
 `derl.analysis`. The first report of a child is its birth, as in the coordinator's fold.
@@ -115,7 +115,7 @@ def load_run(path: Path) -> RunLog:
     """A run's records from its journal: a run directory or one MCAP file."""
     from derl.analysis import Evaluation, RunLog
     from messages import EvalResult, FitnessReport, TrainJob
-    from nodes.journal import read_segment, replay, segments
+    from nodes.journal.segments import read_segment, replay, segments
 
     if path.is_dir():
         if not segments(path):

@@ -2,11 +2,11 @@
 
 A log is one MCAP file (a journal segment or a `derl record` output) or a run directory, whose
 ``journal/segment-NNNN.mcap`` files are read in order. Every reader goes through the journal's
-tolerant record reader (`nodes.journal`), so a truncated or corrupt file gives back the messages
-before the damage instead of nothing. `info` says how healthy a file is; `repair` rewrites a
-damaged one into a clean, indexed, zstd-compressed copy with `nodes.journal.compact`;
+tolerant record reader (`nodes.journal.segments`), so a truncated or corrupt file gives back the
+messages before the damage instead of nothing. `info` says how healthy a file is; `repair` rewrites a
+damaged one into a clean, indexed, zstd-compressed copy with `nodes.journal.segments.compact`;
 `export_json` writes a ``json`` + ``jsonschema`` copy, the encodings Foxglove decodes (it cannot
-decode msgpack: research/bus-tech.md section 6).
+decode msgpack: docs/bus.md).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from nodes.journal import Logged, compact, read_logged, records, segments
+from nodes.journal.segments import Logged, compact, read_logged, records, segments
 
 log = logging.getLogger("derl.mcap")
 

@@ -1,6 +1,6 @@
 """The Zenoh side of every node: a session configured from flags, typed publish and subscribe.
 
-Defaults follow the measurements in bus-tech.md: multicast scouting OFF (only explicit
+Defaults follow measurements (docs/bus.md): multicast scouting OFF (only explicit
 endpoints), a 2.5 s transport lease (a hung node is declared dead 2.5 s after it stops), control
 messages sent with `CongestionControl.BLOCK` (the default DROP loses bursts even on loopback),
 monitors subscribing through a `RingChannel` so a slow viewer can never stall a trainer. A
@@ -10,7 +10,6 @@ the command line override it, and multicast stays off unless ``--multicast`` is 
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -47,33 +46,6 @@ class ZenohOptions(BaseModel):
     multicast: bool = False
     lease_ms: int = Field(LEASE_MS, ge=100)
     config_file: Path | None = None
-
-
-def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True) -> None:
-    group = parser.add_argument_group("bus")
-    group.add_argument("--run", required=run_required, help="run id (keys live under derl/<run>/)")
-    for flag, example in (("--listen", "tcp/0.0.0.0:7447"), ("--connect", "tcp/10.0.0.5:7447")):
-        group.add_argument(
-            flag,
-            action="append",
-            default=[],
-            metavar="EP",
-            help=f"endpoint to {flag[2:]} {'to' if flag == '--connect' else 'on'}, "
-            f"e.g. {example} (repeatable)",
-        )
-    group.add_argument("--mode", choices=["peer", "client"], default="peer")
-    group.add_argument("--zenoh-config", type=Path, help="Zenoh JSON5 config (TLS, ACL, ...)")
-    group.add_argument("--multicast", action="store_true", help="turn multicast scouting on")
-
-
-def options_from(args: argparse.Namespace, mode: str | None = None) -> ZenohOptions:
-    return ZenohOptions(
-        mode=mode or args.mode,
-        listen=tuple(args.listen),
-        connect=tuple(args.connect),
-        multicast=args.multicast,
-        config_file=args.zenoh_config,
-    )
 
 
 def zenoh_config(options: ZenohOptions) -> zenoh.Config:

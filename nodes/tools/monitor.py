@@ -1,6 +1,6 @@
 """`derl monitor`: a live terminal view of one run, redrawn twice a second.
 
-It taps ``derl/<run>/**`` through a ring (`nodes.topic.Tap`) and follows the run's liveliness
+It taps ``derl/<run>/**`` through a ring (`nodes.tools.topic.Tap`) and follows the run's liveliness
 tokens, so a slow terminal never slows the run: the tap's thread only validates and queues, and
 the main loop folds the queue into a `RunView` and draws it with rich: a header (bodies born of
 the target, best fitness and agent, steps/s, evaluations, rejections), the workers (role, job,
@@ -41,8 +41,8 @@ from messages import (
     TrainProgress,
     WorkerReady,
 )
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.topic import Checker, Tap, choose_run
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.tools.topic import Checker, Tap, choose_run
 
 REFRESH_S = 0.5
 RECENT_BIRTHS = 8

@@ -1,10 +1,10 @@
 """`derl record` and `derl replay`: live traffic into an MCAP log, and a log back onto the bus.
 
-Recording taps each key expression through a ring (`nodes.topic.Tap`: a recorder that falls
+Recording taps each key expression through a ring (`nodes.tools.topic.Tap`: a recorder that falls
 behind loses the oldest samples, it never stalls the run) and appends every valid message with
-the journal's writer (`nodes.journal.JournalWriter`: msgpack messages on ``derl/<run>/<kind>``
-channels with the models' JSON schemas, flushed message by message, so a killed recorder leaves
-a readable file). Log time is the receive time; publish time is the sender's Zenoh timestamp
+the journal's writer (`nodes.journal.segments.JournalWriter`: msgpack messages on
+``derl/<run>/<kind>`` channels with the models' JSON schemas, flushed message by message, so a
+killed recorder leaves a readable file). Log time is the receive time; publish time is the sender's Zenoh timestamp
 when it has one. Malformed payloads are logged and counted but not kept: a recording holds only
 messages that decode, like a journal, so every reader (replay, export, `report`) can use it.
 
@@ -28,10 +28,10 @@ from pathlib import Path
 import zenoh
 
 from messages import MessageBase, kind_of
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.journal import JournalWriter
-from nodes.mcap_tools import log_files, read_log
-from nodes.topic import Checker, Tap, live_runs, resolve
+from nodes.journal.segments import JournalWriter
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.tools.logs import log_files, read_log
+from nodes.tools.topic import Checker, Tap, live_runs, resolve
 
 log = logging.getLogger("derl.recorder")
 

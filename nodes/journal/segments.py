@@ -1,11 +1,11 @@
 """The coordinator's journal: the messages it accepts or sends, appended to MCAP segment files.
 
-Coordinator state is a fold over this journal (DESIGN.md section 3). A run directory holds
+Coordinator state is a fold over this journal (docs/journal.md). A run directory holds
 ``journal/segment-0001.mcap``, ``segment-0002.mcap``, ... one per start: a crashed file cannot be
 appended to. Each message type has its own channel (topic ``derl/<run>/<kind>``, message encoding
 ``msgpack``, schema encoding ``jsonschema`` with the model's JSON schema, schema name = type).
 
-Durability (research/bus-tech.md 5.3): chunked, uncompressed, and ``Writer.flush()`` after every
+Durability (docs/journal.md): chunked, uncompressed, and ``Writer.flush()`` after every
 message, which closes the chunk (its messages get their CRC) and flushes the file. A SIGKILL then
 loses at most the message being written (no fsync: power loss is not covered). A writer that
 handles messages in groups (the coordinator) appends a group with ``flush=False`` and flushes it

@@ -14,7 +14,7 @@ from pathlib import Path
 PR_SET_PDEATHSIG = 1
 
 
-def _child_setup() -> None:
+def child_setup() -> None:
     os.setsid()
     ctypes.CDLL("libc.so.6").prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
@@ -28,7 +28,7 @@ def spawn_derl(args: list[str], log_file: Path | None = None) -> subprocess.Pope
             stdout=out,
             stderr=subprocess.STDOUT if out else None,
             stdin=subprocess.DEVNULL,
-            preexec_fn=_child_setup,
+            preexec_fn=child_setup,
         )
     finally:
         if out:

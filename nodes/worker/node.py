@@ -34,7 +34,7 @@ from messages import (
     TrainProgress,
     WorkerReady,
 )
-from nodes.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
 
 log = logging.getLogger("derl.worker")
 

@@ -40,10 +40,10 @@ from messages import (
     WorkerReady,
     encode,
 )
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.checkpoints import CheckpointFiles
-from nodes.coordinator_state import CoordinatorState, tournament_message
-from nodes.journal import Journal, replay, segments
+from nodes.coordinator.state import CoordinatorState, tournament_message
+from nodes.journal.segments import Journal, replay, segments
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.checkpoints import CheckpointFiles
 
 log = logging.getLogger("derl.coordinator")
 

@@ -2,7 +2,7 @@
 
 `Tap` is how every watcher (topic, monitor, record) subscribes: a `RingChannel`, which drops the
 oldest sample when full and so never stalls a publisher, not even one using BLOCK
-(research/bus-tech.md 1.6), drained by a daemon thread that hands each sample to a short
+(docs/bus.md), drained by a daemon thread that hands each sample to a short
 function; the thread ends when the session closes. `Checker` validates samples of any run with
 `Bus.check` (so garbage is logged and counted, never fatal). `choose_run` finds the run to watch
 when none is given: runs with a live node or a coordinator publishing `derl/<run>/status`.
@@ -27,8 +27,8 @@ import zenoh
 
 from messages import InvalidKey, KeySpace, MessageBase, RunStatus, parse
 from messages.keys import ROOT
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.mcap_tools import json_data, json_form, summarise_bytes
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.tools.logs import json_data, json_form, summarise_bytes
 
 log = logging.getLogger("derl.topic")
 

@@ -1,25 +1,12 @@
-"""The `derl` command line: one entry point whose subcommands live in small modules."""
+"""`derl`: one entry point whose subcommands are registered by the modules of `nodes.cli`."""
 
 from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 
-# MuJoCo picks its OpenGL backend when first imported: offscreen EGL unless the user chose one.
-os.environ.setdefault("MUJOCO_GL", "egl")
-
-from nodes import (
-    bus_cli,
-    evaluate_cli,
-    launch_cli,
-    report_cli,
-    run,
-    train_cli,
-    unimal_cli,
-    watch_cli,
-)
+from nodes.cli import evaluate, launch, nodes, report, run, train, unimal, watch
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,14 +15,14 @@ def build_parser() -> argparse.ArgumentParser:
         description="Deep Evolutionary Reinforcement Learning: evolve and train UNIMAL bodies.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    unimal_cli.register(commands)
-    train_cli.register(commands)
+    unimal.register(commands)
+    train.register(commands)
     run.register(commands)
-    bus_cli.register(commands)
-    launch_cli.register(commands)
-    report_cli.register(commands)
-    evaluate_cli.register(commands)
-    watch_cli.register(commands)
+    nodes.register(commands)
+    launch.register(commands)
+    report.register(commands)
+    evaluate.register(commands)
+    watch.register(commands)
     return parser
 
 
@@ -47,7 +34,3 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = build_parser().parse_args(argv)
     return args.handler(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,7 +1,7 @@
 """`derl monitor|topic|record|replay|export|log`: the command lines of the watch-and-replay tools.
 
-Only argument parsing and printing; the work is done by `nodes.monitor`, `nodes.topic`,
-`nodes.recorder` and `nodes.mcap_tools`. Every command that joins the bus takes the nodes'
+Only argument parsing and printing; the work is done by `nodes.tools.monitor`, `nodes.tools.topic`,
+`nodes.tools.recorder` and `nodes.tools.logs`. Every command that joins the bus takes the nodes'
 connection flags (`--connect`, `--mode client`, `--zenoh-config`; multicast stays off), stops
 cleanly on SIGINT/SIGTERM, and reports bad input (a damaged log, no run on the bus, an existing
 output file) in one line on stderr with exit status 1.
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from messages import InvalidKey
 from messages.keys import ARITY
-from nodes.bus import add_bus_arguments, options_from
+from nodes.cli.options import add_bus_arguments, options_from
 
 REPLAY_KINDS = sorted(kind for kind in ARITY if kind != "alive")
 
@@ -135,9 +135,9 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
 
     @functools.wraps(handler)
     def run(args: argparse.Namespace) -> int:
-        from nodes.mcap_tools import LogError
-        from nodes.recorder import ReplayRefused
-        from nodes.topic import RunNotFound
+        from nodes.tools.logs import LogError
+        from nodes.tools.recorder import ReplayRefused
+        from nodes.tools.topic import RunNotFound
 
         try:
             return handler(args)
@@ -159,14 +159,14 @@ def _stop_on_signals() -> threading.Event:
 
 
 def _monitor(args: argparse.Namespace) -> int:
-    from nodes.monitor import monitor
+    from nodes.tools.monitor import monitor
 
     monitor(options_from(args), args.run, args.once, _stop_on_signals())
     return 0
 
 
 def _topic_list(args: argparse.Namespace) -> int:
-    from nodes.topic import topic_list
+    from nodes.tools.topic import topic_list
 
     key = args.key or ("**" if args.run else "derl/**")
     topic_list(options_from(args), key, args.run, args.duration, _stop_on_signals())
@@ -174,7 +174,7 @@ def _topic_list(args: argparse.Namespace) -> int:
 
 
 def _echo(args: argparse.Namespace) -> int:
-    from nodes.topic import echo
+    from nodes.tools.topic import echo
 
     stop = _stop_on_signals()
     echo(options_from(args), args.key, args.run, args.count, args.duration, args.raw, stop)
@@ -182,14 +182,14 @@ def _echo(args: argparse.Namespace) -> int:
 
 
 def _hz(args: argparse.Namespace) -> int:
-    from nodes.topic import hz
+    from nodes.tools.topic import hz
 
     hz(options_from(args), args.key, args.run, args.duration, args.window, _stop_on_signals())
     return 0
 
 
 def _record(args: argparse.Namespace) -> int:
-    from nodes.recorder import record
+    from nodes.tools.recorder import record
 
     if args.out.exists():
         raise FileExistsError(f"{args.out} exists; choose another name")
@@ -204,7 +204,7 @@ def _record(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from nodes.recorder import replay
+    from nodes.tools.recorder import replay
 
     done = replay(
         options_from(args),
@@ -227,7 +227,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from nodes.mcap_tools import export_json
+    from nodes.tools.logs import export_json
 
     written = export_json(args.log, args.out)
     print(f"exported {written} messages to {args.out} (json + jsonschema)")
@@ -235,7 +235,7 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _log_info(args: argparse.Namespace) -> int:
-    from nodes.mcap_tools import describe, info
+    from nodes.tools.logs import describe, info
 
     files = info(args.log)
     if args.json:
@@ -246,7 +246,7 @@ def _log_info(args: argparse.Namespace) -> int:
 
 
 def _log_repair(args: argparse.Namespace) -> int:
-    from nodes.mcap_tools import describe, repair
+    from nodes.tools.logs import describe, repair
 
     print(describe([repair(args.source, args.out)]))
     return 0

@@ -20,9 +20,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from messages import RunStatus
-from nodes.bus import Bus, ZenohOptions, open_session
-from nodes.bus_cli import add_profile_arguments, profile_from
-from nodes.processes import spawn_derl, stop_all
+from nodes.cli.options import add_profile_arguments, profile_from
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.processes import spawn_derl, stop_all
 
 console = Console()
 

@@ -1,0 +1,1 @@
+"""The coordinator node: its state (a fold over the journal) and its loop."""

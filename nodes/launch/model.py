@@ -1,0 +1,197 @@
+"""Launch files: which nodes of a run start on which host (`LaunchFile`, loaded by `load`).
+
+A launch file (YAML, validated by `LaunchFile`, unknown keys are errors) names the run, its
+profile, the Zenoh topology and, per host, the nodes to start with their counts and restart
+policy::
+
+    run: exp1
+    run_dir: runs/exp1
+    profile: demo                  # a built-in profile or a profile YAML file
+    topology: {kind: peer_mesh, seed: "tcp/10.0.0.5:7447"}     # or {kind: router, endpoint, host}
+    zenoh_config: launch/zenoh/tls-acl.json5                   # optional (TLS, access control)
+    hosts:
+      - name: head
+        listen: "tcp/10.0.0.5:7447"
+        nodes: [{role: coordinator}]
+      - name: gpu1
+        address: gpu1.example.org
+        ssh: true                  # or "user@gpu1.example.org"
+        listen: "tcp/10.0.0.6:7447"
+        nodes: [{role: trainer, count: 8, restart: on-failure, max_restarts: 5}]
+
+`nodes.launch.commands` turns it into command lines, `nodes.launch.supervisor` runs them.
+"""
+
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from messages.types import Id
+
+ROLES = ("router", "coordinator", "trainer", "evaluator")  # also the start order on a host
+LOCAL_ADDRESSES = {"localhost", "local", "127.0.0.1", "::1"}
+WILDCARD_HOSTS = {"0.0.0.0", "[::]", "::"}
+_ENDPOINT = re.compile(
+    r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<host>\[[^\]]+\]|[^/:\[\]]+):(?P<port>\d+)$"
+)
+
+
+
+def _check_endpoint(value: str) -> str:
+    match = _ENDPOINT.match(value)
+    if not match or not 0 <= int(match["port"]) <= 65535:
+        raise ValueError(
+            f"{value!r} is not a Zenoh endpoint PROTO/HOST:PORT such as tcp/10.0.0.5:7447 "
+            "or tls/head.example.org:7447"
+        )
+    return value
+
+
+Endpoint = Annotated[str, AfterValidator(_check_endpoint)]
+
+
+def split_endpoint(endpoint: str) -> tuple[str, str, int]:
+    """(protocol, host, port) of a checked endpoint."""
+    match = _ENDPOINT.match(endpoint)
+    if match is None:
+        raise ValueError(f"not an endpoint: {endpoint!r}")
+    return match["proto"], match["host"], int(match["port"])
+
+
+def with_port(endpoint: str, port: int) -> str:
+    proto, host, _ = split_endpoint(endpoint)
+    return f"{proto}/{host}:{port}"
+
+
+# --- the file ------------------------------------------------------------------------------
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class NodeSpec(_Strict):
+    """`count` processes of one role on a host."""
+
+    role: Literal["coordinator", "trainer", "evaluator", "router"]
+    count: int = Field(1, ge=1, le=4096)
+    threads: int = Field(1, ge=1, le=4096, description="simulation threads of each worker")
+    restart: Literal["never", "on-failure", "always"] = "on-failure"
+    max_restarts: int = Field(3, ge=0, description="restarts of each process, at most")
+
+
+class PeerMesh(_Strict):
+    """Every node is a Zenoh peer: it listens on its host's endpoint and connects to `seed`."""
+
+    kind: Literal["peer_mesh"]
+    seed: Endpoint
+
+
+class RouterTopology(_Strict):
+    """`derl router` on host `host` at `endpoint`; every node is a Zenoh client of it."""
+
+    kind: Literal["router"]
+    endpoint: Endpoint
+    host: Id
+
+
+class HostSpec(_Strict):
+    name: Id
+    address: str = Field("localhost", min_length=1, description="for ssh; localhost = this host")
+    ssh: bool | str = Field(False, description="start its nodes over ssh (true, or user@host)")
+    listen: Endpoint | None = Field(None, description="where this host's nodes listen (mesh)")
+    workdir: str | None = Field(None, description="directory the nodes start in (ssh hosts)")
+    derl: str = Field("derl", min_length=1, description="the derl command on this host")
+    zenoh_config: Path | None = Field(None, description="this host's Zenoh config (certificates)")
+    nodes: list[NodeSpec] = Field(default_factory=list)
+
+    @property
+    def local_address(self) -> bool:
+        return self.address in LOCAL_ADDRESSES
+
+    @property
+    def remote(self) -> str | None:
+        """The ssh target when this host's nodes are started over ssh, else None."""
+        if self.ssh is False or (self.ssh is True and self.local_address):
+            return None
+        return self.address if self.ssh is True else str(self.ssh)
+
+
+class LaunchFile(_Strict):
+    run: Id
+    run_dir: Path
+    profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
+    env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
+    topology: Annotated[PeerMesh | RouterTopology, Field(discriminator="kind")]
+    zenoh_config: Path | None = Field(None, description="Zenoh JSON5 config of every node")
+    hosts: list[HostSpec] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LaunchFile:
+        names = [h.name for h in self.hosts]
+        if duplicated := sorted({n for n in names if names.count(n) > 1}):
+            raise ValueError(f"host names must be unique: {', '.join(duplicated)} repeated")
+        coordinators = [
+            (h.name, n.count) for h in self.hosts for n in h.nodes if n.role == "coordinator"
+        ]
+        if sum(count for _, count in coordinators) != 1:
+            raise ValueError(
+                f"a run has exactly one coordinator (count 1); this file has "
+                f"{sum(count for _, count in coordinators)}"
+            )
+        routers = [(h.name, n.count) for h in self.hosts for n in h.nodes if n.role == "router"]
+        if isinstance(self.topology, RouterTopology):
+            if self.topology.host not in names:
+                raise ValueError(f"router host {self.topology.host!r} is not among the hosts")
+            if routers != [(self.topology.host, 1)]:
+                raise ValueError(
+                    f"the router topology needs one node `role: router` (count 1) on host "
+                    f"{self.topology.host!r}, and no other router; found {routers or 'none'}"
+                )
+        else:
+            if routers:
+                raise ValueError("`role: router` nodes need `topology: {kind: router, ...}`")
+            for host in self.hosts:
+                if host.nodes and host.listen is None and not host.local_address:
+                    raise ValueError(
+                        f"host {host.name!r}: in a peer mesh every host needs a `listen` "
+                        "endpoint the other hosts can reach (peers without one do not mesh)"
+                    )
+            from nodes.launch.commands import build_commands  # (it imports this module)
+
+            if not any("--connect" not in c.args for c in build_commands(self)):
+                raise ValueError(
+                    f"no node listens on the seed {self.topology.seed}: give the seed's host "
+                    f"`listen: {self.topology.seed}` (its first node is the seed)"
+                )
+        return self
+
+    def host(self, name: str) -> HostSpec:
+        for host in self.hosts:
+            if host.name == name:
+                return host
+        raise KeyError(
+            f"no host {name!r} in this launch file; hosts: {[h.name for h in self.hosts]}"
+        )
+
+
+def load(path: Path) -> LaunchFile:
+    """The launch file at `path`, or ValueError saying what is wrong with it."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as error:
+        raise ValueError(f"{path}: {error}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: a launch file is a mapping (run, run_dir, topology, hosts ...)")
+    try:
+        return LaunchFile.model_validate(data)
+    except ValidationError as error:
+        raise ValueError(f"{path} is not a valid launch file:\n{error}") from None
+
+

@@ -1,0 +1,124 @@
+"""`Supervisor`: starts the node processes of a launch, restarts them by their policy, stops them.
+
+Restarts back off 1, 2, 4 ... 30 s; everything stops on Ctrl-C, SIGTERM or SIGHUP (an ssh
+session that ends), or when the coordinator finishes the run. Local processes run with this
+Python (``python -m nodes.cli``, the same as ``derl``).
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from nodes.launch.commands import NodeCommand
+from nodes.runtime.processes import child_setup, spawn_derl, stop_all
+
+log = logging.getLogger("derl.launch")
+
+RESTART_DELAY_S = 1.0
+MAX_RESTART_DELAY_S = 30.0
+
+
+@dataclass
+class _Slot:
+    command: NodeCommand
+    process: subprocess.Popen | None = None
+    restarts: int = 0
+    due: float | None = None  # when a pending restart is due
+    finished: bool = False
+    returncode: int | None = None
+
+
+class Supervisor:
+    """Starts node processes, restarts them by their policy, stops them all at the end."""
+
+    def __init__(self, commands: list[NodeCommand], log_dir: Path) -> None:
+        self.slots = [_Slot(command) for command in commands]
+        self.log_dir = Path(log_dir)
+        self.stop = threading.Event()
+
+    def _start(self, slot: _Slot) -> None:
+        command = slot.command
+        log_file = self.log_dir / f"{command.name}.log"
+        with log_file.open("ab") as out:
+            out.write(
+                f"--- derl launch, start {slot.restarts}: {command.shell(slot.restarts)}\n".encode()
+            )
+        if command.remote is None:
+            slot.process = spawn_derl(command.derl_args(slot.restarts), log_file)
+        else:
+            slot.process = _spawn(command.argv(slot.restarts), log_file)
+        slot.due = slot.returncode = None
+        log.info("%s started (pid %d)%s", command.name, slot.process.pid,
+                 f", restart {slot.restarts}" if slot.restarts else "")  # fmt: skip
+
+    def run(self, poll_s: float = 0.25) -> int:
+        """Start everything, supervise until the run is over or `stop` is set; the exit code:
+        0 when the run finished (or every node ended cleanly), 1 when a node failed for good,
+        130 when stopped."""
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        code = None
+        try:
+            for slot in self.slots:
+                if not self.stop.is_set():
+                    self._start(slot)
+            while code is None and not self.stop.wait(poll_s):
+                code = self._step(time.monotonic())
+        finally:
+            self.shutdown()
+        return 130 if code is None else code
+
+    def _step(self, now: float) -> int | None:
+        """One supervision round; the exit code when there is nothing left to supervise."""
+        for slot in self.slots:
+            if slot.finished:
+                continue
+            if slot.due is not None:
+                if now >= slot.due:
+                    self._start(slot)
+                continue
+            if slot.process is None or slot.process.poll() is None:
+                continue
+            slot.returncode = code = slot.process.returncode
+            command = slot.command
+            if command.role == "coordinator" and code == 0:
+                log.info("the coordinator finished the run: stopping this host's nodes")
+                slot.finished = True
+                return 0
+            wanted = command.restart == "always" or (command.restart == "on-failure" and code != 0)
+            if wanted and slot.restarts < command.max_restarts:
+                slot.restarts += 1
+                delay = min(RESTART_DELAY_S * 2 ** (slot.restarts - 1), MAX_RESTART_DELAY_S)
+                slot.due = now + delay
+                log.warning("%s exited with %s: restart %d/%d in %.0f s", command.name, code,
+                            slot.restarts, command.max_restarts, delay)  # fmt: skip
+                continue
+            slot.finished = True
+            level = logging.INFO if code == 0 else logging.WARNING
+            log.log(level, "%s exited with %s (restart: %s, %d restarts done)",
+                    command.name, code, command.restart, slot.restarts)  # fmt: skip
+            if command.role == "coordinator":
+                log.error("the coordinator failed for good: stopping this host's nodes")
+                return 1
+        if all(slot.finished for slot in self.slots):
+            return 0 if all(slot.returncode == 0 for slot in self.slots) else 1
+        return None
+
+    def shutdown(self) -> None:
+        """SIGTERM every node still running (SIGKILL after 10 s); no restarts after this."""
+        stop_all([s.process for s in self.slots if s.process is not None], timeout=10)
+
+
+def _spawn(argv: list[str], log_file: Path) -> subprocess.Popen:
+    """Start a non-derl command (ssh) like `spawn_derl` does: own process group, dies with us."""
+    with log_file.open("ab") as out:
+        return subprocess.Popen(
+            argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            preexec_fn=child_setup,
+        )  # fmt: skip
+
+

@@ -1,0 +1,1 @@
+"""What every node process uses: the Zenoh bus, checkpoint files, child processes."""
