@@ -6,9 +6,17 @@ import mujoco
 import numpy as np
 import pytest
 from pydantic import ValidationError
+from scipy.signal import sawtooth
 
 from derl.envs.heightmap import HeightmapGrid, HeightStack, rough_columns, sample
-from derl.envs.terrain import Terrain, TerrainConfig, _rubble, _rubble_layout, generate_terrain
+from derl.envs.terrain import (
+    Segment,
+    Terrain,
+    TerrainConfig,
+    _rubble,
+    _rubble_strips,
+    generate_terrain,
+)
 
 SEEDS = range(25)
 
@@ -26,62 +34,128 @@ def _columns(terrain: Terrain, x_start: float, x_end: float) -> np.ndarray:
     return terrain.heights[:, (x >= x_start - 1e-6) & (x < x_end - 1e-6)]
 
 
-def test_segment_lengths_follow_the_paper(worlds: list[Terrain]) -> None:
-    kinds = set()
+def _rubble_profile(n: int, half_periods: int, clip: float) -> np.ndarray:
+    """The released code's rubble strip over n columns, with scipy's own triangle wave."""
+    return np.clip(sawtooth(np.linspace(0, half_periods * np.pi, num=n), width=0.5) + 1, None, clip)
+
+
+def test_segment_kinds_and_lengths_follow_the_released_code(worlds: list[Terrain]) -> None:
+    lengths: dict[str, set[float]] = {
+        "flat": set(),
+        "hills": set(),
+        "steps": set(),
+        "rubble": set(),
+    }
+    flat_after_skip = 0
     for terrain in worlds:
         segments = terrain.segments
-        assert segments[0].x_start == pytest.approx(terrain.x_min)
+        assert segments[0] == Segment("flat", terrain.x_min, terrain.x_min + 6.0, 0.0)
         assert segments[-1].x_end == pytest.approx(-terrain.x_min)
         for before, after in itertools.pairwise(segments):
             assert after.x_start == pytest.approx(before.x_end)
-        interior = segments[1:-1]
-        assert [s.kind == "flat" for s in interior] == [i % 2 == 0 for i in range(len(interior))]
-        for segment in interior:
-            low, high = (1.0, 3.0) if segment.kind == "flat" else (4.0, 8.0)
-            assert low - 1e-9 <= segment.length <= high + 1e-9
-            kinds.add(segment.kind)
-    assert kinds == {"flat", "hills", "steps", "rubble"}
+            assert before.kind == "flat" or after.kind == "flat"  # every obstacle after a flat
+            if before.kind == after.kind == "flat" and before is not segments[0]:
+                # an obstacle was skipped: none fits in what is left after the first flat
+                assert -terrain.x_min - before.x_end < 32.0
+                flat_after_skip += 1
+        *body, last = segments[1:]
+        for segment in body:
+            lengths[segment.kind].add(round(segment.length, 6))
+        if last.kind == "flat":
+            assert 0 < last.length <= 6.0 + 1e-9  # cut at the far end
+        else:
+            lengths[last.kind].add(round(last.length, 6))
+    assert lengths == {
+        "flat": {2.0, 4.0, 6.0},
+        "hills": {8.0, 16.0},
+        "steps": {24.0, 32.0},
+        "rubble": {8.0, 16.0},
+    }
+    assert flat_after_skip > 0
 
 
-def test_obstacle_heights_follow_the_paper(worlds: list[Terrain]) -> None:
+def test_obstacle_heights_follow_the_released_code(worlds: list[Terrain]) -> None:
+    hill_heights, rubble_rows = set(), set()
+    profiles = {(f, c): None for f in (10, 15) for c in (0.2, 0.3)}  # (half-periods, clip)
     for terrain in worlds:
         for segment in terrain.segments:
             block = _columns(terrain, segment.x_start, segment.x_end)
+            n = block.shape[1]
             assert block.min() >= 0.0
             if segment.kind == "flat":
                 assert not block.any()
             elif segment.kind == "hills":
-                assert 0.6 <= segment.height <= 1.2
-                assert np.ptp(block, axis=0).max() == 0.0  # constant across y
-                assert block.max() == pytest.approx(segment.height, abs=1e-2)
+                hill_heights.add(round(segment.height, 6))
+                expected = segment.height * np.sin(np.linspace(0, np.pi, num=n))
+                np.testing.assert_allclose(block, np.broadcast_to(expected, block.shape), atol=1e-6)
             elif segment.kind == "steps":
-                levels = np.unique(np.round(block[0] / 0.2, 4))
-                np.testing.assert_array_equal(levels, [1, 2, 3, 4])
-                assert block.max() == pytest.approx(0.8)
-                _check_step_profile(block[0])
+                assert segment.height == pytest.approx(0.6)
+                _check_step_profile(block)
             else:
-                assert 0.2 <= segment.height <= 0.3
+                assert segment.height in (0.2, 0.3)
                 assert block.max() == pytest.approx(segment.height, abs=1e-6)
-                assert np.ptp(block, axis=0).max() > 0.0  # bumps vary across y too
+                # every row is the released profile of one (half-periods, clip) pair
+                candidates = np.array([_rubble_profile(n, f, c) for f, c in profiles])
+                distance = np.abs(block[:, None, :] - candidates[None]).max(axis=2)
+                assert distance.min(axis=1).max() < 1e-6
+                rubble_rows.update(distance.argmin(axis=1).tolist())
+    assert hill_heights == {0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2}
+    assert rubble_rows == set(range(len(profiles)))
 
 
-def _check_step_profile(profile: np.ndarray) -> None:
-    """4 treads up then 4 down (0.2, 0.4, 0.6, 0.8, 0.8, 0.6, 0.4, 0.2), each 1/8 long."""
-    change = np.flatnonzero(np.diff(profile)) + 1
-    treads = np.diff(np.concatenate(([0], change, [profile.size])))
-    assert treads.size == 7  # the two 0.8 treads merge
-    np.testing.assert_allclose(
-        treads / profile.size, [1, 1, 1, 2, 1, 1, 1] / np.float64(8), atol=0.03
-    )
-    tops = profile[np.concatenate(([0], change))]
-    np.testing.assert_allclose(tops, [0.2, 0.4, 0.6, 0.8, 0.6, 0.4, 0.2], atol=1e-6)
+def _check_step_profile(block: np.ndarray) -> None:
+    """8 treads of 1/8 of the length, constant across y, at 0, 0.2, 0.4, 0.6, 0.6, 0.4, 0.2, 0:
+    the top one doubled."""
+    np.testing.assert_array_equal(block, np.broadcast_to(block[0], block.shape))
+    treads = block[0].reshape(8, -1)
+    np.testing.assert_array_equal(treads, np.broadcast_to(treads[:, :1], treads.shape))
+    levels = np.array([0, 0.2, 0.4, 0.6, 0.6, 0.4, 0.2, 0], np.float32)
+    np.testing.assert_array_equal(treads[:, 0], levels)
 
 
-def test_start_area_is_flat_and_spawn_is_in_it(worlds: list[Terrain]) -> None:
+@pytest.mark.parametrize("n", [80, 160])
+def test_rubble_strips_are_clipped_triangle_waves(n: int) -> None:
+    """Strips 1.0-1.9 m wide across the corridor, each a triangle wave along x with 10 or 15
+    half-periods over the obstacle, clipped at 0.2 or 0.3 m."""
+    config = TerrainConfig.variable()
+    seen: set[tuple[int, int, float]] = set()
+    for seed in range(8):
+        block = np.zeros((1001, n), np.float32)
+        height = _rubble(block, config, np.random.default_rng(seed))
+        rows, wave, clip = _rubble_strips(1001, config, np.random.default_rng(seed))
+        assert set(rows.tolist()) <= set(range(10, 20))
+        assert rows[:-1].sum() < 1001 <= rows.sum()  # the last strip is cut by the edge
+        half_periods = np.array(config.rubble_half_periods)[wave]
+        clips = np.array(config.rubble_clip)[clip]
+        assert height == clips.max()
+        starts = np.concatenate(([0], np.cumsum(rows)[:-1]))
+        for start, width, f, c in zip(starts, rows, half_periods, clips, strict=True):
+            strip = block[start : start + width]
+            np.testing.assert_allclose(
+                strip, np.broadcast_to(_rubble_profile(n, f, c), strip.shape), atol=1e-6
+            )
+            # the wave peaks once every two half-periods: 5 plateaus at the clip for 10, 8 for
+            # 15 (the last one at the far end)
+            at_clip = np.concatenate(([0], strip[0] == np.float32(c), [0])).astype(int)
+            assert np.count_nonzero(np.diff(at_clip) == 1) == {10: 5, 15: 8}[f]
+            seen.add((int(width), int(f), float(c)))
+    assert {(f, c) for _, f, c in seen} == {(10, 0.2), (10, 0.3), (15, 0.2), (15, 0.3)}
+    assert {w for w, _, _ in seen} == set(range(10, 20))
+
+
+def test_start_flat_is_centred_on_the_spawn_point(worlds: list[Terrain]) -> None:
+    """6 m of flat ground centred on the spawn point, then a flat of 2, 4 or 6 m: the first
+    obstacle begins 5, 7 or 9 m ahead of the spawn point."""
+    ahead = set()
     for terrain in worlds:
-        start = TerrainConfig().start_flat
-        assert terrain.spawn == pytest.approx((terrain.x_min + start / 2, 0.0))
-        assert not _columns(terrain, terrain.x_min, terrain.x_min + start + 1.0).any()
+        spawn_x = terrain.spawn[0]
+        assert terrain.spawn == (terrain.x_min + 3.0, 0.0)
+        start = terrain.segments[0]
+        assert (start.kind, start.x_start + start.x_end) == ("flat", pytest.approx(2 * spawn_x))
+        assert start.length == pytest.approx(6.0)
+        assert not _columns(terrain, terrain.x_min, terrain.first_obstacle).any()
+        ahead.add(round(terrain.first_obstacle - spawn_x, 6))
+    assert ahead == {5.0, 7.0, 9.0}
 
 
 def test_generation_is_deterministic_per_seed() -> None:
@@ -121,7 +195,18 @@ def test_config_rejects_unknown_keys_and_impossible_heights() -> None:
     with pytest.raises(ValidationError):
         TerrainConfig(max_height=1.0)  # hills reach 1.2 m
     with pytest.raises(ValidationError):
-        TerrainConfig(flat_length=(3.0, 1.0))
+        TerrainConfig(flat_length=())
+    with pytest.raises(ValidationError):
+        TerrainConfig(flat_length=(2.0, -1.0))
+    with pytest.raises(ValidationError):
+        TerrainConfig(rubble_half_periods=(0, 10))
+    with pytest.raises(ValidationError):
+        TerrainConfig(steps_length=(24.0, 30.0))  # 300 cells are not 8 whole treads
+    with pytest.raises(ValidationError):
+        TerrainConfig(flat_length=(2.05,))  # not whole cells
+    with pytest.raises(ValidationError):
+        TerrainConfig(num_steps=6, step_height=0.8)  # steps reach 1.6 m
+    TerrainConfig(max_height=1.2)  # the highest hill fits exactly
     with pytest.raises(ValueError):
         Terrain(heights=np.full((3, 3), 2.0, dtype=np.float32))
 
@@ -184,19 +269,6 @@ def test_height_at_interpolates_on_mujoco_triangles() -> None:
         ),
         [0.0, 0.5, 0.0, 1.0, 0.0],
     )
-
-
-def test_rubble_equals_its_float64_formula() -> None:
-    """The float32 computation of rubble against the formula in float64, rounded once."""
-    config = TerrainConfig.variable()
-    for seed in range(5):
-        block = np.zeros((101, 57), np.float32)
-        _rubble(block, config, np.random.default_rng(seed))
-        clip, (ix, tx), (iy, ty) = _rubble_layout(block.shape, config, np.random.default_rng(seed))
-        pyramids = config.rubble_peak * np.minimum(ty[:, None], tx[None, :])
-        expected = np.minimum(pyramids, clip[iy[:, None], ix[None, :]]).astype(np.float32)
-        np.testing.assert_array_equal(block, expected)
-        assert len(np.unique(block)) > 10
 
 
 # --- heightmap ----------------------------------------------------------------------------------

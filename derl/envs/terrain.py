@@ -1,24 +1,30 @@
 """Procedural terrain as a height array, laid out the way MuJoCo height fields store it.
 
-A world is a corridor along +x (paper, appendix A): a flat start area around the spawn point,
-then flat segments of length U[1, 3] m interleaved with obstacle segments of length U[4, 8] m,
-each obstacle drawn uniformly among hills, steps and rubble and spanning the whole width in y.
+A world is a corridor along +x built the way the released DERL code builds it (its
+``derl/envs/modules/terrain.py`` with ``configs/evo/vt.yml`` and ``mvt.yml``): a flat start area
+centred on the spawn point, then, until the corridor's far end, a flat segment followed by an
+obstacle drawn uniformly among hills, steps and rubble, each spanning the whole width in y. Every
+length and height is drawn uniformly from a finite set (the released ``[start, stop, step]``
+ranges of half-lengths, stop included): flats 2, 4 or 6 m, hills and rubble 8 or 16 m, steps 24
+or 32 m. An obstacle that does not fit in what is left of the corridor is skipped and the loop
+goes on with another flat and another draw; the flat that reaches the far end is cut there.
 
 Heights live on a regular grid of vertices, row index = y and column index = x, centred at the
 world origin: vertex (r, c) is at x = -size_x/2 + c*res, y = -size_y/2 + r*res. This is exactly
 the vertex layout of a MuJoCo hfield of size (size_x/2, size_y/2, max_height, base) with
-nrow x ncol = heights.shape, placed at the origin. The elevation scale ``max_height`` is fixed
-per world (compiled into the model), so a new terrain of the same shape can be written into
-``model.hfield_data`` in place without recompiling.
+nrow x ncol = heights.shape, placed at the origin. An obstacle of n cells sets n columns of
+vertices, as the released code sets n columns of its height array. The elevation scale
+``max_height`` is fixed per world (compiled into the model), so a new terrain of the same shape
+can be written into ``model.hfield_data`` in place without recompiling.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, NamedTuple
+from typing import TYPE_CHECKING, Annotated, Literal, NamedTuple, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 if TYPE_CHECKING:
     import mujoco
@@ -26,15 +32,31 @@ if TYPE_CHECKING:
 ObstacleKind = Literal["hills", "steps", "rubble"]
 SegmentKind = Literal["flat", "hills", "steps", "rubble", "boxes"]
 Range = tuple[float, float]
+T = TypeVar("T")
+
+
+def _positive(values: tuple[float, ...]) -> tuple[float, ...]:
+    if not values or min(values) <= 0:
+        raise ValueError(f"choices must be a non-empty set of positive values, got {values}")
+    return values
+
+
+# A draw uniform over these values (the released code's `sample_from_range`)
+Choices = Annotated[tuple[float, ...], AfterValidator(_positive)]
+Counts = Annotated[tuple[int, ...], AfterValidator(_positive)]
 
 
 class TerrainConfig(BaseModel):
-    """Parameters of the terrain generator; lengths and heights in meters.
+    """Parameters of the terrain generator; lengths and heights in meters, full lengths (the
+    released config gives half-lengths). Defaults are the released VT values; ``obstacles=()``
+    gives an all-flat world.
 
-    Defaults are the paper's VT ranges. ``obstacles=()`` gives an all-flat world. Rubble is a grid
-    of pyramids (a triangle wave in x times one in y, combined with ``min``) of peak
-    ``rubble_peak``, each pyramid clipped at its own height U[rubble_clip]; pyramid footprints are
-    U[rubble_bump] m per obstacle, rounded so a whole number fits the obstacle length and width.
+    Hills are H sin(0..pi) along x over the obstacle, H from ``hill_height``. Steps are
+    ``num_steps`` treads of equal length at heights 0, h, 2h, 3h, 3h, 2h, h, 0 for 8 steps of h:
+    up and back down, the top one doubled. Rubble is strips along x stacked across the
+    corridor, each ``rubble_strip_width`` wide, each a triangle wave of peak ``rubble_peak``
+    along x with ``rubble_half_periods`` half-periods over the obstacle, clipped at
+    ``rubble_clip``; every strip draws its own width, half-periods and clip.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -43,54 +65,58 @@ class TerrainConfig(BaseModel):
     size_y: float = Field(100.0, gt=0)
     resolution: float = Field(0.1, gt=0)
     max_height: float = Field(1.5, gt=0)
-    # A body at the spawn point (the middle of the start area) perceives only flat ground: its
-    # heightmap reaches 5.7 m, the first obstacle is at least 7 + 1 m away.
-    start_flat: float = Field(14.0, ge=0)
-    flat_length: Range = (1.0, 3.0)
-    obstacle_length: Range = (4.0, 8.0)
+    start_flat: float = Field(6.0, ge=0)  # START_FLAT 3; the spawn point is its middle
+    flat_length: Choices = (2.0, 4.0, 6.0)  # FLAT_LENGTH_RANGE [1, 3, 1]
+    obstacle_length: Choices = (8.0, 16.0)  # HFIELD_LENGTH_RANGE [4, 8, 4]: hills and rubble
+    steps_length: Choices = (24.0, 32.0)  # STEP_LENGTH_RANGE [12, 16, 4]
     obstacles: tuple[ObstacleKind, ...] = ("hills", "steps", "rubble")
-    hill_amplitude: Range = (0.6, 1.2)
-    num_steps: int = Field(8, gt=0)
+    hill_height: Choices = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2)  # CURVE_HEIGHT_RANGE
+    num_steps: int = Field(8, ge=4)
     step_height: float = Field(0.2, gt=0)
-    rubble_clip: Range = (0.2, 0.3)
-    rubble_peak: float = Field(0.5, gt=0)
-    rubble_bump: Range = (0.8, 1.6)
-
-    @field_validator(
-        "flat_length", "obstacle_length", "hill_amplitude", "rubble_clip", "rubble_bump"
-    )
-    @classmethod
-    def _positive_range(cls, value: Range) -> Range:
-        if not 0 < value[0] <= value[1]:
-            raise ValueError(f"range must satisfy 0 < low <= high, got {value}")
-        return value
+    # range(10, 20) rows of the released 0.1 m grid
+    rubble_strip_width: Choices = (1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6, 1.7, 1.8, 1.9)
+    rubble_half_periods: Counts = (10, 15)
+    rubble_clip: Choices = (0.2, 0.3)  # RUGGED_SQUARE_CLIP_RANGE [0.2, 0.3, 0.1]
+    rubble_peak: float = Field(2.0, gt=0)  # scipy.signal.sawtooth(t, 0.5) + 1
 
     @model_validator(mode="after")
     def _consistent(self) -> TerrainConfig:
-        for name in ("size_x", "size_y", "start_flat"):
-            cells = getattr(self, name) / self.resolution
-            if abs(cells - round(cells)) > 1e-6:
-                raise ValueError(f"{name} must be a multiple of resolution {self.resolution}")
+        lengths = {
+            "size_x": (self.size_x,),
+            "size_y": (self.size_y,),
+            "start_flat": (self.start_flat,),
+            "flat_length": self.flat_length,
+            "obstacle_length": self.obstacle_length,
+            "steps_length": self.steps_length,
+            "rubble_strip_width": self.rubble_strip_width,
+        }
+        for name, values in lengths.items():
+            for value in values:
+                cells = value / self.resolution
+                if abs(cells - round(cells)) > 1e-6:
+                    raise ValueError(f"{name} must be multiples of resolution {self.resolution}")
         if self.start_flat >= self.size_x:
             raise ValueError("start_flat must be shorter than size_x")
         if self.num_steps % 2:
             raise ValueError("num_steps must be even (half up, half down)")
+        if any(_cells(length, self.resolution) % self.num_steps for length in self.steps_length):
+            raise ValueError("steps_length must be whole numbers of cells per tread")
         tops = {
-            "hills": self.hill_amplitude[1],
+            "hills": max(self.hill_height),
             "steps": self.steps_top,
-            "rubble": self.rubble_clip[1],
+            "rubble": max(self.rubble_clip),
         }
         for kind in self.obstacles:
             if tops[kind] > self.max_height:
                 raise ValueError(f"{kind} reach {tops[kind]} m > max_height {self.max_height} m")
-        if self.rubble_peak <= self.rubble_clip[1]:
-            raise ValueError("rubble_peak must exceed rubble_clip so every bump is clipped")
+        if self.rubble_peak <= max(self.rubble_clip):
+            raise ValueError("rubble_peak must exceed rubble_clip so every strip is clipped")
         return self
 
     @property
     def steps_top(self) -> float:
         """Height of the highest tread of a step obstacle."""
-        return self.step_height * (self.num_steps // 2)
+        return self.step_height * (self.num_steps // 2 - 1)
 
     @property
     def grid_shape(self) -> tuple[int, int]:
@@ -104,12 +130,12 @@ class TerrainConfig(BaseModel):
 
     @classmethod
     def variable(cls, **overrides: object) -> TerrainConfig:
-        """VT: 100 x 100 m of hills, steps and rubble."""
+        """VT: 100 x 100 m of hills, steps and rubble (released SIZE [50, 50])."""
         return cls(**{"size_x": 100.0, "size_y": 100.0, **overrides})
 
     @classmethod
     def manipulation(cls, **overrides: object) -> TerrainConfig:
-        """MVT: 60 x 40 m with the VT obstacles."""
+        """MVT: 60 x 40 m with the VT obstacles (released SIZE [30, 20])."""
         return cls(**{"size_x": 60.0, "size_y": 40.0, **overrides})
 
 
@@ -251,13 +277,11 @@ class Terrain:
 def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain:
     """Draw a new world from ``config``; deterministic for a given generator state."""
     heights = np.zeros(config.grid_shape, dtype=np.float32)
-    ncol = heights.shape[1]
     x_min, res = -config.size_x / 2, config.resolution
     segments = []
-    for kind, c0, c1 in _layout(config, ncol, rng):
+    for kind, c0, c1 in _layout(config, heights.shape[1] - 1, rng):
         top = 0.0 if kind == "flat" else _BUILDERS[kind](heights[:, c0:c1], config, rng)
-        x_start, x_end = (round(x_min + c * res, 9) for c in (c0, min(c1, ncol - 1)))
-        segments.append(Segment(kind, x_start, x_end, top))
+        segments.append(Segment(kind, round(x_min + c0 * res, 9), round(x_min + c1 * res, 9), top))
     return Terrain(
         heights=heights,
         resolution=res,
@@ -271,73 +295,76 @@ def _cells(length: float, resolution: float) -> int:
     return round(length / resolution)
 
 
+def _pick(values: tuple[T, ...], rng: np.random.Generator) -> T:
+    """One of ``values``, uniformly."""
+    return values[rng.integers(len(values))]
+
+
 def _layout(
-    config: TerrainConfig, ncol: int, rng: np.random.Generator
+    config: TerrainConfig, end: int, rng: np.random.Generator
 ) -> list[tuple[SegmentKind, int, int]]:
-    """Column spans [c0, c1): start area, then (flat, obstacle) pairs while an obstacle fits,
-    then a flat tail up to the end of the world."""
+    """Column spans [c0, c1) over the ``end`` cells of the corridor: the start area, then while
+    the corridor goes on a flat (cut at the end) and an obstacle if it fits before the end."""
+    res = config.resolution
     if not config.obstacles:
-        return [("flat", 0, ncol)]
-    col = _cells(config.start_flat, config.resolution)
+        return [("flat", 0, end)]
+    col = _cells(config.start_flat, res)
     spans: list[tuple[SegmentKind, int, int]] = [("flat", 0, col)]
-    while True:
-        n_flat = _cells(rng.uniform(*config.flat_length), config.resolution)
-        n_obstacle = _cells(rng.uniform(*config.obstacle_length), config.resolution)
-        kind = config.obstacles[rng.integers(len(config.obstacles))]
-        if col + n_flat + n_obstacle >= ncol:
-            break
-        spans += [("flat", col, col + n_flat), (kind, col + n_flat, col + n_flat + n_obstacle)]
-        col += n_flat + n_obstacle
-    spans.append(("flat", col, ncol))
+    while col < end:
+        kind = _pick(config.obstacles, rng)
+        n_flat = min(_cells(_pick(config.flat_length, rng), res), end - col)
+        spans.append(("flat", col, col + n_flat))
+        col += n_flat
+        lengths = config.steps_length if kind == "steps" else config.obstacle_length
+        n_obstacle = _cells(_pick(lengths, rng), res)
+        if col + n_obstacle <= end:
+            spans.append((kind, col, col + n_obstacle))
+            col += n_obstacle
     return spans
 
 
 def _hills(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
-    """One sin(0..pi) bump along x of amplitude U[hill_amplitude], constant across y."""
-    amplitude = rng.uniform(*config.hill_amplitude)
-    n = block.shape[1]
-    block[:] = amplitude * np.sin(np.pi * np.arange(n) / n)
-    return amplitude
+    """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
+    height = _pick(config.hill_height, rng)
+    block[:] = height * np.sin(np.linspace(0.0, np.pi, block.shape[1]))
+    return height
 
 
 def _steps(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
-    """num_steps treads of equal length: half going up by step_height, half coming down."""
-    n = block.shape[1]
-    tread = np.arange(n) * config.num_steps // n
-    block[:] = config.step_height * np.minimum(tread + 1, config.num_steps - tread)
+    """num_steps treads of n / num_steps columns each at 0, h, ..., top, top, ..., h, 0."""
+    tread = np.arange(config.num_steps)
+    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread)
+    block[:] = np.repeat(levels, block.shape[1] // config.num_steps)
     return config.steps_top
 
 
-def _rubble_layout(
-    shape: tuple[int, ...], config: TerrainConfig, rng: np.random.Generator
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """Rubble's draws for a (nrow, n) block: the bumps' clip heights (bumps_y, bumps_x), and
-    along x and along y each vertex's bump and its rise within it (`_triangle`)."""
-    nrow, n = shape
-    bumps_x = max(1, round(n * config.resolution / rng.uniform(*config.rubble_bump)))
-    bumps_y = max(1, round((nrow - 1) * config.resolution / rng.uniform(*config.rubble_bump)))
-    clip = rng.uniform(*config.rubble_clip, size=(bumps_y, bumps_x))
-    along_x = _triangle(np.arange(n) * (bumps_x / n), bumps_x)
-    along_y = _triangle(np.arange(nrow) * (bumps_y / (nrow - 1)), bumps_y)
-    return clip, along_x, along_y
+def _rubble_strips(
+    nrow: int, config: TerrainConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rubble's draws for a block of ``nrow`` rows: each strip's rows, and the indices of its
+    half-periods and clip height in the config's choices; strips are stacked from row 0 until
+    they cover the block (the last one is cut)."""
+    widths = np.array([_cells(w, config.resolution) for w in config.rubble_strip_width])
+    rows = widths[rng.integers(len(widths), size=-(-nrow // widths.min()))]  # enough strips
+    count = int(np.searchsorted(np.cumsum(rows), nrow)) + 1
+    wave = rng.integers(len(config.rubble_half_periods), size=count)
+    clip = rng.integers(len(config.rubble_clip), size=count)
+    return rows[:count], wave, clip
 
 
 def _rubble(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
-    """A grid of pyramids over x and y, each clipped at its own height U[rubble_clip]."""
-    clip, (ix, tx), (iy, ty) = _rubble_layout(block.shape, config, rng)
-    # min(peak * min(ty, tx), clip) computed in float32: scaling by peak and rounding to float32
-    # preserve order, so this is the float64 result rounded, with less memory traffic
-    rows = (config.rubble_peak * ty).astype(np.float32)
-    columns = (config.rubble_peak * tx).astype(np.float32)
-    np.minimum(rows[:, None], columns, out=block)
-    np.minimum(block, clip.astype(np.float32)[:, ix][iy], out=block)
-    return float(clip.max())
-
-
-def _triangle(phase: np.ndarray, periods: int) -> tuple[np.ndarray, np.ndarray]:
-    """Period index of each phase in [0, periods] and a triangle wave 0 -> 1 -> 0 per period."""
-    index = np.minimum(phase.astype(np.intp), periods - 1)
-    return index, np.maximum(1.0 - np.abs(2.0 * (phase - index) - 1.0), 0.0)
+    """Strips along x, each min(triangle wave, clip) with the wave 0 -> peak -> 0 over two
+    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2)."""
+    nrow, n = block.shape
+    rows, wave, clip = _rubble_strips(nrow, config, rng)
+    # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
+    # Few distinct (f, clip) pairs: the profiles are computed once each and copied into strips.
+    phase = np.outer(config.rubble_half_periods, np.arange(n) / (n - 1)) % 2.0
+    waves = config.rubble_peak * (1.0 - np.abs(phase - 1.0))
+    clips = np.array(config.rubble_clip)
+    profiles = np.minimum(waves[:, None, :], clips[:, None]).astype(np.float32)
+    block[:] = np.repeat(profiles[wave, clip], rows, axis=0)[:nrow]
+    return float(clips[clip].max())
 
 
 _BUILDERS = {"hills": _hills, "steps": _steps, "rubble": _rubble}
