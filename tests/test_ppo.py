@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pydantic
 import pytest
@@ -85,7 +87,8 @@ def test_network_shapes_and_gaussian_matches_torch_distributions() -> None:
         torch.testing.assert_close(log_prob, normal.log_prob(actions).sum(-1), atol=1e-5, rtol=0)
         other, entropy, value2 = net.evaluate(obs, actions)
         torch.testing.assert_close(other, log_prob, atol=1e-5, rtol=0)
-        torch.testing.assert_close(entropy, normal.entropy().sum(-1)[0], atol=1e-5, rtol=0)
+        # The released code's bonus: the mean over batch and action dimensions, not their sum.
+        torch.testing.assert_close(entropy, normal.entropy().mean(), atol=1e-6, rtol=0)
         torch.testing.assert_close(value2, value)
 
     single = ActorCritic({"obs": 4}, 1)
@@ -103,18 +106,43 @@ def test_running_mean_std_matches_numpy_and_round_trips() -> None:
     np.testing.assert_allclose(rms.var, everything.var(0), rtol=1e-12)
     assert rms.count == len(everything)
 
-    norm = ObsNormalizer({"a": 5, "b": 3}, clip=10.0, unnormalized=("b",))
-    obs = {"a": everything.astype(np.float32), "b": rng.normal(size=(82, 3)).astype(np.float32)}
+    spaces = {"proprioception": 5, "heightmap": 3}
+    norm = ObsNormalizer(spaces, clip=10.0)
+    obs = {
+        "proprioception": everything.astype(np.float32),
+        "heightmap": rng.normal(size=(82, 3)).astype(np.float32),
+    }
     norm.update(obs)
     out = norm.normalize(obs)
-    expected = np.clip((obs["a"] - everything.mean(0)) / np.sqrt(everything.var(0) + 1e-8), -10, 10)
-    np.testing.assert_allclose(out["a"], expected, rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(out["b"], obs["b"])
+    expected = np.clip(
+        (everything - everything.mean(0)) / np.sqrt(everything.var(0) + 1e-8), -10, 10
+    )
+    np.testing.assert_allclose(out["proprioception"], expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(out["heightmap"], obs["heightmap"])
+    assert set(norm.state_dict()) == {f"proprioception/{k}" for k in ("mean", "var", "count")}
 
-    loaded = ObsNormalizer({"a": 5, "b": 3}, clip=10.0, unnormalized=("b",))
+    loaded = ObsNormalizer(spaces, clip=10.0)
     loaded.load_state_dict(norm.state_dict())
     for key in obs:
         np.testing.assert_array_equal(loaded.normalize(obs)[key], out[key])
+
+
+def test_flat_start_heightmap_then_terrain_reaches_the_network_raw() -> None:
+    # A body on the flat start area sees a heightmap of exact zeros for many steps; normalising
+    # it would turn the first obstacle into saturated +/-10 inputs. Only proprioception is.
+    rng = np.random.default_rng(0)
+    norm = ObsNormalizer(DERL_OBS, clip=10.0)
+    out = {}
+    for step in range(600):
+        heights = np.zeros((32, 1410), np.float32)
+        if step >= 500:
+            heights[:] = rng.uniform(-0.4, 0.6, heights.shape)
+        obs = {"proprioception": rng.normal(size=(32, 50)).astype(np.float32), "heightmap": heights}
+        norm.update(obs)
+        out = norm.normalize(obs, out=out or None)
+        np.testing.assert_array_equal(out["heightmap"], heights)
+    assert np.abs(out["heightmap"]).max() <= 0.6
+    assert np.abs(out["proprioception"]).max() < 10.0
 
 
 def test_reward_scaler_divides_by_return_std_and_round_trips() -> None:
@@ -170,18 +198,25 @@ def test_checkpoint_bytes_give_identical_actions() -> None:
     np.testing.assert_array_equal(Policy.from_checkpoint(data)(obs), actions)
     np.testing.assert_array_equal(Policy.from_checkpoint(restored)(obs), actions)
 
+    old = torch.load(io.BytesIO(data), weights_only=True)
+    del old["format"]  # format 1 had no version field (and normalised every type)
+    buffer = io.BytesIO()
+    torch.save(old, buffer)
+    with pytest.raises(ValueError, match="checkpoint format 1"):
+        Checkpoint.from_bytes(buffer.getvalue())
+
 
 def test_gym_adapter_autoresets_and_reports_truncation() -> None:
     env = GymBatchedEnv("InvertedPendulum-v5", 3, max_episode_steps=5)
     assert isinstance(env, BatchedEnv)
-    assert env.obs_spaces == {"obs": 4} and env.action_dim == 1
-    obs = env.reset(seed=7)
-    assert obs["obs"].shape == (3, 4) and obs["obs"].dtype == np.float32
-    np.testing.assert_array_equal(env.reset(seed=7)["obs"], obs["obs"])
+    assert env.obs_spaces == {"proprioception": 4} and env.action_dim == 1
+    obs = env.reset(seed=7)["proprioception"]
+    assert obs.shape == (3, 4) and obs.dtype == np.float32
+    np.testing.assert_array_equal(env.reset(seed=7)["proprioception"], obs)
     for _ in range(5):
         step = env.step(np.zeros((3, 1), np.float32))
     assert step.truncated.all() and not step.terminated.any()
-    assert not np.array_equal(step.final_obs["obs"], step.obs["obs"])
+    assert not np.array_equal(step.final_obs["proprioception"], step.obs["proprioception"])
     np.testing.assert_array_equal(step.components["reward"], step.reward)
     env.close()
 

@@ -2,7 +2,8 @@
 
 The bytes are `torch.save` of a plain dict of tensors, ints and strings, so `torch.load` reads
 them back with `weights_only=True` (no pickled code). Only the observation statistics are kept:
-the reward scale matters for training, not for acting.
+the reward scale matters for training, not for acting. Checkpoints written before `FORMAT` 2
+(every observation type normalised) are refused with a `ValueError`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,9 @@ import torch
 from derl.rl.config import PPOConfig
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer
+
+FORMAT = 2
+"""Version of the byte layout: 2 normalises proprioception only (1 normalised every type)."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +47,7 @@ class Checkpoint:
         buffer = io.BytesIO()
         torch.save(
             {
+                "format": FORMAT,
                 "obs_spaces": self.obs_spaces,
                 "action_dim": self.action_dim,
                 "weights": self.weights,
@@ -58,6 +63,13 @@ class Checkpoint:
     @classmethod
     def from_bytes(cls, data: bytes) -> Checkpoint:
         raw = torch.load(io.BytesIO(data), weights_only=True)
+        version = raw.get("format", 1)
+        if version != FORMAT:
+            raise ValueError(
+                f"checkpoint format {version}, this derl reads format {FORMAT}: format 1 "
+                "normalised every observation type (now only proprioception), so its policy "
+                "would see other inputs than it was trained on; train it again"
+            )
         return cls(
             obs_spaces=dict(raw["obs_spaces"]),
             action_dim=int(raw["action_dim"]),
@@ -81,7 +93,7 @@ class Policy:
         net = ActorCritic(checkpoint.obs_spaces, checkpoint.action_dim)
         net.load_state_dict(checkpoint.weights)
         config = checkpoint.config
-        obs_norm = ObsNormalizer(checkpoint.obs_spaces, config.obs_clip, config.unnormalized_obs)
+        obs_norm = ObsNormalizer(checkpoint.obs_spaces, config.obs_clip)
         obs_norm.load_state_dict(checkpoint.obs_stats)
         return cls(net, obs_norm)
 

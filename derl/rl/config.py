@@ -27,13 +27,8 @@ class PPOConfig(BaseModel):
     lr: float = Field(3e-4, gt=0.0, description="Adam learning rate, decayed linearly to 0")
     adam_eps: float = Field(1e-5, gt=0.0)
     max_grad_norm: float = Field(0.5, gt=0.0)
-    obs_clip: float = Field(10.0, gt=0.0, description="normalised observations clipped to ±this")
+    obs_clip: float = Field(10.0, gt=0.0, description="normalised proprioception clipped to ±this")
     reward_clip: float = Field(10.0, gt=0.0, description="scaled rewards clipped to ±this")
-    unnormalized_obs: tuple[str, ...] = Field(
-        (),
-        description="observation types passed through raw; the original normalised only "
-        "proprioception, here every type is normalised unless listed",
-    )
     seed: int = Field(1409, description="seeds network init, action noise and minibatch order")
     torch_threads: int = Field(1, ge=1, description="1: a second thread steals the sim's core")
     fitness_component: str = Field("forward", description="reward component the fitness sums")

@@ -1,7 +1,8 @@
 """N gymnasium environments behind the `BatchedEnv` interface (for users' envs and tests).
 
 A plain Python loop over the copies: DERL's own environments step all copies in C instead. The
-observation is flattened into one type, "obs"; the reward is the single component "reward";
+observation is flattened into one type, "proprioception" (normalised, as the original
+normalised a non-dict observation whole); the reward is the single component "reward";
 actions in [-1, 1] are rescaled to the bounds of the Box action space.
 """
 
@@ -14,7 +15,7 @@ import numpy as np
 
 from derl.rl.env_api import Obs, StepResult
 
-OBS_KEY = "obs"
+OBS_KEY = "proprioception"
 
 
 class GymBatchedEnv:

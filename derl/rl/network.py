@@ -30,8 +30,12 @@ def gaussian_log_prob(
 
 
 def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    """Entropy of a diagonal Gaussian with the given log standard deviations (a scalar)."""
-    return (log_std + 0.5 + _HALF_LOG_2PI).sum()
+    """Entropy of a diagonal Gaussian per action dimension, averaged over them (a scalar).
+
+    The released code's `Normal(mu, std).entropy().mean()`: the mean over batch and action
+    dimensions (the entropy is state-independent, so the batch mean changes nothing).
+    """
+    return (log_std + 0.5 + _HALF_LOG_2PI).mean()
 
 
 class Encoder(nn.Module):
@@ -94,7 +98,7 @@ class ActorCritic(nn.Module):
     def evaluate(
         self, obs: TensorObs, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Log-probs (B,), entropy (scalar, state-independent) and values (B,) for an update."""
+        """Log-probs (B,), mean entropy per action dimension (scalar) and values (B,)."""
         mean = self.action_mean(obs)
         log_prob = gaussian_log_prob(actions, mean, self.log_std)
         return log_prob, gaussian_entropy(self.log_std), self.value(obs)

@@ -1,9 +1,10 @@
 """Running observation normalisation and return-based reward scaling, as in baselines' VecNormalize.
 
-Observations: per type, (x - running mean) / running std, clipped to ±clip. The original
-normalised only proprioception and fed height maps raw; here every type is normalised unless the
-config lists it in `unnormalized_obs`. Rewards: divided by the running std of the discounted
-return (gamma 0.99) of each copy, clipped to ±clip.
+Observations: only "proprioception" is normalised, (x - running mean) / running std clipped to
+±clip, as in the original; heightmap, object and goal observations (metres in the head frame) go
+in raw. (A heightmap is exactly zero while a body stays on flat ground: its variance would
+collapse to 0 and the first obstacle would read as saturated inputs.) Rewards: divided by the
+running std of the discounted return (gamma 0.99) of each copy, clipped to ±clip.
 
 Statistics change only in `update` (observations) or `scale` (rewards); evaluation loads the
 saved state and only calls `normalize`, which keeps the statistics frozen. State is a flat dict
@@ -53,20 +54,17 @@ class RunningMeanStd:
         self.count = float(state["count"])
 
 
-class ObsNormalizer:
-    """Per-type running normalisation of dict observations."""
+NORMALIZED = "proprioception"
+"""The observation type that is normalised; every other type passes through raw."""
 
-    def __init__(
-        self, obs_spaces: dict[str, int], clip: float, unnormalized: tuple[str, ...] = ()
-    ) -> None:
-        unknown = set(unnormalized) - set(obs_spaces)
-        if unknown:
-            raise ValueError(f"unnormalized_obs names unknown observation types {sorted(unknown)}")
+
+class ObsNormalizer:
+    """Running normalisation of the proprioception in dict observations."""
+
+    def __init__(self, obs_spaces: dict[str, int], clip: float) -> None:
         self.clip = clip
         self.stats = {
-            key: RunningMeanStd((dim,))
-            for key, dim in obs_spaces.items()
-            if key not in unnormalized
+            key: RunningMeanStd((dim,)) for key, dim in obs_spaces.items() if key == NORMALIZED
         }
 
     def update(self, obs: dict[str, np.ndarray]) -> None:

@@ -145,7 +145,7 @@ class _Trainer:
         )
         self.noise = torch.Generator().manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
-        self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip, config.unnormalized_obs)
+        self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip)
         self.reward_scaler = RewardScaler(env.num_envs, config.gamma, config.reward_clip)
         self.episodes = EpisodeTracker(
             env.num_envs, config.fitness_component, config.recent_episodes
