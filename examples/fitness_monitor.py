@@ -1,40 +1,61 @@
-"""The smallest custom monitor: print each body's fitness as the run reports it.
+"""The smallest custom monitor: print each birth of a run, with only `zenoh` and `msgpack`.
 
     python examples/fitness_monitor.py RUN [ENDPOINT]    # ENDPOINT default tcp/127.0.0.1:7447
 
-It joins the bus as a peer (multicast off, like every derl node), subscribes to
-``derl/RUN/fitness/*`` through a RingChannel (when this script falls behind, the oldest
-reports are dropped: a monitor must never slow a trainer), decodes each payload with
-`messages.decode` and prints one line per child (trainers re-send a report until the
-coordinator acknowledges it). Ctrl-C stops it.
+`derl run` names the run after its run directory (``runs/smoke`` -> ``smoke``) and listens on
+tcp/127.0.0.1:7447. This script joins the bus as a Zenoh peer that connects to that endpoint
+(multicast scouting off, like every derl node), first asks the coordinator for the births so far
+(a query on ``derl/RUN/births/*``), then subscribes to the birth stream ``derl/RUN/births/*``
+through a RingChannel (when it falls behind, the oldest samples are dropped: a monitor must never
+slow the run). Each payload is a msgpack map with ``type`` "Birth" (child, parent, fitness,
+cost_of_work, birth, generation, node, mutation, ...) or "ChildFailed" (child, attempts, error);
+docs/protocol.md lists every field. Births are journaled before they are published, so these are
+exactly the run's births; a birth heard twice (query and stream) is printed once. Ctrl-C stops it.
 """
 
+import json
 import sys
 import time
 
+import msgpack
 import zenoh
 
-from messages import DecodeError, FitnessReport, KeySpace, decode
-from nodes.runtime.bus import ZenohOptions, open_session
-
 run, endpoint = sys.argv[1], (sys.argv[2:] or ["tcp/127.0.0.1:7447"])[0]
+config = zenoh.Config()
+config.insert_json5("mode", json.dumps("peer"))
+config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+config.insert_json5("scouting/multicast/enabled", "false")
 seen: set[str] = set()
-with open_session(ZenohOptions(connect=(endpoint,))) as session:
-    key = KeySpace(run).all("fitness")  # derl/RUN/fitness/*
-    reports = session.declare_subscriber(key, zenoh.handlers.RingChannel(64))
+
+
+def show(sample: zenoh.Sample) -> None:
+    try:
+        event = msgpack.unpackb(sample.payload.to_bytes())
+        kind, child = event["type"], event["child"]
+    except (ValueError, TypeError, KeyError, msgpack.UnpackException) as error:
+        print(f"skipped {sample.key_expr}: {error!r}", file=sys.stderr, flush=True)
+        return
+    if child in seen:
+        return
+    seen.add(child)
+    if kind == "Birth":
+        print(f"{child} fitness {event['fitness']:.2f} ({event['node']})", flush=True)
+    elif kind == "ChildFailed":
+        print(f"{child} failed after {event['attempts']} attempts: {event['error']}", flush=True)
+
+
+with zenoh.open(config) as session:
+    key = f"derl/{run}/births/*"
+    births = session.declare_subscriber(key, zenoh.handlers.RingChannel(256))
+    for reply in session.get(key, timeout=2.0):
+        if reply.ok is not None:
+            show(reply.ok)
     try:
         while True:
-            sample = reports.try_recv()
+            sample = births.try_recv()
             if sample is None:
                 time.sleep(0.05)
-                continue
-            try:
-                report = decode(sample.payload.to_bytes(), FitnessReport)
-            except DecodeError as error:
-                print(f"skipped {sample.key_expr}: {error}", file=sys.stderr)
-                continue
-            if report.child not in seen:
-                seen.add(report.child)
-                print(f"{report.child} fitness {report.fitness:.2f} ({report.node})", flush=True)
+            else:
+                show(sample)
     except KeyboardInterrupt:
         pass

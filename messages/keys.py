@@ -21,10 +21,14 @@ ARITY: Final[dict[str, int]] = {
     "ready": 1,
     "job": 1,
     "tournament": 1,
-    "progress": 1,
-    "fitness": 1,
+    "progress": 2,
+    "fitness": 2,
+    "failure": 2,
     "ack": 1,
-    "eval": 2,
+    "eval": 3,
+    "births": 1,
+    "lost": 1,
+    "rejected": 0,
     "population": 0,
     "status": 0,
 }
@@ -34,15 +38,24 @@ ROUTES: Final[dict[str, tuple[str, tuple[str, ...]]]] = {
     "WorkerReady": ("ready", ("node",)),
     "TrainJob": ("job", ("node",)),
     "EvalJob": ("job", ("node",)),
+    "Cancel": ("job", ("node",)),
     "Tournament": ("tournament", ("child",)),
-    "TrainProgress": ("progress", ("child",)),
-    "FitnessReport": ("fitness", ("child",)),
+    "TrainProgress": ("progress", ("node", "child")),
+    "FitnessReport": ("fitness", ("node", "child")),
+    "JobFailed": ("failure", ("node", "job")),
     "Ack": ("ack", ("node",)),
-    "EvalResult": ("eval", ("agent", "task")),
+    "Reject": ("ack", ("node",)),
+    "EvalResult": ("eval", ("node", "agent", "task")),
+    "Birth": ("births", ("child",)),
+    "ChildFailed": ("births", ("child",)),
+    "JobLost": ("lost", ("node",)),
+    "Rejection": ("rejected", ()),
     "PopulationSnapshot": ("population", ()),
     "RunStatus": ("status", ()),
 }
-"""Message type -> its key kind and the fields that fill the id segments."""
+"""Message type -> its key kind and the fields that fill the id segments. Every message a
+worker publishes carries its node id in its key, so access control can give each node's
+certificate its own keys only, and a message whose `node` differs from its key is rejected."""
 
 
 class InvalidKey(ValueError):
@@ -117,17 +130,20 @@ class KeySpace:
     def tournament(self, child: str) -> str:
         return self.key("tournament", child)
 
-    def progress(self, child: str) -> str:
-        return self.key("progress", child)
+    def progress(self, node: str, child: str) -> str:
+        return self.key("progress", node, child)
 
-    def fitness(self, child: str) -> str:
-        return self.key("fitness", child)
+    def fitness(self, node: str, child: str) -> str:
+        return self.key("fitness", node, child)
+
+    def births(self, child: str) -> str:
+        return self.key("births", child)
 
     def ack(self, node: str) -> str:
         return self.key("ack", node)
 
-    def eval(self, child: str, task: str) -> str:
-        return self.key("eval", child, task)
+    def eval(self, node: str, agent: str, task: str) -> str:
+        return self.key("eval", node, agent, task)
 
     def population(self) -> str:
         return self.key("population")
@@ -138,7 +154,7 @@ class KeySpace:
     def all(self, kind: str, *fixed: str) -> str:
         """Subscription to every key of `kind` whose leading id segments are `fixed`.
 
-        ``all("fitness")`` is ``derl/<run>/fitness/*``; ``all("alive", "trainer")`` is
+        ``all("fitness")`` is ``derl/<run>/fitness/*/*``; ``all("alive", "trainer")`` is
         ``derl/<run>/alive/trainer/*``.
         """
         if len(fixed) > _arity(kind):

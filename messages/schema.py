@@ -12,6 +12,7 @@ from typing import Annotated, Final, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome
 from derl.unimal.mutations import OPERATORS
 from messages.types import (
@@ -28,7 +29,7 @@ from messages.types import (
     Text,
 )
 
-SCHEMA_VERSION: Final = 2
+SCHEMA_VERSION: Final = 3
 
 FitnessSource = Literal["window", "last_episodes", "unfinished"]
 """As `derl.rl.episodes.FitnessSource`: "window" (episodes finished in the last window of steps,
@@ -88,11 +89,13 @@ class WorkerReady(MessageBase):
 
 
 class TrainJob(MessageBase):
-    """The coordinator's order to `node`: train `child` from scratch in `task`.
+    """The coordinator's order to `node`: train `child` from scratch in `task` with `ppo`.
 
     The child's body is `genome`, or, when `mutation_seed` is set (a tournament's child not yet
     born), `derl.evolution.breed(genome, mutation_seed)`: `genome` is then the parent's body and
-    the trainer breeds the child itself (deterministic: every attempt gets the same body).
+    the trainer breeds the child itself (deterministic: every attempt gets the same body). `ppo`
+    is the whole learning configuration (budget, seed, copies, hyperparameters), as saved with
+    the run, so a resumed run trains as it started whatever the code's defaults are now.
     """
 
     type: Literal["TrainJob"] = "TrainJob"
@@ -101,12 +104,18 @@ class TrainJob(MessageBase):
     node: Id
     genome: Genome
     task: Id
-    steps: Steps
-    seed: Seed
+    ppo: PPOConfig
     parent: Id | None = None
     mutation_seed: Seed | None = None
     lease_s: LeaseSeconds
-    num_envs: Annotated[int, Field(ge=1, le=65_536)] = 32
+
+    @property
+    def steps(self) -> int:
+        return self.ppo.total_steps
+
+    @property
+    def seed(self) -> int:
+        return self.ppo.seed
 
     @model_validator(mode="after")
     def _bred_from_parent(self) -> TrainJob:
@@ -116,7 +125,8 @@ class TrainJob(MessageBase):
 
 
 class EvalJob(MessageBase):
-    """The coordinator's order to `node`: train and evaluate `agent`'s body in an eval task."""
+    """The coordinator's order to `node`: train `agent`'s body from scratch in a test task with
+    `ppo` (its budget and seed) and report the score."""
 
     type: Literal["EvalJob"] = "EvalJob"
     job: Id
@@ -124,15 +134,22 @@ class EvalJob(MessageBase):
     node: Id
     genome: Genome
     task: Id
-    seed: Seed
-    steps: Steps
+    ppo: PPOConfig
     lease_s: LeaseSeconds
-    num_envs: Annotated[int, Field(ge=1, le=65_536)] = 32
+
+    @property
+    def steps(self) -> int:
+        return self.ppo.total_steps
+
+    @property
+    def seed(self) -> int:
+        return self.ppo.seed
 
 
 class Tournament(MessageBase):
     """A decision, recorded as a fact: the contestants, the winner (parent) and the seed of the
-    child's mutation (`derl.evolution.breed`; its FitnessReport names the mutation).
+    child's mutation (`derl.evolution.breed`; its FitnessReport names the mutation). The rule
+    that made it is `derl.evolution.Evolution.tournament`; the wire only carries the outcome.
 
     `iteration` counts the tournaments of the run (0 for the first).
     """
@@ -146,17 +163,11 @@ class Tournament(MessageBase):
     iteration: Count
 
     @model_validator(mode="after")
-    def _parent_is_fittest(self) -> Tournament:
+    def _one_fitness_each(self) -> Tournament:
         if len(self.contestants) != len(self.fitness):
             raise ValueError(
                 f"{len(self.contestants)} contestants but {len(self.fitness)} fitness values"
             )
-        best = max(self.fitness)
-        winners = {c for c, f in zip(self.contestants, self.fitness, strict=True) if f == best}
-        if self.parent not in winners:
-            raise ValueError(f"parent {self.parent!r} is not a fittest contestant")
-        if self.child in self.contestants:
-            raise ValueError(f"child {self.child!r} is among the contestants")
         return self
 
 
@@ -224,17 +235,108 @@ class Ack(MessageBase):
 
 
 class EvalResult(MessageBase):
-    """An evaluator's result for one agent in one evaluation task."""
+    """An evaluator's result for one agent in one test task, trained `steps` env steps with
+    `seed` (the budget matters: the paper reports 5M- and 1M-step evaluations)."""
 
     type: Literal["EvalResult"] = "EvalResult"
     agent: Id
     task: Id
     seed: Seed
+    steps: Steps
     reward: Finite
     cost_of_work: Measure
     curve: Curve
     node: Id
     job: Id
+
+
+class Reject(MessageBase):
+    """The coordinator's refusal of a FitnessReport or an EvalResult that `node` sent for `job`:
+    it will never be accepted (`reason`), so the sender drops it and asks for work again."""
+
+    type: Literal["Reject"] = "Reject"
+    of: Literal["FitnessReport", "EvalResult"]
+    job: Id
+    child: Id
+    node: Id
+    reason: Text
+
+
+class Cancel(MessageBase):
+    """The coordinator's order to `node` to stop `job`: its result is no longer wanted (another
+    worker's report for the same child was accepted first)."""
+
+    type: Literal["Cancel"] = "Cancel"
+    job: Id
+    node: Id
+    reason: Text
+
+
+class JobLost(MessageBase):
+    """A fact of the coordinator: `job` was taken back from `node` (its liveliness token
+    vanished, or it sent no progress for its lease); its subject waits for the next worker. A
+    report for it that arrives before the subject is done still counts."""
+
+    type: Literal["JobLost"] = "JobLost"
+    job: Id
+    node: Id
+    reason: Text
+
+
+class JobFailed(MessageBase):
+    """A worker's report that `job` failed: what failed and the exception's text. The worker
+    then asks for work again; the coordinator retries the subject up to `max_attempts` times."""
+
+    type: Literal["JobFailed"] = "JobFailed"
+    job: Id
+    node: Id
+    subject: Id
+    error: Text
+
+
+class Birth(MessageBase):
+    """A child born: the authoritative birth stream, published on ``births/<child>`` once the
+    coordinator has journaled it. `birth` is the birth index (0 first), `generation` the parent's
+    plus one (0 for the initial population); `node` trained it (for a repeat: the node that
+    trained the earlier body, `repeat_of`, whose result the child takes)."""
+
+    type: Literal["Birth"] = "Birth"
+    child: Id
+    parent: Id | None = None
+    job: Id
+    node: Id
+    birth: Count
+    generation: Count
+    fitness: Finite
+    cost_of_work: Measure
+    energy: Measure
+    mass: Positive
+    mutation: str | None = None
+    mutation_detail: Text = ""
+    genome: Genome
+    repeat_of: Id | None = None
+
+
+class ChildFailed(MessageBase):
+    """A child given up after `attempts` failed trainings (also on ``births/<child>``): it is
+    never born, and the run goes on without it."""
+
+    type: Literal["ChildFailed"] = "ChildFailed"
+    child: Id
+    parent: Id | None = None
+    attempts: Count
+    error: Text
+
+
+class Rejection(MessageBase):
+    """A fact of the coordinator: a message it refused (`reason`), from `sender` on `key`."""
+
+    type: Literal["Rejection"] = "Rejection"
+    reason: Text
+    key: Text
+    sender: Id | None = None
+    of: Text = ""
+    job: Id | None = None
 
 
 class PopulationSnapshot(MessageBase):
@@ -256,7 +358,9 @@ class PopulationSnapshot(MessageBase):
 
 
 class RunStatus(MessageBase):
-    """Counts and the best agent so far (both None before the first birth)."""
+    """Counts and the best agent so far (both None before the first birth): `born` children
+    (`repeats` of them were repeats of an earlier body), `failed` children given up, `rejected`
+    messages, `in_flight` jobs."""
 
     type: Literal["RunStatus"] = "RunStatus"
     born: Count
@@ -267,6 +371,8 @@ class RunStatus(MessageBase):
     workers_alive: Count
     evaluated: Count = 0
     eval_target: Count = 0
+    failed: Count = 0
+    repeats: Count = 0
     rejected: Count = 0
     steps_per_s: NonNegative = 0.0
     done: bool = False
@@ -287,6 +393,13 @@ Message = Annotated[
     | FitnessReport
     | Ack
     | EvalResult
+    | Reject
+    | Cancel
+    | JobLost
+    | JobFailed
+    | Birth
+    | ChildFailed
+    | Rejection
     | PopulationSnapshot
     | RunStatus,
     Field(discriminator="type"),

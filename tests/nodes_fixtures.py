@@ -17,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from messages import FitnessReport, TrainJob
+from messages import Birth, TrainJob
 from nodes.journal.segments import replay, segments
 from nodes.runtime.processes import stop_all
 
@@ -120,7 +120,7 @@ class Processes:
 def births(run_dir: Path) -> list[str]:
     if not segments(run_dir):
         return []
-    return [m.child for m in replay(run_dir) if isinstance(m, FitnessReport)]
+    return [m.child for m in replay(run_dir) if isinstance(m, Birth)]
 
 
 def jobs(run_dir: Path) -> list[TrainJob]:

@@ -15,7 +15,7 @@ import pytest
 
 from derl.evolution import load_profile
 from derl.unimal import sample_population
-from messages import Ack, Curve, FitnessReport, MessageBase, TrainJob, WorkerReady, decode
+from messages import Ack, Birth, Curve, FitnessReport, MessageBase, TrainJob, WorkerReady, decode
 from nodes.coordinator.node import INITIAL_FILE, Coordinator
 from nodes.journal.segments import read_segment
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -110,6 +110,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     # accepted: the Ack comes, and the checkpoint file is whole by then
     coordinator._fitness(_report(first, b"weights-1"))
     coordinator._flush()
+    assert isinstance(heard.get(timeout=10), Birth)  # the birth stream: journaled, published
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == first.child
     assert coordinator.checkpoints.path(first.child).read_bytes() == b"weights-1"
@@ -122,6 +123,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     with caplog.at_level(logging.ERROR, logger="derl.coordinator"):
         coordinator._fitness(report)
         coordinator._flush()
+    assert isinstance(heard.get(timeout=10), Birth)
     assert second.child in coordinator.state.evolution.fitness
     assert report.model_copy(update={"checkpoint": b""}) in _journaled(coordinator)
     assert _quiet(heard), "an Ack went out for a checkpoint that is not on disk"

@@ -18,7 +18,7 @@ import pytest
 import yaml
 from nodes_fixtures import free_port, wait_for
 
-from messages import FitnessReport, RunStatus, TrainJob, TrainProgress, encode
+from messages import Birth, FitnessReport, RunStatus, TrainJob, TrainProgress, encode
 from messages.examples import examples
 from nodes.journal.segments import replay, segments
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -71,7 +71,7 @@ class Cluster:
     def births(self) -> list[str]:
         if not segments(self.dir):
             return []
-        return [m.child for m in replay(self.dir) if isinstance(m, FitnessReport)]
+        return [m.child for m in replay(self.dir) if isinstance(m, Birth)]
 
     def jobs(self) -> list[TrainJob]:
         return [m for m in replay(self.dir) if isinstance(m, TrainJob)]
@@ -117,7 +117,7 @@ def test_smoke_run_end_to_end(tmp_path: Path) -> None:
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
     assert "done: 8 bodies" in result.stdout
-    births = [m for m in replay(run_dir) if isinstance(m, FitnessReport)]
+    births = [m for m in replay(run_dir) if isinstance(m, Birth)]
     assert len({m.child for m in births}) == len(births) == 8
     assert len(list((run_dir / "checkpoints").glob("*.pt"))) == 8
     assert (run_dir / "summary.json").exists() and any((run_dir / "best").iterdir())
@@ -194,9 +194,9 @@ def test_garbage_on_every_key_is_rejected(cluster: Cluster, observer: Bus) -> No
     trainer = cluster.trainer("t")
     wait_for(lambda: cluster.progress, 120, "training to start")
     keys = observer.keys
-    targets = [keys.ready("t"), keys.job("t"), keys.ack("t"), keys.fitness("x"),
-               keys.progress("x"), keys.eval("x", "ft"), keys.status(), keys.population(),
-               keys.tournament("x")]  # fmt: skip
+    targets = [keys.ready("t"), keys.job("t"), keys.ack("t"), keys.fitness("t", "x"),
+               keys.progress("t", "x"), keys.eval("t", "x", "ft"), keys.status(),
+               keys.population(), keys.tournament("x"), keys.births("x")]  # fmt: skip
     valid = examples(cluster.run, 0, 10)
     wrong_version = {**valid[0].model_dump(), "schema_version": 99}
     forged = FitnessReport.model_validate({**next(m for m in valid if m.type == "FitnessReport")

@@ -89,13 +89,15 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
 ) -> None:
     """A coordinator that died between journaling a Tournament and its TrainJob: the replayed
     fold keeps the child waiting (it is trained next), never decides past it."""
-    from messages import FitnessReport, TrainJob
+    from derl.rl import PPOConfig
+    from messages import Birth, TrainJob
     from messages.examples import examples
     from nodes.coordinator.state import CoordinatorState, tournament_message
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
     state = CoordinatorState.start(config, initial)
-    template = next(m for m in examples("r") if isinstance(m, FitnessReport))
+    template = next(m for m in examples("r") if isinstance(m, Birth))
+    ppo = PPOConfig(total_steps=4096, seed=0)
     for k, child in enumerate(state.evolution.initial):
         job = TrainJob(
             run="r",
@@ -104,8 +106,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
             node="t0",
             genome=child.genome,
             task="ft",
-            steps=4096,
-            seed=0,
+            ppo=ppo,
             lease_s=10.0,
         )
         state.apply(job)
@@ -113,8 +114,11 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
             template.model_copy(
                 update={
                     "child": child.child,
+                    "parent": None,
                     "job": job.job,
                     "node": "t0",
+                    "birth": k,
+                    "generation": 0,
                     "genome": child.genome,
                     "mutation": None,
                     "fitness": k,
@@ -137,8 +141,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
             node="t1",
             genome=genome,
             task="ft",
-            steps=4096,
-            seed=0,
+            ppo=ppo,
             parent=decided.parent,
             mutation_seed=seed,
             lease_s=10.0,

@@ -13,10 +13,12 @@ import pytest
 
 from derl.analysis import RetrainPlan
 from derl.evolution import breed
+from derl.rl import PPOConfig
 from derl.unimal import Genome
-from messages import Ack, Curve, EvalResult, FitnessReport, Tournament, TrainJob
+from messages import Ack, Birth, Curve, EvalResult, FitnessReport, Tournament, TrainJob
 from nodes.cli.main import main
-from nodes.cli.report import _thresholds, load_run, load_runs
+from nodes.cli.report import _thresholds, load_runs
+from nodes.journal.history import run_log as load_run
 from nodes.journal.segments import Journal, segments
 
 FIGURES = (
@@ -51,8 +53,7 @@ def _job(child: str, genome: Genome, parent: str | None, attempt: int = 1) -> Tr
         node="t0",
         genome=genome,
         task="vt",
-        steps=300,
-        seed=1409,
+        ppo=PPOConfig(total_steps=300, num_envs=1, rollout_steps=100, minibatch_size=100),
         parent=parent,
         mutation_seed=None if parent is None else 7,
         lease_s=30,
@@ -89,6 +90,16 @@ def _report(
     )
 
 
+def _birth(report: FitnessReport, parent: str | None, birth: int, generation: int) -> Birth:
+    """The coordinator's Birth of an accepted `report`."""
+    return Birth(
+        run=report.run, child=report.child, parent=parent, job=report.job, node=report.node,
+        birth=birth, generation=generation, fitness=report.fitness,
+        cost_of_work=report.cost_of_work, energy=report.energy, mass=report.mass,
+        mutation=report.mutation, genome=report.genome,
+    )  # fmt: skip
+
+
 def write_journal(run_dir: Path, genome: Genome) -> None:
     """P = 3 founders i0..i2, then c0 (of i2, its job reassigned once) and c1 (of c0); a repeated
     fitness report and a repeated evaluation result, as a journal may hold after restarts."""
@@ -97,7 +108,9 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
     with Journal(run_dir) as journal:
         for k, fitness in enumerate((10.0, 20.0, 30.0)):
             journal.write(_job(f"i{k}", genome, None))
-            journal.write(_report(f"i{k}", fitness, (fitness / 2, fitness, fitness), genome))
+            report = _report(f"i{k}", fitness, (fitness / 2, fitness, fitness), genome)
+            journal.write(report)
+            journal.write(_birth(report, None, k, 0))
             journal.write(
                 Ack(run="hand", of="FitnessReport", job=f"i{k}.1", child=f"i{k}", node="t0")
             )
@@ -116,14 +129,19 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
             )
             journal.write(_job(child, body, parent))
         journal.write(_job("c0", genome, "i2", attempt=2))
-        journal.write(_report("c0", 150.0, (20.0, 40.0, 150.0), c0_body, "grow_limb", 2))
-        journal.write(_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body, "gear"))
+        for report, parent, k in (
+            (_report("c0", 150.0, (20.0, 40.0, 150.0), c0_body, "grow_limb", 2), "i2", 3),
+            (_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body, "gear"), "c0", 4),
+        ):
+            journal.write(report)
+            journal.write(_birth(report, parent, k, k - 2))
         for task, seed, reward in (("patrol", 0, 5.0), ("patrol", 1, 7.0), ("incline", 0, 3.0)):
             result = EvalResult(
                 run="hand",
                 agent="c1",
                 task=task,
                 seed=seed,
+                steps=1000,
                 reward=reward,
                 cost_of_work=1.5,
                 curve=Curve(),

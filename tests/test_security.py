@@ -37,7 +37,7 @@ from nodes_fixtures import (
     write_profile,
 )
 
-from messages import Ack, FitnessReport, MessageBase, RunStatus, TrainJob, decode
+from messages import Ack, Birth, FitnessReport, MessageBase, RunStatus, TrainJob, decode
 from messages.examples import examples
 from nodes.journal.segments import replay
 from nodes.runtime.bus import Bus, ZenohOptions, zenoh_config
@@ -253,9 +253,9 @@ def test_tls_and_access_control(tmp_path: Path, pki: Path, sessions: list) -> No
         wait_for(lambda: coordinator.poll() is not None, 120, "the run to end")
         assert coordinator.returncode == 0, processes.log("coordinator")
         assert_born_once(run_dir, 3)
-        born = {m.child: m.node for m in replay(run_dir) if isinstance(m, FitnessReport)}
+        born = {m.child: m.node for m in replay(run_dir) if isinstance(m, Birth)}
         assert born[job.child] == "trainer-0"
-        births = [m for m in replay(run_dir) if isinstance(m, FitnessReport)]
+        births = [m for m in replay(run_dir) if isinstance(m, Birth)]
         assert all(m.fitness != FORGED_FITNESS for m in births)  # no forged report made a birth
 
         # rejections: not acknowledged, counted (and the forgeries never reached anyone)

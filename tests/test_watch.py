@@ -19,6 +19,7 @@ import pytest
 from nodes_fixtures import free_port, wait_for
 
 from messages import (
+    Birth,
     FitnessReport,
     MessageBase,
     RunStatus,
@@ -175,7 +176,7 @@ def test_record_keeps_every_valid_message_and_counts_garbage(
     sent = [m for i in range(3) for m in examples(bus.run, i)]
     for message in sent:
         bus.publish(message)
-    bus.session.put(bus.keys.fitness("x"), b"\xff\x00garbage")
+    bus.session.put(bus.keys.fitness("n", "x"), b"\xff\x00garbage")
     bus.session.put(bus.keys.population(), encode(sent[-1]))  # a RunStatus on the wrong key
     wait_for(lambda: out.exists() and len(list(read_log(out))) == len(sent), 20, "the recording")
     stop_all([recorder])
@@ -257,7 +258,7 @@ def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None
     with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
         publisher = Repeater(Bus(session, run))
         report = next(m for m in examples(run, 0, 300) if isinstance(m, FitnessReport))
-        publisher.start([report], 0.1, raw=((f"derl/{run}/fitness/x", b"\xffjunk"),))
+        publisher.start([report], 0.1, raw=((f"derl/{run}/fitness/n/x", b"\xffjunk"),))
         try:
             args = ["topic", "echo", "fitness", "--run", run, "--count", "3",
                     "--mode", "client", "--connect", router]  # fmt: skip
@@ -277,7 +278,7 @@ def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None
 
 def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpoint: str) -> None:
     status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
-    repeater.start([status], 0.05, raw=((bus.keys.fitness("x"), b"\xffjunk"),))
+    repeater.start([status], 0.05, raw=((bus.keys.fitness("n", "x"), b"\xffjunk"),))
     flags = ["--run", bus.run, "--connect", endpoint]
     rate = procs.derl("hz", ["topic", "hz", "status", "--duration", "3", *flags])
     listing = procs.derl("list", ["topic", "list", "--duration", "2", *flags])
@@ -285,14 +286,14 @@ def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpo
     measured = re.findall(r"average rate: ([\d.]+) Hz", procs.output("hz"))
     assert measured and 10 < float(measured[-1]) < 30, procs.output("hz")
     assert re.search(rf"derl/{bus.run}/status\s+RunStatus\s+\d+", procs.output("list"))
-    assert re.search(rf"derl/{bus.run}/fitness/x\s+rejected\s+\d+", procs.output("list"))
+    assert re.search(rf"derl/{bus.run}/fitness/n/x\s+rejected\s+\d+", procs.output("list"))
 
 
 # --- monitor and the example -----------------------------------------------------------------
 
 
 def _a_run(run: str) -> list[MessageBase]:
-    report = next(m for m in examples(run, 0) if isinstance(m, FitnessReport))
+    birth = next(m for m in examples(run, 0) if isinstance(m, Birth))
     return [
         RunStatus(run=run, born=7, target=40, best_fitness=12.5, best_agent="a3", in_flight=2,
                   workers_alive=2, evaluated=1, eval_target=4, steps_per_s=2345.0),
@@ -300,7 +301,7 @@ def _a_run(run: str) -> list[MessageBase]:
                       total_steps=8192, recent_return=1.5, steps_per_s=1200.0),
         Tournament(run=run, child="a8", contestants=("a3", "a1"), fitness=(12.5, 3.0),
                    parent="a3", mutation_seed=5, iteration=5),
-        report.model_copy(update={"child": "a8", "fitness": 9.75}),
+        birth.model_copy(update={"child": "a8", "parent": "a3", "fitness": 9.75}),
     ]  # fmt: skip
 
 
@@ -320,8 +321,8 @@ def test_monitor_once_shows_the_run(
 def test_example_monitor_prints_fitness(
     procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
 ) -> None:
-    reports = [m for i in range(3) for m in examples(bus.run, i) if isinstance(m, FitnessReport)]
-    repeater.start(reports, 0.2, raw=((bus.keys.fitness("x"), b"\xffjunk"),))
+    reports = [m for i in range(3) for m in examples(bus.run, i) if isinstance(m, Birth)]
+    repeater.start(reports, 0.2, raw=((bus.keys.births("x"), b"\xffjunk"),))
     procs.script("example", ["examples/fitness_monitor.py", bus.run, endpoint])
     wanted = {f"{r.child} fitness {r.fitness:.2f} ({r.node})" for r in reports}
     wait_for(lambda: wanted <= set(procs.output("example").splitlines()), 30, "fitness lines")
@@ -339,7 +340,7 @@ def test_run_view_folds_births_and_draws_them() -> None:
     view = RunView("r")
     for message in _a_run("r"):
         view.apply(message, 100.0)
-    view.apply(_a_run("r")[-1], 101.0)  # a re-sent report is one birth
+    view.apply(_a_run("r")[-1], 101.0)  # a birth heard twice (query and stream) is one
     assert [(b.child, b.parent, b.mutation, b.fitness) for b in view.births] == [
         ("a8", "a3", "grow_limb", 9.75)
     ]

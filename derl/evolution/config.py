@@ -7,17 +7,30 @@ from a built-in profile and overrides the rest).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from derl.envs.registry import TASKS
+from derl.envs.registry import TASKS, TEST_TASKS, make_task
+from derl.lifetime import ppo_config
+from derl.rl import PPOConfig
+
+CONTROL_DT = 0.02  # s per control step
+EPISODE_STEPS = 1000
+BONUS = 10.0  # the largest per-step bonus of a reward
+SEED_LIMIT = 2**64  # seeds travel as unsigned 64-bit integers
+MAX_LEASE_S = 86_400.0
 
 
 class EvolutionConfig(BaseModel):
-    """Population, tournaments, budget and lifetime learning of one run."""
+    """Population, tournaments, budget and lifetime learning of one run: the whole configuration
+    of a run, checked before anything starts and saved with it (`profile.json`), so a resumed run
+    trains exactly as it started. `ppo` holds the PPO hyperparameters; each job's budget, seed,
+    copies and fitness settings come from `train_steps`, `training_seed`, `num_envs` and the task
+    (`training_ppo`, `evaluation_ppo`)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -28,13 +41,49 @@ class EvolutionConfig(BaseModel):
     total: int = Field(4000, ge=1, description="N: bodies trained in all, initial ones included")
     train_steps: int = Field(5_000_000, ge=1, description="PPO env steps per body")
     num_envs: int = Field(32, ge=1)
-    training_seed: int = Field(1409, description="the same for every lifetime (the paper's)")
-    seed: int = Field(0, description="seeds the initial bodies and the tournaments")
-    lease_s: float = Field(60.0, gt=0, description="a job without progress this long is reassigned")
+    training_seed: int = Field(
+        1409, ge=0, lt=SEED_LIMIT, description="the same for every lifetime (the paper's)"
+    )
+    seed: int = Field(
+        0, ge=0, lt=SEED_LIMIT, description="seeds the initial bodies and the tournaments"
+    )
+    lease_s: float = Field(
+        60.0, gt=0, le=MAX_LEASE_S, description="a job without progress this long is reassigned"
+    )
+    max_attempts: int = Field(
+        3, ge=1, le=100, description="trainings of a child that may fail before it is given up"
+    )
     eval_top: int = Field(0, ge=0, description="best bodies evaluated on the test tasks at the end")
     eval_tasks: tuple[str, ...] = ()
     eval_seeds: int = Field(1, ge=1)
     eval_steps: int = Field(1_000_000, ge=1)
+    ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters")
+
+    def training_ppo(self) -> PPOConfig:
+        """The PPO of every training of this run's evolution."""
+        return self._ppo(self.world, self.train_steps, self.training_seed)
+
+    def evaluation_ppo(self, task: str, seed: int) -> PPOConfig:
+        """The PPO of one test-task evaluation."""
+        return self._ppo(task, self.eval_steps, seed)
+
+    def fitness_bound(self) -> float:
+        """The largest |fitness| the world allows: the fitness is a mean of episode sums of its
+        selection term, which cannot exceed covering the arena's diagonal in an episode (forward
+        progress: 1/dt per metre; reach and push: 100 per metre each) plus every step's bonus."""
+        task = make_task(self.world)
+        diagonal = 2 * math.hypot(*task.arena.half)
+        per_metre = 1 / CONTROL_DT if task.fitness_component == "forward" else 2 * 100.0
+        return per_metre * diagonal + BONUS * (EPISODE_STEPS + 1)
+
+    def _ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
+        per_job = {"total_steps", "seed", "num_envs", "fitness_component", "fitness_window_steps"}
+        hyper = self.ppo.model_dump(exclude=per_job)
+        try:
+            return ppo_config(task, steps, seed, num_envs=self.num_envs, **hyper)
+        except ValidationError as error:
+            reasons = "; ".join(e["msg"].removeprefix("Value error, ") for e in error.errors())
+            raise ValueError(f"PPO of {task} with {steps} steps: {reasons}") from None
 
     @model_validator(mode="after")
     def _consistent(self) -> EvolutionConfig:
@@ -45,20 +94,11 @@ class EvolutionConfig(BaseModel):
             raise ValueError(f"total ({self.total}) < population ({self.population})")
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
+        self.training_ppo()  # the budget holds whole rollouts, the minibatch fits, ...
+        for task in self.eval_tasks:
+            self.evaluation_ppo(task, 0)
         return self
 
-
-TEST_TASKS = (
-    "patrol",
-    "point_nav",
-    "obstacle",
-    "exploration",
-    "escape",
-    "incline",
-    "push_box_incline",
-    "manipulate_ball",
-)
-"""The paper's eight test tasks (appendix C)."""
 
 PROFILES: dict[str, EvolutionConfig] = {
     "smoke": EvolutionConfig(

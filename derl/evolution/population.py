@@ -80,6 +80,7 @@ class Evolution:
         self.seeds: dict[str, int | None] = {c.child: None for c in self.initial}
         self.born: list[Member] = []
         self.fitness: dict[str, float] = {}
+        self.given_up: set[str] = set()  # children whose trainings kept failing: never born
         self.iterations = 0
 
     @property
@@ -92,8 +93,13 @@ class Evolution:
         return not self.unborn_initial
 
     @property
+    def settled(self) -> int:
+        """Children born or given up."""
+        return len(self.born) + len(self.given_up)
+
+    @property
     def done(self) -> bool:
-        return len(self.born) >= self.config.total
+        return self.settled >= self.config.total
 
     def best(self) -> Member | None:
         return max(self.born, key=lambda m: m.fitness, default=None)
@@ -130,6 +136,12 @@ class Evolution:
         if child in self.genomes:
             return self.genomes[child], None
         return self.genomes[self.parents[child]], self.seeds[child]
+
+    def give_up(self, child: str) -> None:
+        """`child` will never be born (its trainings failed); the run goes on without it."""
+        if child in self.parents and child not in self.fitness:
+            self.given_up.add(child)
+            self.unborn_initial.discard(child)
 
     def birth(self, agent: str, fitness: float, genome: Genome) -> Member | None:
         """`agent` is born with body `genome` and `fitness`; None if it was born already or is

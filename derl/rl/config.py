@@ -29,7 +29,9 @@ class PPOConfig(BaseModel):
     max_grad_norm: float = Field(0.5, gt=0.0)
     obs_clip: float = Field(10.0, gt=0.0, description="normalised proprioception clipped to ±this")
     reward_clip: float = Field(10.0, gt=0.0, description="scaled rewards clipped to ±this")
-    seed: int = Field(1409, description="seeds network init, action noise and minibatch order")
+    seed: int = Field(
+        1409, ge=0, lt=2**64, description="seeds network init, action noise and minibatch order"
+    )
     torch_threads: int = Field(1, ge=1, description="1: a second thread steals the sim's core")
     fitness_component: str = Field("forward", description="reward component the fitness sums")
     fitness_window_steps: int = Field(

@@ -1,16 +1,13 @@
 """`derl report` and `derl select`: the paper's analyses of finished (or running) runs.
 
-Both read a run's journal (a run directory, or one MCAP file such as a journal segment) with
-`nodes.journal.segments`, fold its messages into `derl.analysis` records (bodies in birth order with the
-parent of their TrainJob and the body, mutation, fitness, curve, energy, cost of work and mass
-of their FitnessReport; the EvalResults), and hand those to
-`derl.analysis`. The first report of a child is its birth, as in the coordinator's fold.
+Both read runs through the journal's fold (`nodes.journal.history.run_log`: bodies in birth
+order with their parent, body, mutation, fitness, curve, energy, cost of work and mass; the
+evaluations) and hand those to `derl.analysis`.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import time
 from pathlib import Path
@@ -18,12 +15,12 @@ from typing import TYPE_CHECKING
 
 from rich.console import Console
 
+from nodes.journal.history import run_log
+
 if TYPE_CHECKING:
-    from derl.analysis import Body, RunLog
-    from messages import FitnessReport, TrainJob
+    from derl.analysis import RunLog
 
 console = Console()
-log = logging.getLogger("derl.report")
 
 SELECT_FORMAT = """\
 output (JSON, one job per selected agent and new seed):
@@ -111,93 +108,11 @@ def _thresholds(text: str) -> dict[str, float]:
         ) from None
 
 
-def load_run(path: Path) -> RunLog:
-    """A run's records from its journal: a run directory or one MCAP file."""
-    from derl.analysis import Evaluation, RunLog
-    from messages import EvalResult, FitnessReport, TrainJob
-    from nodes.journal.segments import read_segment, replay, segments
-
-    if path.is_dir():
-        if not segments(path):
-            raise SystemExit(f"derl: {path} holds no journal (journal/segment-NNNN.mcap)")
-        messages = replay(path)
-    elif path.is_file():
-        messages = read_segment(path)
-    else:
-        raise SystemExit(f"derl: no run directory or log at {path}")
-    run: str | None = None
-    jobs: dict[str, TrainJob] = {}
-    bodies: list[Body] = []
-    born: set[str] = set()
-    evaluations: dict[tuple[str, str, int], Evaluation] = {}
-    orphans = others = 0
-    for msg in messages:
-        run = run or msg.run
-        if msg.run != run:
-            others += 1
-            continue
-        if isinstance(msg, TrainJob):
-            jobs.setdefault(msg.child, msg)
-        elif isinstance(msg, FitnessReport):
-            job = jobs.get(msg.child)
-            if msg.child in born:
-                continue
-            if job is None or (job.parent is not None and job.parent not in born):
-                orphans += 1
-                continue
-            born.add(msg.child)
-            bodies.append(_body(len(bodies), job, msg))
-        elif isinstance(msg, EvalResult):
-            evaluations.setdefault(
-                (msg.agent, msg.task, msg.seed),
-                Evaluation(
-                    agent=msg.agent,
-                    task=msg.task,
-                    seed=msg.seed,
-                    reward=msg.reward,
-                    cost_of_work=msg.cost_of_work,
-                ),
-            )
-    if not bodies:
-        raise SystemExit(f"derl: no body was born in {path}")
-    if orphans:
-        log.warning("%s: %d fitness reports without their job or parent skipped", path, orphans)
-    if others:
-        log.warning("%s: %d messages of runs other than %s skipped", path, others, run)
-    first = next(iter(jobs.values()))
-    return RunLog(
-        name=run,
-        world=first.task,
-        bodies=tuple(bodies),
-        evaluations=tuple(evaluations.values()),
-        train_steps=first.steps,
-        training_seed=first.seed,
-    )
-
-
-def _body(birth: int, job: TrainJob, report: FitnessReport) -> Body:
-    from derl.analysis import Body
-
-    return Body(
-        id=report.child,
-        parent=job.parent,
-        birth=birth,
-        fitness=report.fitness,
-        curve_steps=report.curve.env_steps,
-        curve_returns=report.curve.returns,
-        energy=report.energy,
-        cost_of_work=report.cost_of_work,
-        mass=report.mass,
-        mutation=report.mutation,
-        genome=report.genome,
-    )
-
-
 def load_runs(paths: list[Path]) -> list[RunLog]:
     """The runs of `paths`, renamed run-2, run-3... where two carry the same run id."""
     runs, seen = [], set()
     for path in paths:
-        run = load_run(path)
+        run = run_log(path)
         name, k = run.name, 1
         while name in seen:
             k += 1

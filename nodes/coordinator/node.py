@@ -1,15 +1,20 @@
-"""The coordinator node: owns the population, hands out jobs, journals everything it accepts.
+"""The coordinator node: owns the population, hands out jobs, journals everything it decides.
 
 It runs one loop over an inbox that every subscription feeds, so the state has one writer.
 Every message it accepts or sends is first appended to the run's MCAP journal and applied to
-`CoordinatorState` (the same `apply` that rebuilds the state on restart), then published. It
+`CoordinatorState` (the same handlers that rebuild the state on restart), then published. It
 takes what the inbox holds as a group (group commit): the group's messages are journaled, the
-journal is flushed once, and only then is what they made the coordinator say published, so
-nothing is seen that a crash could forget, at one file write per group instead of per message. A
-trainer that loses its liveliness token, or sends no progress for its job's lease, loses the
-job; the child goes to the next ready worker. Fitness reports are acknowledged when accepted, and
-also when they repeat a birth or come for a job that was taken back (so the sender stops),
-never for a job that was never issued to that node.
+journal is flushed and fsynced once, and only then is what they made the coordinator say
+published, so nothing is seen that a crash could forget. A worker that loses its liveliness token,
+or sends no progress for its job's lease, loses the job (JobLost, journaled); the child goes to
+the next ready worker, and the first valid report for a child wins, whoever trained it (the other
+job is cancelled). A report is acknowledged once its checkpoint is on disk, and answered with a
+Reject when it can never be accepted (a job never issued to the sender, another body than its
+job's, an impossible fitness); a message whose node differs from its key's node segment is
+rejected by the bus check. Each of these is journaled and counted. A failed job (JobFailed) is
+retried on another worker up to `max_attempts` times, then the child is given up (ChildFailed).
+Births and failed children go out on ``births/<child>``; a Zenoh query on ``births/*`` or
+``population`` answers a monitor that starts late.
 """
 
 from __future__ import annotations
@@ -17,33 +22,48 @@ from __future__ import annotations
 import gc
 import json
 import logging
+import math
 import queue
 import signal
 import threading
 import time
+from collections import deque
 from concurrent.futures import Future
 from pathlib import Path
+
+import zenoh
+from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
 from derl.unimal import Genome, to_mjcf
 from messages import (
     Ack,
+    Birth,
+    Cancel,
+    ChildFailed,
     EvalJob,
     EvalResult,
     FitnessReport,
+    JobFailed,
+    JobLost,
+    KeySpace,
     Member,
     MessageBase,
     PopulationSnapshot,
+    Reject,
+    Rejection,
     RunStatus,
     TrainJob,
     TrainProgress,
     WorkerReady,
     encode,
 )
+from messages.examples import GENOME
 from nodes.coordinator.state import CoordinatorState, tournament_message
-from nodes.journal.segments import Journal, replay, segments
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.journal.segments import Journal, JournalDamaged, replay, segments
+from nodes.runtime.bus import MSGPACK, Bus, ZenohOptions, open_session
 from nodes.runtime.checkpoints import CheckpointFiles
+from nodes.runtime.rundir import RunDirLocked, lock_run_dir, write_atomic
 
 log = logging.getLogger("derl.coordinator")
 
@@ -51,32 +71,42 @@ STATUS_PERIOD_S = 1.0
 SNAPSHOT_PERIOD_S = 5.0
 DONE_ANNOUNCEMENTS = 5
 GROUP_S = 0.005  # the longest a group is handled before its journal flush and replies
+RECENT_BIRTHS = 1000  # births a late monitor gets by query
 PROFILE_FILE = "profile.json"
 INITIAL_FILE = "initial_population.json"
 
 
 class Coordinator:
     def __init__(self, run: str, run_dir: Path, config: EvolutionConfig) -> None:
-        self.run, self.run_dir, self.config = run, run_dir, config
+        self.run, self.run_dir = run, run_dir
         run_dir.mkdir(parents=True, exist_ok=True)
-        self._check_profile()
-        self.state = CoordinatorState.start(config, self._saved_initial_population())
+        self.config = self._run_config(config)
+        check_jobs(run, self.config)
+        self.state = CoordinatorState.start(self.config, self._saved_initial_population())
         self._save_initial_population()
         replayed = 0
         if segments(run_dir):
-            for msg in replay(run_dir):
-                self.state.apply(msg)
-                replayed += 1
+            try:
+                for msg in replay(run_dir):
+                    self.state.apply(msg)
+                    replayed += 1
+            except JournalDamaged as damage:
+                raise SystemExit(f"derl: {damage}") from None
         self.replayed = replayed
         self.logged_born = self.born
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
         # published after the journal flush (and, for an Ack, once its checkpoint is on disk)
         self.outbox: list[tuple[MessageBase, bytes, Future[None] | None]] = []
+        self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
+        self.recent_lock = threading.Lock()
+        for birth in self.state.births[-RECENT_BIRTHS:]:
+            self._remember(birth, encode(birth))
         now = time.monotonic()
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.alive: dict[str, str] = {}  # node -> role
         self.rates: dict[str, float] = {}  # node -> steps/s
+        self.rejected = 0
         self.stop = threading.Event()
         log.info("run %s: %d journaled messages replayed, %d born", run, replayed, self.born)
 
@@ -86,17 +116,29 @@ class Coordinator:
 
     # --- setup -------------------------------------------------------------------------------
 
-    def _check_profile(self) -> None:
+    def _run_config(self, given: EvolutionConfig) -> EvolutionConfig:
+        """The run's configuration: the one saved with it when it resumes (the code's defaults
+        may have changed since), else `given`, saved now."""
         path = self.run_dir / PROFILE_FILE
-        if path.exists():
+        if not path.exists():
+            write_atomic(path, given.model_dump_json(indent=2) + "\n")
+            return given
+        try:
             saved = EvolutionConfig.model_validate_json(path.read_text())
-            if saved != self.config:
-                raise SystemExit(
-                    f"derl: {self.run_dir} holds a run with another profile ({saved.name}); "
-                    "resume it with the same settings or use a new --run-dir"
-                )
-        else:
-            path.write_text(self.config.model_dump_json(indent=2) + "\n")
+        except ValidationError as error:
+            raise SystemExit(f"derl: {path} is not a valid run configuration:\n{error}") from None
+        if saved.name != given.name or saved.world != given.world:
+            raise SystemExit(
+                f"derl: {self.run_dir} holds a run of profile {saved.name} in {saved.world}, not "
+                f"{given.name} in {given.world}; resume it with the same profile or use a new "
+                "--run-dir"
+            )
+        if saved != given:
+            changed = sorted(k for k in type(given).model_fields if getattr(saved, k) !=
+                             getattr(given, k))  # fmt: skip
+            log.warning("resuming with the run's saved settings (%s differ from the profile's "
+                        "today)", ", ".join(changed))  # fmt: skip
+        return saved
 
     def _saved_initial_population(self) -> list[Genome] | None:
         """The initial bodies, if this run drew them before (else `Evolution` draws them)."""
@@ -108,26 +150,31 @@ class Coordinator:
     def _save_initial_population(self) -> None:
         """Keep the initial bodies as a fact of the run (drawing them again is slow)."""
         path = self.run_dir / INITIAL_FILE
-        if path.exists():
-            return
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps([c.genome.model_dump() for c in self.state.evolution.initial]))
-        tmp.replace(path)
+        if not path.exists():
+            bodies = [c.genome.model_dump() for c in self.state.evolution.initial]
+            write_atomic(path, json.dumps(bodies))
 
     # --- the loop ----------------------------------------------------------------------------
 
-    def serve(self, options: ZenohOptions) -> None:
+    def serve(self, options: ZenohOptions) -> bool:
+        """Run until the run is finished (True) or `stop` is set (False)."""
+        finished = False
         with open_session(options) as session:
-            bus = Bus(session, self.run)
+            bus = Bus(session, self.run, on_reject=self._bus_rejected)
             inbox: queue.Queue[tuple[str, object]] = queue.Queue()
             for kind, types in (
                 ("ready", (WorkerReady,)),
                 ("fitness", (FitnessReport,)),
                 ("progress", (TrainProgress,)),
                 ("eval", (EvalResult,)),
+                ("failure", (JobFailed,)),
             ):
                 bus.subscribe(bus.keys.all(kind), lambda m: inbox.put(("msg", m)), types)
             bus.watch_alive(lambda role, node, up: inbox.put(("alive", (role, node, up))))
+            queryables = [
+                session.declare_queryable(bus.keys.all("births"), self._answer_births),
+                session.declare_queryable(bus.keys.population(), self._answer_population),
+            ]
             self.bus = bus
             next_status = next_snapshot = 0.0
             announced = 0
@@ -149,6 +196,7 @@ class Coordinator:
                     gc.freeze()
                     self._log_births()
                     self._check_leases(now)
+                    self._flush()
                     bus.publish(self._status(), reliable=False)
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:
@@ -156,12 +204,16 @@ class Coordinator:
                         if announced == 1:
                             self._write_results()
                         if announced >= DONE_ANNOUNCEMENTS:
+                            finished = True
                             break
                 if now >= next_snapshot:
                     bus.publish(self._snapshot(), reliable=False)
                     next_snapshot = now + SNAPSHOT_PERIOD_S
-        self.checkpoints.close()
-        self.journal.close()
+            for queryable in queryables:
+                queryable.undeclare()
+            self.checkpoints.close()
+            self.journal.close()
+        return finished
 
     def _take(self, kind: str, item: object) -> None:
         try:
@@ -170,7 +222,7 @@ class Coordinator:
             elif kind == "alive":
                 self._liveliness(*item)
         except Exception:  # one message must never stop the run: log it and go on
-            self.bus.rejected["handler error"] += 1
+            self.rejected += 1
             log.exception("handling %r failed", item)
 
     def _commit(
@@ -185,12 +237,17 @@ class Coordinator:
             self.outbox.append((msg, data, after))
 
     def _flush(self) -> None:
-        """The group's messages into the journal file, then its replies onto the bus."""
-        self.journal.flush()
+        """The group's messages into the journal file and onto the disk, then its replies onto
+        the bus."""
+        if not self.outbox and not self.journal.pending:
+            return
+        self.journal.flush(sync=True)
         for msg, data, after in self.outbox:
             failed = None if after is None else after.exception()
             if failed is None:
                 self.bus.publish(msg, data=data)
+                if isinstance(msg, Birth | ChildFailed):
+                    self._remember(msg, data)
             else:  # unacknowledged: its trainer sends the report again, and the write is retried
                 log.error("%s not acknowledged: its checkpoint was not written: %s", msg, failed)
         self.outbox.clear()
@@ -207,6 +264,8 @@ class Coordinator:
             self._fitness(msg)
         elif isinstance(msg, EvalResult):
             self._evaluation(msg)
+        elif isinstance(msg, JobFailed):
+            self._job_failed(msg)
 
     # --- assignments -------------------------------------------------------------------------
 
@@ -222,13 +281,13 @@ class Coordinator:
 
     def _assign_training(self, node: str) -> None:
         state, evolution = self.state, self.state.evolution
-        if state.waiting:
-            child = state.waiting[0]
-        elif state.wants_tournament():
+        trainers = sum(role == "trainer" for role in self.alive.values())
+        child = state.next_child_for(node, trainers)
+        if child is None and not state.waiting and state.wants_tournament():
             decided = evolution.tournament()
             self._commit(tournament_message(self.run, decided))
             child = decided.child
-        else:
+        if child is None:
             return
         genome, mutation_seed = evolution.to_train(child)
         job = TrainJob(
@@ -238,12 +297,10 @@ class Coordinator:
             node=node,
             genome=genome,
             task=self.config.world,
-            steps=self.config.train_steps,
-            seed=self.config.training_seed,
+            ppo=self.config.training_ppo(),
             parent=evolution.parents[child],
             mutation_seed=mutation_seed,
             lease_s=self.config.lease_s,
-            num_envs=self.config.num_envs,
         )
         self._commit(job)
         self.heard[job.job] = time.monotonic()
@@ -261,10 +318,8 @@ class Coordinator:
             node=node,
             genome=self.state.evolution.genomes[agent],
             task=task,
-            seed=seed,
-            steps=self.config.eval_steps,
+            ppo=self.config.evaluation_ppo(task, seed),
             lease_s=self.config.lease_s,
-            num_envs=self.config.num_envs,
         )
         self._commit(job)
         self.heard[job.job] = time.monotonic()
@@ -277,67 +332,150 @@ class Coordinator:
         ack = Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node)
         self._commit(ack, after=after)
 
+    def _reject(self, msg: FitnessReport | EvalResult, subject: str, reason: str) -> None:
+        """Refuse a result for good: journaled, counted, and the sender told to drop it."""
+        self.rejected += 1
+        what = "fitness" if isinstance(msg, FitnessReport) else "evaluation"
+        log.warning("rejected %s of %s from %s: %s", what, subject, msg.node, reason)
+        reject = Reject(
+            run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node, reason=reason
+        )
+        self._commit(reject)
+
+    def _bus_rejected(self, why: str, key: str, msg: MessageBase | None) -> None:
+        """A message the bus check refused; the ones that decode are journaled (`Rejection`)."""
+        if msg is None or msg.run != self.run:
+            self.rejected += 1  # garbage or another run's: counted (the bus logged it)
+            return
+        self._rejection(why, key, msg)
+
+    def _rejection(self, why: str, key: str, msg: MessageBase) -> None:
+        self.rejected += 1
+        self._commit(
+            Rejection(
+                run=self.run,
+                reason=why,
+                key=key[:1000],
+                sender=getattr(msg, "node", None),
+                of=msg.type,
+                job=getattr(msg, "job", None),
+            ),
+            publish=False,
+        )
+
     def _fitness(self, report: FitnessReport) -> None:
         state = self.state
-        job = state.jobs.get(report.job)
-        if report.child in state.evolution.fitness:
+        order = state.orders.get(report.job)
+        if report.child in state.born:
             log.info("%s already born: repeated report acknowledged", report.child)
             saved = None  # a crash (or a failed write) may have lost its checkpoint file
-            if report.checkpoint and not self.checkpoints.path(report.child).exists():
+            born_from = state.born[report.child].job
+            if born_from == report.job and not self.checkpoints.path(report.child).exists():
                 saved = self.checkpoints.save(report.child, report.checkpoint)
             self._ack(report, report.child, after=saved)
-        elif job is not None and job.node == report.node and job.subject == report.child:
-            wrong = self._wrong_body(report)
-            if wrong:
-                self.bus.rejected["wrong body"] += 1
-                log.warning("rejected fitness of %s from %s: %s", report.child, report.node, wrong)
-                return
-            saved = self.checkpoints.save(report.child, report.checkpoint)
-            self._commit(report.model_copy(update={"checkpoint": b""}), publish=False)
-            log.debug("born %s fitness %.2f", report.child, report.fitness)
-            self._ack(report, report.child, after=saved)
-        elif state.issued_to(report.job, report.node):
-            log.info(
-                "report for %s taken back from %s: acknowledged, not used", report.job, report.node
-            )
-            self._ack(report, report.child)
+        elif report.child in state.failed:
+            self._reject(report, report.child, "the child was given up")
+        elif (
+            order is None
+            or not isinstance(order, TrainJob)
+            or order.node != report.node
+            or order.child != report.child
+        ):
+            self._reject(report, report.child, f"job {report.job} was never issued to "
+                         f"{report.node} for {report.child}")  # fmt: skip
+        elif wrong := self._wrong_report(report, order):
+            self._reject(report, report.child, wrong)
         else:
-            self.bus.rejected["unknown job"] += 1
-            log.warning(
-                "rejected fitness of %s: job %s was never issued to %s",
-                report.child,
-                report.job,
-                report.node,
-            )
+            self._birth(report, order)
 
-    def _wrong_body(self, report: FitnessReport) -> str:
-        """Why the body in `report` cannot be the one its job asked for ("" if it can).
+    def _birth(self, report: FitnessReport, order: TrainJob) -> None:
+        """The first valid report for a child: its birth (and the end of any other job for it)."""
+        state = self.state
+        saved = self.checkpoints.save(report.child, report.checkpoint)
+        self._commit(report.model_copy(update={"checkpoint": b""}), publish=False)
+        birth = Birth(
+            run=self.run,
+            child=report.child,
+            parent=order.parent,
+            job=report.job,
+            node=report.node,
+            birth=len(state.births),
+            generation=state.generation(order.parent),
+            fitness=report.fitness,
+            cost_of_work=report.cost_of_work,
+            energy=report.energy,
+            mass=report.mass,
+            mutation=report.mutation,
+            mutation_detail=report.mutation_detail,
+            genome=report.genome,
+        )
+        other = state.by_child.get(report.child)
+        self._commit(birth)
+        log.debug("born %s fitness %.2f", report.child, report.fitness)
+        self._ack(report, report.child, after=saved)
+        if other is not None and other != report.job:
+            node = state.jobs[other].node
+            self._commit(Cancel(run=self.run, job=other, node=node,
+                                reason=f"{report.child} was born from {report.job}"))  # fmt: skip
+
+    def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
+        """Why `report` cannot be accepted for `order` ("" if it can).
 
         A child bred by its trainer is taken as reported (breeding is deterministic and trainers
-        are trusted like their fitness; TLS and access control keep others off the bus)."""
-        job = self.state.jobs[report.job].order
-        assert isinstance(job, TrainJob)
-        if job.mutation_seed is None:
-            if report.mutation is not None or report.genome != job.genome:
+        are trusted like their fitness; with TLS only the node's own certificate can publish on
+        its keys)."""
+        if order.mutation_seed is None:
+            if report.mutation is not None or report.genome != order.genome:
                 return "not the body of its job"
         elif report.mutation is None:
             return "a tournament child without its mutation"
+        bound = self.config.fitness_bound()
+        if not abs(report.fitness) <= bound:
+            return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
+        if report.env_steps > order.steps:
+            return f"{report.env_steps} env steps trained, the job allowed {order.steps}"
         return ""
 
     def _evaluation(self, result: EvalResult) -> None:
-        job = self.state.jobs.get(result.job)
+        order = self.state.orders.get(result.job)
         key = (result.agent, result.task, result.seed)
-        if self.state.evaluations.get(key) is not None:
+        if key in self.state.evaluations:
             self._ack(result, result.agent)
-        elif job is not None and job.node == result.node:
+        elif (
+            not isinstance(order, EvalJob)
+            or order.node != result.node
+            or (order.agent, order.task, order.seed) != key
+            or order.steps != result.steps
+        ):
+            self._reject(result, result.agent, f"job {result.job} was never issued to "
+                         f"{result.node} for {result.agent} in {result.task}")  # fmt: skip
+        elif not math.isfinite(result.reward):
+            self._reject(result, result.agent, "a non-finite score")
+        else:
             self._commit(result, publish=False)
             self._ack(result, result.agent)
-        elif self.state.issued_to(result.job, result.node):
-            self._ack(result, result.agent)
-        else:
-            self.bus.rejected["unknown job"] += 1
-            log.warning(
-                "rejected evaluation: job %s was never issued to %s", result.job, result.node
+
+    def _job_failed(self, failure: JobFailed) -> None:
+        state = self.state
+        job = state.jobs.get(failure.job)
+        if job is None or job.node != failure.node or job.subject != failure.subject:
+            self._rejection("failure of a job not held by its sender", "", failure)
+            return
+        log.warning("%s failed on %s: %s", failure.subject, failure.node, failure.error)
+        self._commit(failure, publish=False)
+        if job.evaluation is None and state.failed_trainings(job.subject) >= (
+            self.config.max_attempts
+        ):
+            log.error("%s given up after %d failed trainings", job.subject,
+                      self.config.max_attempts)  # fmt: skip
+            self._commit(
+                ChildFailed(
+                    run=self.run,
+                    child=job.subject,
+                    parent=state.evolution.parents.get(job.subject),
+                    attempts=state.failed_trainings(job.subject),
+                    error=failure.error,
+                )
             )
 
     def _log_births(self) -> None:
@@ -369,20 +507,32 @@ class Coordinator:
         job = self.state.job_of(node)
         if job is not None:
             log.warning("%s left: %s goes back to the queue", node, job.subject)
-            self.state.lose(job.job)
+            self._commit(JobLost(run=self.run, job=job.id, node=node, reason="node left"))
 
     def _check_leases(self, now: float) -> None:
         for job in list(self.state.jobs.values()):
-            if now - self.heard.get(job.job, now) > self.config.lease_s:
-                log.warning(
-                    "%s silent for %.0f s: %s goes back to the queue",
-                    job.node,
-                    self.config.lease_s,
-                    job.subject,
-                )
-                self.state.lose(job.job)
+            if now - self.heard.get(job.id, now) > self.config.lease_s:
+                reason = f"no progress for {self.config.lease_s:g} s"
+                log.warning("%s: %s; %s goes back to the queue", job.node, reason, job.subject)
+                self._commit(JobLost(run=self.run, job=job.id, node=job.node, reason=reason))
 
     # --- what the run looks like -------------------------------------------------------------
+
+    def _remember(self, msg: Birth | ChildFailed, data: bytes) -> None:
+        with self.recent_lock:
+            self.recent.append((KeySpace(self.run).key_for(msg), data))
+
+    def _answer_births(self, query: zenoh.Query) -> None:
+        """A monitor's query on ``births/*``: the latest births and failed children, oldest
+        first."""
+        with self.recent_lock:
+            recent = list(self.recent)
+        for key, data in recent:
+            query.reply(key, data, encoding=MSGPACK)
+
+    def _answer_population(self, query: zenoh.Query) -> None:
+        snapshot = self._snapshot()
+        query.reply(self.bus.keys.population(), encode(snapshot), encoding=MSGPACK)
 
     def _status(self) -> RunStatus:
         best = self.state.evolution.best()
@@ -396,7 +546,9 @@ class Coordinator:
             workers_alive=len(self.alive),
             evaluated=self.state.evaluated,
             eval_target=self.state.eval_target,
-            rejected=sum(self.bus.rejected.values()),
+            failed=len(self.state.failed),
+            repeats=sum(b.repeat_of is not None for b in self.state.births),
+            rejected=self.rejected,
             steps_per_s=sum(self.rates.values()),
             done=self.state.finished,
         )
@@ -409,34 +561,59 @@ class Coordinator:
         return PopulationSnapshot(run=self.run, birth_counter=self.born, members=members)
 
     def _write_results(self) -> None:
-        """The best bodies (genome, MJCF, checkpoint) and a summary, in the run directory."""
+        """The best bodies (genome, MJCF, checkpoint, the run's settings) and a summary."""
         evolution = self.state.evolution
         ranked = sorted(evolution.born, key=lambda m: m.fitness, reverse=True)
         best_dir = self.run_dir / "best"
+        settings = json.dumps({"task": self.config.world, "ppo": self.config.training_ppo()
+                               .model_dump()}, indent=2)  # fmt: skip
         for rank, member in enumerate(ranked[: max(self.config.eval_top, 3)]):
             folder = best_dir / f"{rank + 1:02d}-{member.agent}"
             folder.mkdir(parents=True, exist_ok=True)
             genome = evolution.genomes[member.agent]
-            (folder / "genome.json").write_text(genome.model_dump_json(indent=2) + "\n")
-            (folder / "body.xml").write_text(to_mjcf(genome))
+            write_atomic(folder / "genome.json", genome.model_dump_json(indent=2) + "\n")
+            write_atomic(folder / "body.xml", to_mjcf(genome))
+            write_atomic(folder / "training.json", settings + "\n")
             checkpoint = self.checkpoints.path(member.agent)
             if checkpoint.exists():
-                (folder / "checkpoint.pt").write_bytes(checkpoint.read_bytes())
+                write_atomic(folder / "checkpoint.pt", checkpoint.read_bytes())
         summary = {
             "run": self.run,
             "profile": self.config.model_dump(),
             "born": self.born,
+            "failed": sorted(self.state.failed),
             "best": [vars(m) for m in ranked[:10]],
             "evaluations": [
-                r.model_dump(exclude={"curve"}) for r in self.state.evaluations.values() if r
+                r.model_dump(exclude={"curve"}) for r in self.state.evaluations.values()
             ],
         }
-        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        write_atomic(self.run_dir / "summary.json", json.dumps(summary, indent=2, default=str))
         log.info("run %s finished: %d born, results in %s", self.run, self.born, self.run_dir)
 
 
-def serve(run: str, run_dir: Path, config: EvolutionConfig, options: ZenohOptions) -> None:
-    coordinator = Coordinator(run, run_dir, config)
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: coordinator.stop.set())
-    coordinator.serve(options)
+def check_jobs(run: str, config: EvolutionConfig) -> None:
+    """Exit with the reason if a job of this configuration would not be a valid message, so
+    every value a job carries is checked before anything starts."""
+    try:
+        ids = {"run": run, "job": "check", "node": "check", "genome": GENOME}
+        TrainJob(**ids, child="check", task=config.world, ppo=config.training_ppo(),
+                 lease_s=config.lease_s)  # fmt: skip
+        for task in config.eval_tasks:
+            for seed in range(config.eval_seeds):
+                EvalJob(**ids, agent="check", task=task, ppo=config.evaluation_ppo(task, seed),
+                        lease_s=config.lease_s)  # fmt: skip
+    except (ValueError, ValidationError) as error:
+        raise SystemExit(f"derl: run {run!r} cannot start: {error}") from None
+
+
+def serve(run: str, run_dir: Path, config: EvolutionConfig, options: ZenohOptions) -> bool:
+    """The coordinator of `run` until the run is finished (True) or it is stopped (False); the
+    run directory is locked from before its journal is read until the end."""
+    try:
+        with lock_run_dir(run_dir):
+            coordinator = Coordinator(run, run_dir, config)
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, lambda *_: coordinator.stop.set())
+            return coordinator.serve(options)
+    except RunDirLocked as locked:
+        raise SystemExit(f"derl: {locked}") from None

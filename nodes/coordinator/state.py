@@ -1,25 +1,38 @@
-"""The coordinator's state as a fold over the messages it journals (event sourcing).
+"""The coordinator's state: the journal's fold (`RunHistory`) plus the work in flight.
 
-`apply` is the only way the state changes, both live and when a restarted coordinator replays
-its journal: a Tournament decides a child (its parent and mutation seed), a TrainJob or EvalJob
-assigns a body to a node, a FitnessReport makes a child born with the body its trainer bred, an
-EvalResult completes an evaluation. Which jobs are in flight, who holds them
-and what waits for a worker are all derived here; time (leases) is the node's business.
+Its handlers extend `RunHistory`'s, and are the only way the state changes, both live and when a
+restarted coordinator replays its journal: a Tournament decides a child (`derl.evolution` holds
+the rule), a TrainJob or EvalJob puts a job in flight, a Birth makes a child born, a JobLost or a
+JobFailed takes a job back (its subject waits for the next worker), a Cancel ends a job whose
+child was born from another, a ChildFailed gives a child up, an EvalResult completes an
+evaluation. Which jobs are in flight, who holds them and what waits for a worker are all derived
+here; time (leases) and the checks of incoming messages are the node's business.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from derl.evolution import Child, Evolution, EvolutionConfig
 from derl.unimal import Genome
-from messages import EvalJob, EvalResult, FitnessReport, MessageBase, Tournament, TrainJob
+from messages import (
+    Birth,
+    Cancel,
+    ChildFailed,
+    EvalJob,
+    EvalResult,
+    JobFailed,
+    JobLost,
+    Tournament,
+    TrainJob,
+)
+from nodes.journal.history import EvalKey, RunHistory
 
 
 def tournament_message(run: str, decided: Child) -> Tournament:
-    """A decided tournament (`Evolution.tournament`) as the fact the coordinator journals; `apply`
-    turns it back into the `Child` it records."""
+    """A decided tournament (`Evolution.tournament`) as the fact the coordinator journals;
+    `on_Tournament` turns it back into the `Child` it records."""
     return Tournament(
         run=run,
         child=decided.child,
@@ -35,25 +48,27 @@ def tournament_message(run: str, decided: Child) -> Tournament:
 class Job:
     """An assignment in flight."""
 
-    job: str
+    id: str
     subject: str  # the child (training) or agent (evaluation)
     node: str
     order: TrainJob | EvalJob  # as sent (sent again to a worker that missed it)
     evaluation: tuple[str, int] | None = None  # (task, seed) for an evaluation
 
 
-@dataclass
-class CoordinatorState:
-    config: EvolutionConfig
-    evolution: Evolution
-    jobs: dict[str, Job] = field(default_factory=dict)
-    attempts: dict[str, int] = field(default_factory=dict)
-    waiting: deque[str] = field(default_factory=deque)  # children to (re)assign, in order
-    evaluations: dict[tuple[str, str, int], EvalResult | None] = field(default_factory=dict)
-    eval_waiting: deque[tuple[str, str, int]] = field(default_factory=deque)
-    issued: dict[str, str] = field(default_factory=dict)  # every job ever sent -> its node
-    by_node: dict[str, str] = field(default_factory=dict)  # node -> its job in flight
-    by_child: dict[str, str] = field(default_factory=dict)  # child -> its training job in flight
+class CoordinatorState(RunHistory):
+    def __init__(self, config: EvolutionConfig, evolution: Evolution) -> None:
+        super().__init__()
+        self.config = config
+        self.evolution = evolution
+        self.jobs: dict[str, Job] = {}  # in flight
+        self.orders: dict[str, TrainJob | EvalJob] = {}  # every job ever sent
+        self.attempts: dict[str, int] = {}  # child -> trainings started
+        self.failed_on: dict[str, set[str]] = {}  # child -> nodes whose training of it failed
+        self.waiting: deque[str] = deque()  # children to (re)assign, in order
+        self.planned: dict[EvalKey, None] = {}  # evaluations of the plan, in order
+        self.eval_waiting: deque[EvalKey] = deque()
+        self.by_node: dict[str, str] = {}  # node -> its job in flight
+        self.by_child: dict[str, str] = {}  # child -> its training job in flight
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
@@ -63,55 +78,87 @@ class CoordinatorState:
 
     # --- the fold ----------------------------------------------------------------------------
 
-    def apply(self, msg: MessageBase) -> None:
-        if isinstance(msg, Tournament):
-            self.evolution.record(
-                Child(
-                    msg.child,
-                    None,
-                    msg.parent,
-                    msg.contestants,
-                    msg.fitness,
-                    msg.mutation_seed,
-                    msg.iteration,
-                )
+    def on_Tournament(self, msg: Tournament) -> None:
+        super().on_Tournament(msg)
+        self.evolution.record(
+            Child(
+                msg.child,
+                None,
+                msg.parent,
+                msg.contestants,
+                msg.fitness,
+                msg.mutation_seed,
+                msg.iteration,
             )
-            if msg.child not in self.by_child and msg.child not in self.waiting:
-                self.waiting.append(msg.child)  # until its TrainJob (lost if the node died)
-        elif isinstance(msg, TrainJob):
-            self.issued[msg.job] = msg.node
-            self._assigned(msg)
-        elif isinstance(msg, FitnessReport):
-            self.evolution.birth(msg.child, msg.fitness, msg.genome)
-            self._finished(msg.job)
-        elif isinstance(msg, EvalJob):
-            self.issued[msg.job] = msg.node
-            key = (msg.agent, msg.task, msg.seed)
-            self._plan_evaluations()
-            if key in self.eval_waiting:
-                self.eval_waiting.remove(key)
-            self._add(Job(msg.job, msg.agent, msg.node, msg, (msg.task, msg.seed)))
-        elif isinstance(msg, EvalResult):
-            self.evaluations[(msg.agent, msg.task, msg.seed)] = msg
-            self._finished(msg.job)
+        )
+        if msg.child not in self.by_child and msg.child not in self.waiting:
+            self.waiting.append(msg.child)  # until its TrainJob (lost if the node died)
 
-    def _assigned(self, job: TrainJob) -> None:
-        child = job.child
+    def on_TrainJob(self, msg: TrainJob) -> None:
+        super().on_TrainJob(msg)
+        self.orders[msg.job] = msg
+        child = msg.child
         if child in self.by_child:
             self._remove(self.by_child[child])  # a reassignment supersedes the lost job
         if child in self.waiting:
             self.waiting.remove(child)
         self.attempts[child] = self.attempts.get(child, 0) + 1
-        self._add(Job(job.job, child, job.node, job))
+        self._add(Job(msg.job, child, msg.node, msg))
 
-    def _finished(self, job: str) -> None:
-        self._remove(job)
+    def on_EvalJob(self, msg: EvalJob) -> None:
+        super().on_EvalJob(msg)
+        self.orders[msg.job] = msg
+        key = (msg.agent, msg.task, msg.seed)
+        self._plan_evaluations()
+        if key in self.eval_waiting:
+            self.eval_waiting.remove(key)
+        self._add(Job(msg.job, msg.agent, msg.node, msg, (msg.task, msg.seed)))
+
+    def on_Birth(self, msg: Birth) -> None:
+        super().on_Birth(msg)
+        self.evolution.birth(msg.child, msg.fitness, msg.genome)
+        self._remove(msg.job)
+        if msg.child in self.waiting:  # born from a late report while it waited
+            self.waiting.remove(msg.child)
+
+    def on_Cancel(self, msg: Cancel) -> None:
+        self._remove(msg.job)
+
+    def on_JobLost(self, msg: JobLost) -> None:
+        super().on_JobLost(msg)
+        self._take_back(msg.job)
+
+    def on_JobFailed(self, msg: JobFailed) -> None:
+        super().on_JobFailed(msg)
+        self.failed_on.setdefault(msg.subject, set()).add(msg.node)
+        self._take_back(msg.job)
+
+    def on_ChildFailed(self, msg: ChildFailed) -> None:
+        super().on_ChildFailed(msg)
+        self.evolution.give_up(msg.child)
+        if msg.child in self.waiting:
+            self.waiting.remove(msg.child)
+
+    def on_EvalResult(self, msg: EvalResult) -> None:
+        super().on_EvalResult(msg)
+        self._remove(msg.job)
+
+    def _take_back(self, job_id: str) -> None:
+        """A job ends without its result: its subject waits for the next ready worker."""
+        job = self._remove(job_id)
+        if job is None:
+            return
+        if job.evaluation is None:
+            if job.subject not in self.evolution.fitness and job.subject not in self.failed:
+                self.waiting.appendleft(job.subject)
+        elif (job.subject, *job.evaluation) not in self.evaluations:
+            self.eval_waiting.appendleft((job.subject, *job.evaluation))
 
     def _add(self, job: Job) -> None:
-        self.jobs[job.job] = job
-        self.by_node[job.node] = job.job
+        self.jobs[job.id] = job
+        self.by_node[job.node] = job.id
         if job.evaluation is None:
-            self.by_child[job.subject] = job.job
+            self.by_child[job.subject] = job.id
 
     def _remove(self, job_id: str) -> Job | None:
         job = self.jobs.pop(job_id, None)
@@ -135,47 +182,52 @@ class CoordinatorState:
     def training_in_flight(self) -> int:
         return len(self.by_child)
 
-    def lose(self, job: str) -> None:
-        """A job's worker is gone: its body waits for the next ready worker."""
-        lost = self._remove(job)
-        if lost is None:
-            return
-        if lost.evaluation is None:
-            if lost.subject not in self.evolution.fitness:
-                self.waiting.appendleft(lost.subject)
-        elif self.evaluations.get((lost.subject, *lost.evaluation)) is None:
-            self.eval_waiting.appendleft((lost.subject, *lost.evaluation))
+    def next_child_for(self, node: str, trainers_alive: int) -> str | None:
+        """The first waiting child for `node`: one whose training failed on another node, or on
+        this one only if no other trainer is alive to try it."""
+        for child in self.waiting:
+            if node not in self.failed_on.get(child, ()) or trainers_alive <= 1:
+                return child
+        return None
 
     def wants_tournament(self) -> bool:
         """Whether a new child should be decided for an idle trainer now."""
         evolution = self.evolution
-        started = len(evolution.born) + self.training_in_flight() + len(self.waiting)
-        return evolution.initial_born and not self.waiting and started < self.config.total
+        started = evolution.settled + self.training_in_flight() + len(self.waiting)
+        return (
+            evolution.initial_born
+            and bool(evolution.born)
+            and not self.waiting
+            and started < self.config.total
+        )
 
     def next_job_id(self, child: str) -> str:
         return f"{child}.{self.attempts.get(child, 0) + 1}"
 
+    def failed_trainings(self, child: str) -> int:
+        return len(self.failures.get(child, ()))
+
     # --- evaluation stage --------------------------------------------------------------------
 
     def _plan_evaluations(self) -> None:
-        """Once every body is born: the best `eval_top` on every test task and seed."""
-        if self.evaluations or not self.evolution.done:
+        """Once evolution is over: the best `eval_top` on every test task and seed."""
+        if self.planned or not self.evolution.done:
             return
         best = sorted(self.evolution.born, key=lambda m: m.fitness, reverse=True)
         for member in best[: self.config.eval_top]:
             for task in self.config.eval_tasks:
                 for seed in range(self.config.eval_seeds):
                     key = (member.agent, task, seed)
-                    self.evaluations[key] = None
+                    self.planned[key] = None
                     self.eval_waiting.append(key)
 
-    def next_evaluation(self) -> tuple[str, str, int] | None:
+    def next_evaluation(self) -> EvalKey | None:
         self._plan_evaluations()
         return self.eval_waiting[0] if self.eval_waiting else None
 
     @property
     def evaluated(self) -> int:
-        return sum(result is not None for result in self.evaluations.values())
+        return sum(key in self.evaluations for key in self.planned)
 
     @property
     def eval_target(self) -> int:
@@ -184,4 +236,6 @@ class CoordinatorState:
 
     @property
     def finished(self) -> bool:
-        return self.evolution.done and self.evaluated >= self.eval_target
+        """Evolution and the evaluations of the run are over."""
+        self._plan_evaluations()
+        return self.evolution.done and self.evaluated >= min(self.eval_target, len(self.planned))

@@ -7,11 +7,13 @@ appended to. Each message type has its own channel (topic ``derl/<run>/<kind>``,
 
 Durability (docs/journal.md): chunked, uncompressed, and ``Writer.flush()`` after every
 message, which closes the chunk (its messages get their CRC) and flushes the file. A SIGKILL then
-loses at most the message being written (no fsync: power loss is not covered). A writer that
-handles messages in groups (the coordinator) appends a group with ``flush=False`` and flushes it
-once, before it publishes anything of the group: a SIGKILL loses at most a group nobody saw.
-Reading goes record by record without the summary, so a segment cut at any byte gives back every
-message written before the cut; a closed segment can be compacted into zstd chunks.
+loses at most the message being written. A writer that handles messages in groups (the
+coordinator) appends a group with ``flush=False`` and flushes it once with ``sync=True`` (fsync),
+before it publishes anything of the group: a crash, even a power loss, loses at most a group
+nobody saw. Reading goes record by record without the summary, so a segment cut at any byte gives
+back every message written before the cut. A new `Journal` first cuts the torn tail of the
+previous segment (the normal trace of a crash) back to its last whole record; damage anywhere
+else is `JournalDamaged`, never skipped. A closed segment can be compacted into zstd chunks.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ class JournalWriter:
         self._sequence = 0
         self._lock = threading.Lock()
         self._closed = False
+        self.pending = 0  # messages appended since the last flush
 
     def write(
         self,
@@ -81,13 +84,20 @@ class JournalWriter:
             )
             if flush:
                 self._writer.flush()
+            else:
+                self.pending += 1
             self._sequence += 1
 
-    def flush(self) -> None:
-        """Close the chunk of the messages appended since the last flush and flush the file."""
+    def flush(self, sync: bool = False) -> None:
+        """Close the chunk of the messages appended since the last flush and flush the file;
+        with `sync`, also to the disk (fsync)."""
         with self._lock:
             if not self._closed:
                 self._writer.flush()
+                self.pending = 0
+                if sync:
+                    self._file.flush()
+                    os.fsync(self._file.fileno())
 
     def _channel(self, msg: MessageBase) -> int:
         channel = self._channels.get((msg.type, msg.run))
@@ -136,10 +146,43 @@ def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
     return sorted((int(m[1]), p) for m, p in matches if m)
 
 
+class JournalDamaged(RuntimeError):
+    """A journal segment is damaged where a crash cannot have damaged it."""
+
+    def __init__(self, path: Path, end: int, size: int, reason: object) -> None:
+        super().__init__(
+            f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}); the run "
+            f"cannot be resumed from it as it is. `derl log repair {path} --out FILE` writes "
+            "what can be read of it; move the damaged file away and put the repaired one in its "
+            "place to resume without what was lost"
+        )
+        self.path, self.end, self.size, self.reason = path, end, size, reason
+
+
 def replay(run_dir: Path) -> Iterator[MessageBase]:
-    """Every message of every segment, in the order written."""
-    for path in segments(run_dir):
-        yield from read_segment(path)
+    """Every message of every segment, in the order written; JournalDamaged for a segment
+    that is cut or corrupt anywhere but at the tail of the last one."""
+    paths = segments(run_dir)
+    for k, path in enumerate(paths):
+        last = k == len(paths) - 1
+        yield from (logged.message for logged in read_logged(path, strict=not last))
+
+
+def cut_torn_tail(path: Path) -> int:
+    """Cut a segment's torn tail (a record a crash left half written) back to its last whole
+    record; the number of bytes cut (0 when the tail is whole)."""
+    try:
+        for _ in records(path, strict=True):
+            pass
+    except JournalDamaged as damage:
+        with path.open("r+b") as f:
+            f.truncate(damage.end)
+            f.flush()
+            os.fsync(f.fileno())
+        log.warning("%s: torn tail recovered: %d bytes after byte %d cut (%r)", path,
+                    damage.size - damage.end, damage.end, damage.reason)  # fmt: skip
+        return damage.size - damage.end
+    return 0
 
 
 class Logged(NamedTuple):
@@ -156,10 +199,11 @@ def read_segment(path: Path) -> Iterator[MessageBase]:
     return (logged.message for logged in read_logged(path))
 
 
-def read_logged(path: Path) -> Iterator[Logged]:
-    """The messages of one MCAP file in file order, with their topics and times."""
+def read_logged(path: Path, strict: bool = False) -> Iterator[Logged]:
+    """The messages of one MCAP file in file order, with their topics and times (`strict`: a cut
+    or corrupt file raises JournalDamaged after its last whole message)."""
     channels: dict[int, Channel] = {}
-    for record in records(path):
+    for record in records(path, strict):
         if isinstance(record, Channel):
             channels[record.id] = record
         elif isinstance(record, Message):
@@ -181,8 +225,9 @@ def read_logged(path: Path) -> Iterator[Logged]:
             yield Logged(channel.topic, record.log_time, record.publish_time, message)
 
 
-def records(path: Path) -> Iterator[McapRecord]:
-    """The records of an MCAP file in order, up to the first one that is cut or corrupt."""
+def records(path: Path, strict: bool = False) -> Iterator[McapRecord]:
+    """The records of an MCAP file in order, up to the first one that is cut or corrupt (then
+    JournalDamaged if `strict`)."""
     size = path.stat().st_size
     with path.open("rb") as f:
         end = 0  # where the last complete record ends
@@ -193,6 +238,8 @@ def records(path: Path) -> Iterator[McapRecord]:
         except Exception as exc:  # a cut or corrupt tail: EndOfFile, CRC, struct, zstd errors...
             if isinstance(exc, EndOfFile) and end == size:
                 log.info("%s has no footer (still open, or its writer died between messages)", path)
+            elif strict:
+                raise JournalDamaged(path, end, size, exc) from None
             else:
                 log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size, exc)
 
@@ -204,7 +251,10 @@ class Journal(JournalWriter):
         self.run_dir = Path(run_dir)
         folder = self.run_dir / "journal"
         folder.mkdir(parents=True, exist_ok=True)
-        number = max((n for n, _ in _numbered(self.run_dir)), default=0) + 1
+        numbered = _numbered(self.run_dir)
+        if numbered:
+            cut_torn_tail(numbered[-1][1])
+        number = max((n for n, _ in numbered), default=0) + 1
         super().__init__(folder / f"segment-{number:04d}.mcap")
 
     @property

@@ -79,8 +79,15 @@ def node_name(role: str, index: int = 0) -> str:
 class Bus:
     """Typed messages over one Zenoh session for one run; counts what it had to reject."""
 
-    def __init__(self, session: zenoh.Session, run: str) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        run: str,
+        on_reject: Callable[[str, str, MessageBase | None], None] | None = None,
+    ) -> None:
+        """`on_reject(why, key, message or None)` hears of every sample the check refuses."""
         self.session = session
+        self.on_reject = on_reject
         self.keys = KeySpace(run)
         self.run = run
         self.rejected: Counter[str] = Counter()
@@ -127,18 +134,23 @@ class Bus:
         try:
             message = decode(payload)
         except DecodeError as error:
-            return self._reject("malformed", f"{key}: {error}")
+            return self._reject("malformed", key, f"{error}")
         if message.run != self.run:
-            return self._reject("other run", f"{key}: message of run {message.run!r}")
+            return self._reject("other run", key, f"message of run {message.run!r}", message)
         if kinds and not isinstance(message, kinds):
-            return self._reject("unexpected type", f"{key}: unexpected {message.type}")
+            return self._reject("unexpected type", key, f"unexpected {message.type}", message)
         if self.keys.key_for(message) != key:
-            return self._reject("wrong key", f"{key}: a {message.type} belongs on another key")
+            # every sender's node id is part of its keys: a message naming another node is
+            # refused here, so with access control one node cannot speak for another
+            detail = f"a {message.type} belongs on {self.keys.key_for(message)}"
+            return self._reject("wrong key", key, detail, message)
         return message
 
-    def _reject(self, why: str, detail: str) -> None:
+    def _reject(self, why: str, key: str, detail: str, message: MessageBase | None = None) -> None:
         self.rejected[why] += 1
-        log.warning("rejected (%s) %s", why, detail[:300])
+        log.warning("rejected (%s) %s: %s", why, key, detail[:300])
+        if self.on_reject is not None:
+            self.on_reject(why, key, message)
         return None
 
     def token(self, role: str, node: str) -> zenoh.LivelinessToken:

@@ -3,8 +3,8 @@
 A log is one MCAP file (a journal segment or a `derl record` output) or a run directory, whose
 ``journal/segment-NNNN.mcap`` files are read in order. Every reader goes through the journal's
 tolerant record reader (`nodes.journal.segments`), so a truncated or corrupt file gives back the
-messages before the damage instead of nothing. `info` says how healthy a file is; `repair` rewrites a
-damaged one into a clean, indexed, zstd-compressed copy with `nodes.journal.segments.compact`;
+messages before the damage instead of nothing. `info` says how healthy a file is; `repair` rewrites
+a damaged one into a clean, indexed, zstd-compressed copy with `nodes.journal.segments.compact`;
 `export_json` writes a ``json`` + ``jsonschema`` copy, the encodings Foxglove decodes (it cannot
 decode msgpack: docs/bus.md).
 """

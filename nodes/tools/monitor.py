@@ -4,9 +4,13 @@ It taps ``derl/<run>/**`` through a ring (`nodes.tools.topic.Tap`) and follows t
 tokens, so a slow terminal never slows the run: the tap's thread only validates and queues, and
 the main loop folds the queue into a `RunView` and draws it with rich: a header (bodies born of
 the target, best fitness and agent, steps/s, evaluations, rejections), the workers (role, job,
-body, env steps, recent return, steps/s, last heard), the latest births with their tournament
-(parent, mutation) and a sparkline of fitness over births. It works on replayed logs too: when
-no RunStatus is heard (a journal holds none), births and the best come from fitness reports.
+body, env steps, recent return, steps/s, last heard), the latest births (parent, mutation,
+fitness, node) and a sparkline of fitness over births. Births come from the coordinator's birth
+stream (``births/*``, the journal's Birth records), folded by `nodes.journal.history.RunHistory`,
+the one reading of a run every tool shares; a monitor started mid-run first asks the coordinator
+for the recent births (a Zenoh query), so it is complete without the journal. It works on
+replayed logs too: when no RunStatus is heard (a journal holds none), the best comes from the
+births.
 """
 
 from __future__ import annotations
@@ -29,18 +33,20 @@ from rich.text import Text
 
 from messages import (
     Ack,
+    Birth,
     EvalJob,
     EvalResult,
     FitnessReport,
     KeySpace,
     MessageBase,
     PopulationSnapshot,
+    Reject,
     RunStatus,
-    Tournament,
     TrainJob,
     TrainProgress,
     WorkerReady,
 )
+from nodes.journal.history import RunHistory
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
 from nodes.tools.topic import Checker, Tap, choose_run
 
@@ -81,15 +87,6 @@ class WorkerRow:
     heard: float = 0.0
 
 
-@dataclass
-class Birth:
-    child: str
-    fitness: float
-    node: str
-    parent: str | None = None
-    mutation: str = ""
-
-
 class RunView:
     """What is known of a run, folded from its messages; `render` draws it."""
 
@@ -99,10 +96,12 @@ class RunView:
         self.status_at = 0.0
         self.population = 0
         self.workers: dict[str, WorkerRow] = {}
-        self.births: list[Birth] = []
+        self.history = RunHistory()
         self.rejected = 0  # by this monitor
-        self._born: set[str] = set()
-        self._tournaments: dict[str, Tournament] = {}
+
+    @property
+    def births(self) -> list[Birth]:
+        return self.history.births
 
     def _row(self, node: str, now: float) -> WorkerRow:
         row = self.workers.setdefault(node, WorkerRow(node))
@@ -110,12 +109,13 @@ class RunView:
         return row
 
     def apply(self, msg: MessageBase, now: float) -> None:
+        if msg.run != self.run:
+            return
+        self.history.apply(msg)
         if isinstance(msg, RunStatus):
             self.status, self.status_at = msg, now
         elif isinstance(msg, PopulationSnapshot):
             self.population = len(msg.members)
-        elif isinstance(msg, Tournament):
-            self._tournaments[msg.child] = msg
         elif isinstance(msg, WorkerReady):
             row = self._row(msg.node, now)
             row.role, row.state, row.job = msg.role, "idle", ""
@@ -140,25 +140,8 @@ class RunView:
                 row.recent_return = msg.recent_return
         elif isinstance(msg, FitnessReport | EvalResult):
             self._row(msg.node, now).state = "delivering"
-            if isinstance(msg, FitnessReport):
-                self._birth(msg)
-        elif isinstance(msg, Ack):
+        elif isinstance(msg, Ack | Reject):
             self._row(msg.node, now).state = "idle"
-
-    def _birth(self, report: FitnessReport) -> None:
-        if report.child in self._born:  # re-sent until acknowledged
-            return
-        self._born.add(report.child)
-        tournament = self._tournaments.pop(report.child, None)
-        self.births.append(
-            Birth(
-                report.child,
-                report.fitness,
-                report.node,
-                tournament.parent if tournament else None,
-                report.mutation or "",
-            )
-        )
 
     def liveliness(self, role: str, node: str, up: bool, now: float) -> None:
         row = self._row(node, now)
@@ -195,6 +178,7 @@ class RunView:
         if s:
             fields += [
                 f"evaluated {s.evaluated}/{s.eval_target}",
+                f"failed {s.failed}",
                 f"in flight {s.in_flight}",
                 f"workers {s.workers_alive}",
                 f"rejected {s.rejected}",
@@ -240,7 +224,7 @@ class RunView:
         first = max(0, len(self.births) - RECENT_BIRTHS)
         for number, b in enumerate(self.births[first:], start=first + 1):
             table.add_row(
-                str(number), b.child, b.parent or "-", b.mutation, f"{b.fitness:.2f}", b.node
+                str(number), b.child, b.parent or "-", b.mutation or "-", f"{b.fitness:.2f}", b.node
             )
         return table
 
@@ -274,7 +258,11 @@ def monitor(
             else:
                 inbox.append((arrival, message))
 
-        tap = Tap(session, KeySpace(view.run).everything(), on_sample)
+        keys = KeySpace(view.run)
+        tap = Tap(session, keys.everything(), on_sample)
+        for reply in session.get(keys.all("births"), timeout=2.0):  # births before we came
+            if reply.ok is not None:
+                on_sample(reply.ok, time.monotonic())
         Bus(session, view.run).watch_alive(
             lambda role, node, up: inbox.append((time.monotonic(), (role, node, up)))
         )

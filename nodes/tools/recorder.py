@@ -1,19 +1,19 @@
 """`derl record` and `derl replay`: live traffic into an MCAP log, and a log back onto the bus.
 
 Recording taps each key expression through a ring (`nodes.tools.topic.Tap`: a recorder that falls
-behind loses the oldest samples, it never stalls the run) and appends every valid message with
-the journal's writer (`nodes.journal.segments.JournalWriter`: msgpack messages on
-``derl/<run>/<kind>`` channels with the models' JSON schemas, flushed message by message, so a
-killed recorder leaves a readable file). Log time is the receive time; publish time is the sender's Zenoh timestamp
-when it has one. Malformed payloads are logged and counted but not kept: a recording holds only
-messages that decode, like a journal, so every reader (replay, export, `report`) can use it.
+behind loses the oldest samples, it never stalls the run) and appends every valid message with the
+journal's writer (`nodes.journal.segments.JournalWriter`: msgpack messages on ``derl/<run>/<kind>``
+channels with the models' JSON schemas, flushed message by message, so a killed recorder leaves a
+readable file). Log time is the receive time; publish time is the sender's Zenoh timestamp when it
+has one. Malformed payloads are logged and counted but not kept: a recording holds only messages
+that decode, like a journal, so every reader (replay, export, `report`) can use it.
 
 Replaying reads a log with the tolerant reader and publishes each message on its own key
-(`KeySpace.key_for`) with the original gaps divided by the rate, BLOCK like the control plane:
-a subscriber that cannot keep up slows the replay, never loses messages; monitors read through
-rings and are never slowed. A replay must not pose as a live run: jobs and acks published under
-a run that has live nodes would be taken as real. So it refuses a run that has a live node or
-coordinator on the bus (unless forced), and `as_run` publishes everything under another run id.
+(`KeySpace.key_for`) with the original gaps divided by the rate, BLOCK like the control plane: a
+subscriber that cannot keep up slows the replay, never loses messages; monitors read through rings
+and are never slowed. A replay must not pose as a live run: jobs and acks published under a run that
+has live nodes would be taken as real. So it refuses a run that has a live node or coordinator on
+the bus (unless forced), and `as_run` publishes everything under another run id.
 """
 
 from __future__ import annotations

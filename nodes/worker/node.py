@@ -1,11 +1,13 @@
 """Trainer and evaluator nodes: announce themselves, take a job, learn, deliver until acknowledged.
 
 A worker holds a liveliness token for its whole life, publishes WorkerReady every second while
-idle, trains one job at a time with `derl.lifetime` (one training per process; a tournament's
-child is first bred from its parent's body with `derl.evolution.breed`), reports progress
-every second (the coordinator's lease on the job), and re-sends its result every second until
-the coordinator acknowledges it, so a coordinator restart loses nothing. It stops on SIGTERM or
-SIGINT, or when the run's status says it is done.
+idle, trains one job at a time with `derl.lifetime` and the job's own PPO configuration (one
+training per process; a tournament's child is first bred from its parent's body with
+`derl.evolution.breed`), reports progress every second (the coordinator's lease on the job), and
+re-sends its result every second until the coordinator acknowledges it, so a coordinator restart
+loses nothing. A Reject makes it drop the result, a Cancel of its job stops the training, and a
+training that raises is reported as JobFailed; each time it asks for work again. Every key it
+publishes on carries its node id. It stops on SIGTERM or SIGINT, or when the run is done.
 """
 
 from __future__ import annotations
@@ -17,18 +19,22 @@ import signal
 import socket
 import threading
 import time
+from collections.abc import Callable
 from typing import Literal
 
 from derl.evolution import breed
-from derl.lifetime import LifetimeResult, learn, ppo_config
+from derl.lifetime import LifetimeResult, learn
 from derl.rl import Progress
 from derl.unimal import Genome, Mutation
 from messages import (
     Ack,
+    Cancel,
     Curve,
     EvalJob,
     EvalResult,
     FitnessReport,
+    JobFailed,
+    Reject,
     RunStatus,
     TrainJob,
     TrainProgress,
@@ -47,6 +53,10 @@ class Stopped(Exception):
     """The node was asked to stop in the middle of a job."""
 
 
+class Cancelled(Exception):
+    """The coordinator cancelled the job in progress."""
+
+
 class Worker:
     def __init__(
         self, run: str, node: str, role: Literal["trainer", "evaluator"], nthread: int = 1
@@ -54,7 +64,8 @@ class Worker:
         self.run, self.node, self.role, self.nthread = run, node, role, nthread
         self.stop = threading.Event()
         self.run_done = threading.Event()
-        self.done: set[str] = set()  # jobs trained: a copy sent again is not trained twice
+        self.finished_jobs: set[str] = set()  # a copy sent again is not trained twice
+        self.cancelled: set[str] = set()
 
     def serve(self, options: ZenohOptions, max_jobs: int | None = None) -> None:
         with open_session(options) as session:
@@ -62,11 +73,12 @@ class Worker:
             self.bus = bus
             token = bus.token(self.role, self.node)
             kinds = (TrainJob,) if self.role == "trainer" else (EvalJob,)
-            jobs = bus.inbox(bus.keys.job(self.node), kinds)
-            acks = bus.inbox(bus.keys.ack(self.node), (Ack,))
+            jobs: queue.Queue[TrainJob | EvalJob] = queue.Queue()
+            bus.subscribe(bus.keys.job(self.node), self._order(jobs), (*kinds, Cancel))
+            answers = bus.inbox(bus.keys.ack(self.node), (Ack, Reject))
             bus.subscribe(bus.keys.status(), self._status, (RunStatus,))
             log.info("%s %s ready for run %s", self.role, self.node, self.run)
-            while not self._finished(max_jobs):
+            while not self._over(max_jobs):
                 job = self._next_job(jobs)
                 if job is None:
                     continue
@@ -74,12 +86,30 @@ class Worker:
                     result = self._work(job)
                 except Stopped:
                     break
-                self._deliver(result, acks)
-                self.done.add(job.job)
+                except Cancelled:
+                    log.info("%s: %s cancelled by the coordinator", self.node, job.job)
+                    self.finished_jobs.add(job.job)
+                    continue
+                except Exception as error:  # a failed training is reported, never fatal
+                    log.exception("%s: %s failed", self.node, job.job)
+                    self._failed(job, error)
+                    self.finished_jobs.add(job.job)
+                    continue
+                self._deliver(result, answers)
+                self.finished_jobs.add(job.job)
             token.undeclare()
 
-    def _finished(self, max_jobs: int | None) -> bool:
-        limit = max_jobs is not None and len(self.done) >= max_jobs
+    def _order(self, jobs: queue.Queue) -> Callable[[object], None]:
+        def on_order(msg: object) -> None:
+            if isinstance(msg, Cancel):
+                self.cancelled.add(msg.job)
+            else:
+                jobs.put(msg)
+
+        return on_order
+
+    def _over(self, max_jobs: int | None) -> bool:
+        limit = max_jobs is not None and len(self.finished_jobs) >= max_jobs
         return self.stop.is_set() or self.run_done.is_set() or limit
 
     def _status(self, status: RunStatus) -> None:
@@ -100,10 +130,17 @@ class Worker:
             job = jobs.get(timeout=READY_PERIOD_S)
         except queue.Empty:
             return None
-        if job.job in self.done:
+        if job.job in self.finished_jobs or job.job in self.cancelled:
             log.info("%s: %s was sent again after it was done: ignored", self.node, job.job)
             return None
         return job
+
+    def _failed(self, job: TrainJob | EvalJob, error: Exception) -> None:
+        subject = job.child if isinstance(job, TrainJob) else job.agent
+        text = f"{type(error).__name__}: {error}"[:1000]
+        self.bus.publish(
+            JobFailed(run=self.run, job=job.job, node=self.node, subject=subject, error=text)
+        )
 
     def _work(self, job: TrainJob | EvalJob) -> FitnessReport | EvalResult:
         subject = job.child if isinstance(job, TrainJob) else job.agent
@@ -114,6 +151,8 @@ class Worker:
             nonlocal last
             if self.stop.is_set():
                 raise Stopped
+            if job.job in self.cancelled:
+                raise Cancelled
             now = time.monotonic()
             if now - last >= PROGRESS_PERIOD_S or p.iteration == p.iterations:
                 last = now
@@ -135,8 +174,7 @@ class Worker:
         if isinstance(job, TrainJob) and job.mutation_seed is not None:
             genome, mutation = breed(job.genome, job.mutation_seed)
             log.info("%s: %s bred from %s by %s", self.node, subject, job.parent, mutation.op)
-        config = ppo_config(job.task, job.steps, job.seed, num_envs=job.num_envs)
-        summary, result = learn(genome, job.task, config, progress, nthread=self.nthread)
+        summary, result = learn(genome, job.task, job.ppo, progress, nthread=self.nthread)
         curve = Curve(env_steps=summary.curve_steps, returns=summary.curve_returns)
         if isinstance(job, TrainJob):
             checkpoint = result.checkpoint.to_bytes()
@@ -146,6 +184,7 @@ class Worker:
             agent=job.agent,
             task=job.task,
             seed=job.seed,
+            steps=job.steps,
             reward=summary.fitness,
             cost_of_work=summary.cost_of_work,
             curve=curve,
@@ -184,19 +223,24 @@ class Worker:
             checkpoint=checkpoint,
         )
 
-    def _deliver(self, result: FitnessReport | EvalResult, acks: queue.Queue) -> None:
-        """Publish `result` every second until it is acknowledged (or the node stops)."""
-        while not self.stop.is_set():
+    def _deliver(self, result: FitnessReport | EvalResult, answers: queue.Queue) -> None:
+        """Publish `result` every second until it is acknowledged or rejected (or the node
+        stops, or the coordinator cancels the job)."""
+        while not self.stop.is_set() and result.job not in self.cancelled:
             self.bus.publish(result)
             deadline = time.monotonic() + RESEND_PERIOD_S
             while (wait := deadline - time.monotonic()) > 0:
                 try:
-                    ack = acks.get(timeout=wait)
+                    answer = answers.get(timeout=wait)
                 except queue.Empty:
                     break
-                if ack.job == result.job:
+                if answer.job != result.job:
+                    continue
+                if isinstance(answer, Reject):
+                    log.warning("%s: %s rejected: %s", self.node, result.job, answer.reason)
+                else:
                     log.info("%s: %s acknowledged", self.node, result.job)
-                    return
+                return
 
 
 def serve(

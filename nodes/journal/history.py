@@ -1,0 +1,175 @@
+"""The one reading of a run's journal: its messages folded, in order, into the run's facts.
+
+`RunHistory.apply` dispatches each message to one handler (`on_<Type>`), which records what it
+means: a Tournament decides a child, a TrainJob or EvalJob assigns work, the FitnessReport the
+coordinator accepted is the evidence of a birth and the Birth that follows it is the birth
+(index, generation, fitness), a ChildFailed gives a child up, an EvalResult completes an
+evaluation. Every reader uses it: the coordinator's state (`nodes.coordinator.state` overrides the
+handlers to keep its jobs in flight), `derl report` and `derl select` (`run_log`), the monitor.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from messages import (
+    Birth,
+    ChildFailed,
+    EvalJob,
+    EvalResult,
+    FitnessReport,
+    JobFailed,
+    JobLost,
+    MessageBase,
+    Tournament,
+    TrainJob,
+)
+from nodes.journal.segments import read_segment, replay, segments
+
+if TYPE_CHECKING:
+    from derl.analysis import RunLog
+
+log = logging.getLogger("derl.history")
+
+EvalKey = tuple[str, str, int]  # (agent, task, seed)
+
+
+class RunHistory:
+    """What a run's journal says happened; `apply` its messages in journal order."""
+
+    def __init__(self) -> None:
+        self.run: str | None = None
+        self.tournaments: dict[str, Tournament] = {}  # child -> the decision
+        self.first_job: dict[str, TrainJob] = {}  # child -> its first TrainJob
+        self.issued: dict[str, str] = {}  # every job ever sent -> its node
+        self.births: list[Birth] = []  # in birth order
+        self.born: dict[str, Birth] = {}
+        self.reports: dict[str, FitnessReport] = {}  # child -> the report it was born from
+        self.failed: dict[str, ChildFailed] = {}
+        self.failures: dict[str, list[JobFailed]] = {}  # subject -> its failed jobs
+        self.lost: list[JobLost] = []
+        self.evaluations: dict[EvalKey, EvalResult] = {}
+        self.other_runs = 0
+        self._accepted: dict[str, FitnessReport] = {}  # job -> accepted report, until its Birth
+
+    def apply(self, msg: MessageBase) -> None:
+        if self.run is None:
+            self.run = msg.run
+        elif msg.run != self.run:
+            self.other_runs += 1
+            return
+        handler = getattr(self, f"on_{msg.type}", None)
+        if handler is not None:
+            handler(msg)
+
+    # --- handlers, one per message type, named after it (the coordinator extends them) ----
+
+    def on_Tournament(self, msg: Tournament) -> None:
+        self.tournaments.setdefault(msg.child, msg)
+
+    def on_TrainJob(self, msg: TrainJob) -> None:
+        self.issued[msg.job] = msg.node
+        self.first_job.setdefault(msg.child, msg)
+
+    def on_EvalJob(self, msg: EvalJob) -> None:
+        self.issued[msg.job] = msg.node
+
+    def on_FitnessReport(self, msg: FitnessReport) -> None:
+        self._accepted[msg.job] = msg
+
+    def on_Birth(self, msg: Birth) -> None:
+        if msg.child in self.born:
+            return
+        self.births.append(msg)
+        self.born[msg.child] = msg
+        report = self._accepted.pop(msg.job, None)
+        if report is None and msg.repeat_of is not None:
+            report = self.reports.get(msg.repeat_of)
+        if report is not None:
+            self.reports[msg.child] = report
+
+    def on_ChildFailed(self, msg: ChildFailed) -> None:
+        self.failed.setdefault(msg.child, msg)
+
+    def on_JobFailed(self, msg: JobFailed) -> None:
+        self.failures.setdefault(msg.subject, []).append(msg)
+
+    def on_JobLost(self, msg: JobLost) -> None:
+        self.lost.append(msg)
+
+    def on_EvalResult(self, msg: EvalResult) -> None:
+        self.evaluations.setdefault((msg.agent, msg.task, msg.seed), msg)
+
+    # --- questions --------------------------------------------------------------------------
+
+    def generation(self, parent: str | None) -> int:
+        """The generation of a child of `parent` (0 for the initial population)."""
+        return 0 if parent is None else self.born[parent].generation + 1
+
+
+def load_history(path: Path) -> RunHistory:
+    """The history of a run directory's journal, or of one MCAP file (a segment, a recording);
+    SystemExit with the reason when there is none."""
+    if path.is_dir():
+        if not segments(path):
+            raise SystemExit(f"derl: {path} holds no journal (journal/segment-NNNN.mcap)")
+        messages = replay(path)
+    elif path.is_file():
+        messages = read_segment(path)
+    else:
+        raise SystemExit(f"derl: no run directory or log at {path}")
+    history = RunHistory()
+    for msg in messages:
+        history.apply(msg)
+    if history.other_runs:
+        log.warning("%s: %d messages of runs other than %s skipped", path, history.other_runs,
+                    history.run)  # fmt: skip
+    return history
+
+
+def run_log(path: Path) -> RunLog:
+    """A run's records for `derl.analysis`, from its journal (see `load_history`)."""
+    from derl.analysis import Body, Evaluation, RunLog
+
+    history = load_history(path)
+    bodies = []
+    for birth in history.births:
+        report = history.reports.get(birth.child)
+        bodies.append(
+            Body(
+                id=birth.child,
+                parent=birth.parent,
+                birth=birth.birth,
+                fitness=birth.fitness,
+                curve_steps=report.curve.env_steps if report else (),
+                curve_returns=report.curve.returns if report else (),
+                energy=birth.energy,
+                cost_of_work=birth.cost_of_work,
+                mass=birth.mass,
+                mutation=birth.mutation,
+                genome=birth.genome,
+            )
+        )
+    if not bodies:
+        raise SystemExit(f"derl: no body was born in {path}")
+    first = next(iter(history.first_job.values()))
+    evaluations = tuple(
+        Evaluation(
+            agent=r.agent,
+            task=r.task,
+            seed=r.seed,
+            reward=r.reward,
+            cost_of_work=r.cost_of_work,
+        )
+        for r in history.evaluations.values()
+    )
+    return RunLog(
+        name=history.run,
+        world=first.task,
+        bodies=tuple(bodies),
+        evaluations=evaluations,
+        train_steps=first.steps,
+        training_seed=first.seed,
+    )
