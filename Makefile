@@ -1,11 +1,15 @@
 # The two set-up commands of the README: `make run` and `make test`.
-PYTHON ?= python3.11
+# The first Python >= 3.11 on PATH (python3.11 first: the local CPU torch wheel is built for it).
+PYTHON ?= $(shell for p in python3.11 python3.12 python3.13 python3; do \
+	command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
+	2>/dev/null && { echo $$p; break; }; done)
 VENV ?= .venv
 BIN := $(VENV)/bin
 
 .PHONY: install install-test run test lint
 
 $(BIN)/python:
+	@test -n "$(PYTHON)" || { echo "derl needs Python >= 3.11 (none found on PATH; set PYTHON=...)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
