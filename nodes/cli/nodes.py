@@ -1,14 +1,31 @@
-"""`derl coordinator|trainer|evaluator|router`: start one node of a run on this host."""
+"""`derl coordinator|trainer|evaluator|router`: start one node of a run on this host.
+
+Exit status: the coordinator 0 only when the run finished (1 when stopped or failed, so a
+supervisor restarts it); a worker 0 when stopped or when the run is over; 2 when a port is taken;
+`--workers K` the status of the first of its K processes that failed, else 0.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
 import signal
-import sys
+import subprocess
+import threading
 from pathlib import Path
 
-from nodes.cli.options import add_bus_arguments, add_profile_arguments, options_from, profile_from
+import zenoh
+
+from nodes.cli.options import (
+    add_bus_arguments,
+    add_profile_arguments,
+    at_least_one,
+    fail_on_bus,
+    options_from,
+    profile_from,
+    run_directory,
+)
+from nodes.launch.model import split_endpoint, with_port
 from nodes.runtime.bus import node_name
 
 
@@ -21,9 +38,11 @@ def register(commands: argparse._SubParsersAction) -> None:
 
     for role in ("trainer", "evaluator"):
         worker = commands.add_parser(role, help=f"start {role} nodes (one training per process)")
-        worker.add_argument("--workers", type=int, default=1, help="processes on this host")
-        worker.add_argument("--threads", type=int, default=1, help="simulation threads each")
-        worker.add_argument("--name", help="node id (default: role-host-pid-index)")
+        worker.add_argument("--workers", type=at_least_one, default=1, help="processes here")
+        worker.add_argument("--threads", type=at_least_one, default=1, help="simulation threads")
+        worker.add_argument(
+            "--name", help="node id (default: role-host-pid-index; NAME-k with --workers)"
+        )
         add_bus_arguments(worker)
         worker.set_defaults(handler=_worker, role=role)
 
@@ -35,8 +54,13 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _coordinator(args: argparse.Namespace) -> int:
     from nodes.coordinator.node import serve
 
-    serve(args.run, args.run_dir, profile_from(args), options_from(args))
-    return 0
+    config = profile_from(args)
+    run_dir = run_directory(args.run_dir)
+    try:
+        finished = serve(args.run, run_dir, config, options_from(args))
+    except zenoh.ZError as error:
+        fail_on_bus(error)
+    return 0 if finished is True else 1
 
 
 def _worker(args: argparse.Namespace) -> int:
@@ -45,25 +69,57 @@ def _worker(args: argparse.Namespace) -> int:
     from nodes.worker.node import serve
 
     name = args.name or node_name(args.role)
-    serve(args.run, name, args.role, options_from(args), nthread=args.threads)
+    try:
+        serve(args.run, name, args.role, options_from(args), nthread=args.threads)
+    except zenoh.ZError as error:
+        fail_on_bus(error)
     return 0
+
+
+def child_args(args: argparse.Namespace, k: int) -> list[str]:
+    """The command line of process `k` of `--workers K`: one worker, named NAME-k (when --name is
+    given), listening on port + k of each --listen endpoint with a port (port 0 stays 0)."""
+    line = [args.role, "--run", args.run, "--threads", str(args.threads), "--mode", args.mode]
+    if args.name:
+        line += ["--name", f"{args.name}-{k}"]
+    for endpoint in args.listen:
+        line += ["--listen", _shifted(endpoint, k)]
+    for endpoint in args.connect:
+        line += ["--connect", endpoint]
+    if args.zenoh_config:
+        line += ["--zenoh-config", str(args.zenoh_config)]
+    if args.multicast:
+        line.append("--multicast")
+    return line
+
+
+def _shifted(endpoint: str, k: int) -> str:
+    try:
+        _, _, port = split_endpoint(endpoint)
+    except ValueError:  # not PROTO/HOST:PORT (e.g. with Zenoh options): as given
+        return endpoint
+    return with_port(endpoint, port + k if port else 0)
 
 
 def _fan_out(args: argparse.Namespace) -> int:
-    """`--workers K`: K single-worker processes, stopped together."""
-    from nodes.runtime.processes import spawn_derl, stop_all
+    """`--workers K`: K single-worker processes, all stopped on SIGTERM or SIGINT; the exit
+    status of the first that failed, else 0."""
+    from nodes.runtime.processes import exit_status, spawn_derl, stop_all
 
-    rest = [a for a in sys.argv[1:] if a not in ("--workers", str(args.workers))]
-    children = [spawn_derl([*rest, "--workers", "1"]) for _ in range(args.workers)]
-    signal.signal(signal.SIGTERM, lambda *_: stop_all(children))
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    children: list[subprocess.Popen] = []
     try:
-        for child in children:
-            child.wait()
-    except KeyboardInterrupt:
-        pass
+        for k in range(args.workers):
+            if not stop.is_set():
+                children.append(spawn_derl(child_args(args, k)))
+        while not stop.wait(0.2) and any(child.poll() is None for child in children):
+            pass
     finally:
         stop_all(children)
-    return 0
+    failed = [code for code in (exit_status(child) for child in children) if code != 0]
+    return failed[0] if failed else 0
 
 
 def _router(args: argparse.Namespace) -> int:
@@ -72,7 +128,11 @@ def _router(args: argparse.Namespace) -> int:
     options = options_from(args, mode="router")
     if not options.listen and not options.config_file:
         options = options.model_copy(update={"listen": ("tcp/0.0.0.0:7447",)})
-    with open_session(options):
+    try:
+        session = open_session(options)
+    except zenoh.ZError as error:
+        fail_on_bus(error)
+    with session:
         logging.getLogger("derl.router").info("router listening on %s", ", ".join(options.listen))
         signal.sigwait([signal.SIGTERM, signal.SIGINT])
     return 0

@@ -1,11 +1,50 @@
-"""Flags shared by the commands: how a node joins the bus, and which profile a run uses."""
+"""Flags shared by the commands (how a node joins the bus, which profile a run uses), and the one
+way a command reports bad input: one line on stderr and a non-zero exit status (`fail`)."""
 
 from __future__ import annotations
 
 import argparse
+import re
+import sys
 from pathlib import Path
+from typing import NoReturn
+
+import yaml
+import zenoh
+from pydantic import BaseModel, ValidationError
 
 from nodes.runtime.bus import ZenohOptions
+
+PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
+IN_USE = 2  # exit status when a port or a run directory is taken by another process
+
+
+def fail(message: str, code: int = 1) -> NoReturn:
+    """Print `derl: message` on stderr (one line) and exit with `code`."""
+    print(f"derl: {' '.join(message.split())}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def at_least_one(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def problems(error: ValidationError, names: dict[str, str] | None = None) -> str:
+    """A pydantic error in one line: `field: reason; ...` (fields renamed by `names`)."""
+    names = names or {}
+    reasons = []
+    for item in error.errors():
+        where = ".".join(names.get(str(part), str(part)) for part in item["loc"])
+        reason = item["msg"].removeprefix("Value error, ")
+        reasons.append(f"{where}: {reason}" if where else reason)
+    return "; ".join(reasons)
 
 
 def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True) -> None:
@@ -35,6 +74,17 @@ def options_from(args: argparse.Namespace, mode: str | None = None) -> ZenohOpti
     )
 
 
+def fail_on_bus(error: zenoh.ZError) -> NoReturn:
+    """Exit with Zenoh's reason in one line: a port in use with `IN_USE`, anything else with 1."""
+    text = str(error)
+    if "Address already in use" in text:
+        where = re.search(r"bound to (\S+?):? \[", text)
+        endpoint = where[1] if where else "its endpoint"
+        fail(f"cannot listen on {endpoint}: the port is in use (another node, router or run?)",
+             IN_USE)  # fmt: skip
+    fail("bus: " + re.sub(r" at /[^ \]]+", "", text))  # without Zenoh's source locations
+
+
 def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
     parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
@@ -42,9 +92,42 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
 
 def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
     """The run's profile from --profile/--env, or exit with the reason it is not valid."""
-    from derl.evolution import load_profile
+    from derl.evolution import EvolutionConfig, load_profile
 
     try:
         return load_profile(args.profile, world=args.env)
+    except ValidationError as error:
+        unknown = [e["loc"] for e in error.errors() if e["type"] == "extra_forbidden"]
+        if unknown:
+            key, valid = unknown[0], _keys(EvolutionConfig, unknown[0][:-1])
+            fail(f"profile {args.profile}: unknown key {'.'.join(map(str, key))!r}; "
+                 f"valid keys: {', '.join(valid)}")  # fmt: skip
+        fail(f"profile {args.profile}: {problems(error)}")
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        fail(f"profile {args.profile}: not valid YAML{at}: {getattr(error, 'problem', error)}")
     except (ValueError, OSError) as error:
-        raise SystemExit(f"derl: profile {args.profile!r} is not valid:\n{error}") from None
+        fail(f"profile {args.profile}: {error}")
+
+
+def _keys(model: type[BaseModel], path: tuple[object, ...]) -> list[str]:
+    """The keys valid at `path` inside `model` (at the top, also `profile`)."""
+    for part in path:
+        field = model.model_fields.get(str(part))
+        inner = field.annotation if field else None
+        if not (isinstance(inner, type) and issubclass(inner, BaseModel)):
+            return []
+        model = inner
+    return [*model.model_fields, *([] if path else [PROFILE_KEY])]
+
+
+def run_directory(path: Path) -> Path:
+    """`path` as a run directory (created if missing), or exit saying why it cannot be one."""
+    if path.exists() and not path.is_dir():
+        fail(f"run directory {path} is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        fail(f"cannot make run directory {path}: {error.strerror}")
+    return path

@@ -1,9 +1,13 @@
 """`derl run`: a whole run on this host: coordinator, K trainers and an evaluator, on loopback.
 
 Each node is its own process (its log in RUN_DIR/logs/), connected through the coordinator's
-loopback endpoint with multicast off; this process watches the run's status and shows progress
-(bodies born, best fitness, steps/s, time left). Ctrl-C stops every node cleanly; running it
-again on the same run directory resumes the run from its journal.
+loopback endpoint (port 7447 unless --port says otherwise: a monitor connects there, across
+restarts) with multicast off. The nodes are supervised like `derl launch`'s ``restart:
+on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that dies is started again, and a
+coordinator that dies is started again alone, resumes from its journal and hears the trainers'
+reports again (they re-send until acknowledged). It ends when the coordinator finishes the run;
+meanwhile it shows bodies born, best fitness, steps/s and time left. Ctrl-C stops every node;
+running it again on the same run directory resumes the run from its journal.
 """
 
 from __future__ import annotations
@@ -12,99 +16,125 @@ import argparse
 import re
 import signal
 import socket
-import threading
-import time
 from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from messages import RunStatus
-from nodes.cli.options import add_profile_arguments, profile_from
+from nodes.cli.options import (
+    IN_USE,
+    add_profile_arguments,
+    at_least_one,
+    fail,
+    profile_from,
+    run_directory,
+)
+from nodes.launch.commands import NodeCommand
+from nodes.launch.supervisor import Supervisor
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.runtime.processes import spawn_derl, stop_all
+from nodes.runtime.rundir import RunDirLocked, lock_run_dir
 
 console = Console()
 
+DEFAULT_PORT = 7447  # Zenoh's own default: `derl monitor --connect tcp/127.0.0.1:7447`
+MAX_RESTARTS = 10  # of each node, after 1, 2, 4 ... 30 s
+
 
 def register(commands: argparse._SubParsersAction) -> None:
-    run = commands.add_parser("run", help="run evolution on this host (all nodes, embedded)")
+    run = commands.add_parser("run", help="run evolution on this host (all nodes, supervised)")
     add_profile_arguments(run)
-    run.add_argument("--workers", type=int, default=2, help="trainer processes (default 2)")
+    run.add_argument("--workers", type=at_least_one, default=2, help="trainer processes (2)")
     run.add_argument("--run-dir", type=Path, help="default: runs/<profile>-<world>")
-    run.add_argument("--port", type=int, default=0, help="coordinator port (default: a free one)")
+    run.add_argument(
+        "--port",
+        type=_port,
+        default=DEFAULT_PORT,
+        help=f"the coordinator's port on 127.0.0.1, where monitors connect (default "
+        f"{DEFAULT_PORT}; 0: a free one)",
+    )
     run.set_defaults(handler=_run)
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port number (0-65535)")
+    return port
 
 
 def _run(args: argparse.Namespace) -> int:
     config = profile_from(args)
-    run_dir = args.run_dir or Path("runs") / f"{config.name}-{config.world}"
+    run_dir = run_directory(args.run_dir or Path("runs") / f"{config.name}-{config.world}")
+    try:
+        with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
+            pass
+    except RunDirLocked as error:
+        fail(str(error), IN_USE)
+    port = _listenable(args.port)
     run = re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
-    logs = run_dir / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    endpoint = f"tcp/127.0.0.1:{args.port or _free_port()}"
-    bus_args = ["--run", run]
-    coordinator = spawn_derl(
-        [
-            "coordinator",
-            "--profile",
-            args.profile,
-            "--run-dir",
-            str(run_dir),
-            *(["--env", args.env] if args.env else []),
-            *bus_args,
-            "--listen",
-            endpoint,
-        ],
-        logs / "coordinator.log",
-    )
-    workers = [
-        spawn_derl(
-            ["trainer", *bus_args, "--connect", endpoint, "--name", f"trainer-{k}"],
-            logs / f"trainer-{k}.log",
-        )
-        for k in range(args.workers)
-    ]
-    if config.eval_top:
-        workers.append(
-            spawn_derl(
-                ["evaluator", *bus_args, "--connect", endpoint, "--name", "evaluator-0"],
-                logs / "evaluator-0.log",
-            )
-        )
+    endpoint = f"tcp/127.0.0.1:{port}"
+    supervisor = Supervisor(_commands(args, run, run_dir, endpoint, config.eval_top > 0),
+                            run_dir / "logs")  # fmt: skip
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
         f"run [bold]{run}[/] ({config.name}, {config.world}): {config.total} bodies, "
-        f"{args.workers} trainers; logs in {logs}"
+        f"{args.workers} trainers; coordinator on {endpoint} "
+        f"(derl monitor --connect {endpoint} --run {run}); logs in {supervisor.log_dir}",
+        highlight=False,
     )
-    interrupted = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: interrupted.set())
-    try:
-        status = _watch(run, endpoint, config.total, coordinator, interrupted)
-    except KeyboardInterrupt:
-        status = None
-        interrupted.set()
-    finally:
-        stop_all([coordinator, *workers])
-    if interrupted.is_set() or status is None or not status.done:
+    code, status = _supervise(supervisor, run, endpoint, config.total)
+    if code != 0:
         console.print(f"stopped; `derl run --run-dir {run_dir} ...` resumes the run")
-        return 130 if interrupted.is_set() else 1
-    best = f"{status.best_agent} ({status.best_fitness:.1f})" if status.best_agent else "-"
-    console.print(f"done: {status.born} bodies, best {best}; results in {run_dir}")
+        return code
+    best = "-"
+    if status is not None and status.best_agent:
+        best = f"{status.best_agent} ({status.best_fitness:.1f})"
+    born = status.born if status is not None else config.total
+    console.print(f"done: {born} bodies, best {best}; results in {run_dir}")
     return 0
 
 
-def _watch(
-    run: str, endpoint: str, total: int, coordinator, interrupted: threading.Event
-) -> RunStatus | None:
-    """Show the run's status until the coordinator exits; the last status seen."""
+def _listenable(port: int) -> int:
+    """`port` (a free one for 0) if the coordinator can listen on it, else exit saying so."""
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError as error:
+            fail(f"cannot listen on 127.0.0.1:{port}: {error.strerror} (another run, node or "
+                 "router?); choose another port with --port", IN_USE)  # fmt: skip
+        return probe.getsockname()[1]
+
+
+def _commands(
+    args: argparse.Namespace, run: str, run_dir: Path, endpoint: str, evaluator: bool
+) -> list[NodeCommand]:
+    """The coordinator, the trainers and the evaluator, each restarted when it fails."""
+    env = ["--env", args.env] if args.env else []
+    coordinator = ("coordinator", "--run", run, "--profile", args.profile, *env,
+                   "--run-dir", str(run_dir), "--listen", endpoint)  # fmt: skip
+    nodes = [("coordinator", "coordinator", coordinator)]
+    for role, count in (("trainer", args.workers), ("evaluator", int(evaluator))):
+        for k in range(count):
+            name = f"{role}-{k}"
+            nodes.append((role, name, (role, "--run", run, "--connect", endpoint, "--name", name)))
+    return [
+        NodeCommand(host="local", name=name, role=role, args=line, max_restarts=MAX_RESTARTS)
+        for role, name, line in nodes
+    ]
+
+
+def _supervise(
+    supervisor: Supervisor, run: str, endpoint: str, total: int
+) -> tuple[int, RunStatus | None]:
+    """Supervise the nodes until the run is over, showing its status; the supervisor's exit
+    code and the last status seen."""
     latest: list[RunStatus] = []
-    options = ZenohOptions(connect=(endpoint,))
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -115,14 +145,17 @@ def _watch(
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
-    with open_session(options) as session, Progress(*columns, console=console) as bar:
+    with (
+        open_session(ZenohOptions(connect=(endpoint,))) as session,
+        Progress(*columns, console=console) as bar,
+    ):
         bus = Bus(session, run)
         bus.subscribe(bus.keys.status(), latest.append, (RunStatus,))
         task = bar.add_task("evolution", total=total, best="-", sps=0.0, evaluated="-")
-        while coordinator.poll() is None and not interrupted.is_set():
-            time.sleep(0.5)
+
+        def show() -> None:
             if not latest:
-                continue
+                return
             s = latest[-1]
             del latest[:-1]
             bar.update(
@@ -133,4 +166,6 @@ def _watch(
                 sps=s.steps_per_s,
                 evaluated=f"{s.evaluated}/{s.eval_target}",
             )
-    return latest[-1] if latest else None
+
+        code = supervisor.run(poll_s=0.5, tick=show)
+    return code, latest[-1] if latest else None

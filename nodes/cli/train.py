@@ -10,6 +10,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from nodes.cli.options import at_least_one, fail, problems
+
 console = Console()
 
 GENOME, CHECKPOINT, RESULT, CURVE_CSV, CURVE_PNG = (
@@ -19,6 +21,7 @@ GENOME, CHECKPOINT, RESULT, CURVE_CSV, CURVE_PNG = (
     "curve.csv",
     "curve.png",
 )
+FLAGS = {"total_steps": "--steps", "num_envs": "--envs", "seed": "--seed"}  # PPOConfig's
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -27,27 +30,34 @@ def register(commands: argparse._SubParsersAction) -> None:
     train = commands.add_parser("train", help="train a controller for one body with PPO")
     train.add_argument("--genome", type=Path, required=True, help="genome JSON file")
     train.add_argument("--task", choices=sorted(TASKS), default="ft")
-    train.add_argument("--steps", type=int, default=1_000_000, help="env steps (paper: 5M)")
+    train.add_argument(
+        "--steps", type=at_least_one, default=1_000_000, help="env steps (paper: 5M)"
+    )
     train.add_argument("--seed", type=int, default=1409, help="training seed (paper's: 1409)")
-    train.add_argument("--envs", type=int, default=32, help="environment copies (paper: 32)")
-    train.add_argument("--threads", type=int, default=1, help="simulation threads")
+    train.add_argument("--envs", type=at_least_one, default=32, help="env copies (paper: 32)")
+    train.add_argument("--threads", type=at_least_one, default=1, help="simulation threads")
     train.add_argument("--out", type=Path, required=True, help="output directory")
     train.set_defaults(handler=_train)
 
     rollout = commands.add_parser("rollout", help="replay a trained policy deterministically")
     rollout.add_argument("dir", type=Path, help="output directory of `derl train`")
-    rollout.add_argument("--episodes", type=int, default=3)
+    rollout.add_argument("--episodes", type=at_least_one, default=3)
     rollout.add_argument("--seed", type=int, default=0)
     rollout.add_argument("--video", type=Path, help="write a video (.mp4 or .gif) of episode 1")
     rollout.set_defaults(handler=_rollout)
 
 
 def _train(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
     from derl.lifetime import learn, ppo_config
     from nodes.cli.unimal import load_genome
 
     genome = load_genome(args.genome)
-    config = ppo_config(args.task, args.steps, args.seed, num_envs=args.envs)
+    try:
+        config = ppo_config(args.task, args.steps, args.seed, num_envs=args.envs)
+    except ValidationError as error:
+        fail(f"cannot train with these settings: {problems(error, FLAGS)}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / GENOME).write_text(genome.model_dump_json(indent=2) + "\n")
     columns = (

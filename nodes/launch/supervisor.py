@@ -1,8 +1,10 @@
 """`Supervisor`: starts the node processes of a launch, restarts them by their policy, stops them.
 
-Restarts back off 1, 2, 4 ... 30 s; everything stops on Ctrl-C, SIGTERM or SIGHUP (an ssh
-session that ends), or when the coordinator finishes the run. Local processes run with this
-Python (``python -m nodes.cli``, the same as ``derl``).
+Used by `derl launch` and `derl run`. Restarts back off 1, 2, 4 ... 30 s. A coordinator that exits
+0 has finished the run: everything stops; any other exit is a failure, restarted by its policy
+(the coordinator alone: it resumes from its journal while the workers go on). Everything stops on
+Ctrl-C, SIGTERM or SIGHUP (an ssh session that ends). Local processes run with this Python
+(``python -m nodes.cli``, the same as ``derl``).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import logging
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,10 +59,10 @@ class Supervisor:
         log.info("%s started (pid %d)%s", command.name, slot.process.pid,
                  f", restart {slot.restarts}" if slot.restarts else "")  # fmt: skip
 
-    def run(self, poll_s: float = 0.25) -> int:
-        """Start everything, supervise until the run is over or `stop` is set; the exit code:
-        0 when the run finished (or every node ended cleanly), 1 when a node failed for good,
-        130 when stopped."""
+    def run(self, poll_s: float = 0.25, tick: Callable[[], None] | None = None) -> int:
+        """Start everything, supervise until the run is over or `stop` is set, calling `tick`
+        after every round (to show progress); the exit code: 0 when the run finished (or every
+        node ended cleanly), 1 when a node failed for good, 130 when stopped."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         code = None
         try:
@@ -68,6 +71,8 @@ class Supervisor:
                     self._start(slot)
             while code is None and not self.stop.wait(poll_s):
                 code = self._step(time.monotonic())
+                if tick is not None:
+                    tick()
         finally:
             self.shutdown()
         return 130 if code is None else code
@@ -120,5 +125,3 @@ def _spawn(argv: list[str], log_file: Path) -> subprocess.Popen:
             argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             preexec_fn=child_setup,
         )  # fmt: skip
-
-

@@ -49,6 +49,12 @@ def stop_all(processes: list[subprocess.Popen], timeout: float = 10.0) -> None:
             process.wait()
 
 
+def exit_status(process: subprocess.Popen) -> int:
+    """A finished process's status as a shell gives it: 128 + N when killed by signal N."""
+    code = process.wait()
+    return 128 - code if code < 0 else code
+
+
 def _signal_group(pid: int, sig: int) -> None:
     with contextlib.suppress(ProcessLookupError):  # it ended between the check and the signal
         os.killpg(pid, sig)

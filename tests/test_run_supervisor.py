@@ -1,0 +1,63 @@
+"""`derl run` supervises its nodes: a SIGKILLed trainer and a SIGKILLed coordinator are started
+again (the coordinator alone, on the same endpoint, resuming from its journal), every body is
+born once, the run finishes, and the progress view (a Zenoh peer of the coordinator's endpoint)
+follows the run across the restart."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+from pathlib import Path
+
+import pytest
+from nodes_fixtures import (
+    Processes,
+    assert_born_once,
+    births,
+    derl_argv,
+    free_port,
+    jobs,
+    pid_alive,
+    wait_for,
+)
+
+
+def _pids(log: str) -> dict[str, list[int]]:
+    started: dict[str, list[int]] = {}
+    for name, pid in re.findall(r"(\S+) started \(pid (\d+)\)", log):
+        started.setdefault(name, []).append(int(pid))
+    return started
+
+
+@pytest.mark.slow
+def test_run_restarts_a_killed_trainer_and_a_killed_coordinator(tmp_path: Path) -> None:
+    run_dir, port = tmp_path / "run", free_port()
+    processes = Processes(tmp_path / "test-logs")
+    try:
+        run = processes.start("run", derl_argv("run", "--profile", "smoke", "--run-dir",
+                                               str(run_dir), "--port", str(port)))  # fmt: skip
+        wait_for(lambda: any(j.node == "trainer-0" for j in jobs(run_dir)), 120,
+                 "a job for trainer-0")  # fmt: skip
+        os.killpg(_pids(processes.log("run"))["trainer-0"][0], signal.SIGKILL)
+        wait_for(lambda: "trainer-0 exited with -9: restart 1/" in processes.log("run"), 10,
+                 "derl run noticing the killed trainer")  # fmt: skip
+        wait_for(lambda: len(births(run_dir)) >= 2, 120, "two births")
+        assert len(births(run_dir)) < 8, "the run ended before the coordinator could be killed"
+        os.killpg(_pids(processes.log("run"))["coordinator"][0], signal.SIGKILL)
+        wait_for(lambda: "coordinator exited with -9: restart 1/" in processes.log("run"), 10,
+                 "derl run noticing the killed coordinator")  # fmt: skip
+        wait_for(lambda: run.poll() is not None, 240, "derl run to finish the run")
+        log = processes.log("run")
+        assert run.returncode == 0, log
+        pids = _pids(log)
+        assert len(pids["coordinator"]) == 2 and len(pids["trainer-0"]) == 2, pids
+        assert len(pids["trainer-1"]) == 1 and len(pids["evaluator-0"]) == 1, pids  # untouched
+        assert_born_once(run_dir, 8)
+        assert "done: 8 bodies" in log  # the progress view heard the restarted coordinator
+        assert f"tcp/127.0.0.1:{port}" in log
+        coordinator_log = (run_dir / "logs" / "coordinator.log").read_text()
+        assert "journaled messages replayed" in coordinator_log.split("start 1:")[-1]
+        assert not [pid for ps in pids.values() for pid in ps if pid_alive(pid)]
+    finally:
+        processes.close()
