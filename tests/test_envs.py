@@ -1,6 +1,10 @@
-"""Batched environments: rewards on scripted motions, endings, heightmap wiring, batch vs single."""
+"""Batched environments: rewards on scripted motions, endings, heightmap wiring, batch vs single,
+and tasks as compositions of parts."""
 
 from __future__ import annotations
+
+import ast
+from pathlib import Path
 
 import gymnasium
 import mujoco
@@ -8,17 +12,26 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+import derl.envs
 from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
+from derl.envs.arenas import Floor
+from derl.envs.endings import Escaped
+from derl.envs.eval_tasks import ObstacleConfig
 from derl.envs.heightmap import sample
+from derl.envs.rewards import REWARD_WEIGHTS, Escape, Forward, RewardWeights
+from derl.envs.task import Task
 from derl.envs.terrain import Terrain, TerrainConfig
+from derl.envs.view import EnvView
 from derl.unimal import Genome
 
 SMALL_VT = TerrainConfig.variable(size_x=30.0, size_y=10.0)
 SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=20.0)
+SMALL_OBSTACLE = ObstacleConfig(size_x=30.0, size_y=12.0, count=12, start_flat=6.0)
 
 
 def _env(genome: Genome, task: str, n: int = 4, **config: object) -> UnimalEnv:
     options = {"vt": {"terrain": SMALL_VT}, "mvt": {"terrain": SMALL_MVT}}.get(task, {})
+    options = {"obstacle": {"config": SMALL_OBSTACLE}}.get(task, options)
     return UnimalEnv(genome, make_task(task, **options), EnvConfig(num_envs=n, **config))
 
 
@@ -62,22 +75,21 @@ def test_push_and_reach_rewards(quadruped: Genome) -> None:
     env = _env(quadruped, "mvt", n=2)
     env.reset(1)
     task = env.task
-    box = task.box_qpos
-    goal = task.goal[:, :2].copy()
-    start = env.qpos[:, box : box + 2].copy()
+    box = env.free_joint("box_root")
+    (obj,) = task.props
+    goal = obj.goal[:, :2].copy()
+    start = box.qpos[:, :2].copy()
     toward = (goal - start) / np.linalg.norm(goal - start, axis=1, keepdims=True)
-    env.qpos[:, box + 2] += 3.0  # the box flies toward the goal at 2 m/s
-    env.qvel[:, task.box_dof : task.box_dof + 6] = 0.0
-    env.qvel[:, task.box_dof : task.box_dof + 2] = 2.0 * toward
+    box.qpos[:, 2] += 3.0  # the box flies toward the goal at 2 m/s
+    box.qvel[:] = 0.0
+    box.qvel[:, :2] = 2.0 * toward
     env.batch.forward()
     task.placed(env, np.arange(2))
     push = np.zeros(2)
     for _ in range(10):
         result = env.step(np.zeros((2, env.action_dim), np.float32))
         push += result.components["push"]
-    moved = np.linalg.norm(goal - start, axis=1) - np.linalg.norm(
-        goal - env.qpos[:, box : box + 2], axis=1
-    )
+    moved = np.linalg.norm(goal - start, axis=1) - np.linalg.norm(goal - box.qpos[:, :2], axis=1)
     np.testing.assert_allclose(push, 100 * moved, rtol=1e-6)
     np.testing.assert_allclose(moved, 2.0 * 10 * 0.02, rtol=0.02)
     manipulation = result.components["manipulation"]
@@ -87,9 +99,8 @@ def test_push_and_reach_rewards(quadruped: Genome) -> None:
 def test_reach_bonus_is_paid_once(quadruped: Genome) -> None:
     env = _env(quadruped, "mvt", n=1)
     env.reset(2)
-    task = env.task
     head = env.head_pos[0].copy()
-    env.qpos[0, task.box_qpos : task.box_qpos + 3] = head + np.array([0.5, 0.0, 0.0])
+    env.free_joint("box_root").qpos[0, :3] = head + np.array([0.5, 0.0, 0.0])
     env.batch.forward()
     first = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
     second = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
@@ -204,7 +215,7 @@ def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
     observed = env.task.observe(env, env.all)["heightmap"]
     for i in range(2):  # each copy reads its own terrain
         terrain = Terrain(env.task.terrains.heights[i], SMALL_VT.resolution, SMALL_VT.max_height)
-        expected = sample(terrain, env.head_pos[[i], :2], env.yaw[[i]], env.task.grid)
+        expected = sample(terrain, env.head_pos[[i], :2], env.yaw[[i]], env.task.arena.grid)
         np.testing.assert_array_equal(observed[i], expected[0])
 
 
@@ -241,6 +252,103 @@ def test_reset_is_deterministic(quadruped: Genome) -> None:
 
 @pytest.mark.parametrize("task", sorted(TASKS))
 def test_gymnasium_env_checker_passes(quadruped: Genome, task: str) -> None:
-    env = gymnasium.make(f"derl/{TASKS[task].gym_name}-v0", genome=quadruped)
+    env = gymnasium.make(f"derl/{make_task(task).gym_name}-v0", genome=quadruped)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
+
+
+def test_changing_one_tasks_weights_leaves_the_others(
+    quadruped: Genome, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """FT, VT and obstacle share the forward term, not its weights: VT's entry of the table is
+    VT's alone."""
+    monkeypatch.setitem(REWARD_WEIGHTS, "vt", RewardWeights(forward=2.0))
+    for task, scale in (("ft", 1.0), ("vt", 2.0), ("obstacle", 1.0)):
+        env = _env(quadruped, task)
+        env.reset(0)
+        _lift(env, 5.0, (1.5, 0.0, 0.0))
+        x0 = env.head_pos[:, 0].copy()
+        forward = env.step(np.zeros((env.num_envs, env.action_dim), np.float32)).components
+        dx = env.head_pos[:, 0] - x0
+        np.testing.assert_allclose(forward["forward"], scale * 50 * dx, rtol=1e-9)
+
+
+def test_a_task_composed_from_parts(quadruped: Genome) -> None:
+    """A new task is a list of parts: FT's floor, its forward term and escape's rim test."""
+    weights = RewardWeights()
+    task = Task(
+        name="run_out",
+        gym_name="RunOut",
+        fitness_component="forward",
+        arena=Floor(20.0, 20.0),
+        spawn=(0.0, 0.0),
+        rewards=(Forward(weights), Escape(3.0, RewardWeights(bonus=5.0))),
+        success=Escaped(3.0),
+    )
+    env = UnimalEnv(quadruped, task, EnvConfig(num_envs=2))
+    assert env.obs_spaces.keys() == {"proprioception"}
+    env.reset(0)
+    _lift(env, 3.0, (5.0, 0.0, 0.0))
+    for _ in range(40):
+        result = env.step(np.zeros((2, env.action_dim), np.float32))
+        np.testing.assert_allclose(
+            result.reward, result.components["forward"] + result.components["escape"]
+        )
+        if result.terminated.all():
+            break
+    else:
+        pytest.fail("the rim was never reached")
+    assert (result.components["escape"] > 5.0).all()
+
+
+def test_a_task_checks_its_components() -> None:
+    weights = RewardWeights()
+    parts = {"arena": Floor(10.0, 10.0), "spawn": (0.0, 0.0), "rewards": (Forward(weights),)}
+    with pytest.raises(ValueError, match="no component 'reach'"):
+        Task(name="t", gym_name="T", fitness_component="reach", **parts)
+    with pytest.raises(ValueError, match="metric total sums unknown terms"):
+        Task(name="t", gym_name="T", fitness_component="total", metrics={"total": ("x",)}, **parts)
+    with pytest.raises(ValueError, match="share a name"):
+        Task(
+            name="t",
+            gym_name="T",
+            fitness_component="forward",
+            **parts | {"rewards": (Forward(weights), Forward(weights))},
+        )
+
+
+def test_parts_see_the_environment_through_its_view(quadruped: Genome) -> None:
+    env = _env(quadruped, "mvt", n=2)
+    assert isinstance(env, EnvView)
+    with pytest.raises(ValueError, match="not a free joint"):
+        env.free_joint(env.model.joint(1).name)
+    with pytest.raises(ValueError, match="not a mocap body"):
+        env.mocap_pos("box")
+    env.reset(3)
+    (box,) = env.task.props
+    np.testing.assert_array_equal(env.mocap_pos("goal"), box.goal)
+
+
+def test_task_modules_do_not_import_the_environment() -> None:
+    """Parts and tasks know the environment only as an `EnvView` (no import cycle)."""
+    package = Path(derl.envs.__file__).parent
+    for module in (
+        "task",
+        "view",
+        "rewards",
+        "observations",
+        "arenas",
+        "objects",
+        "endings",
+        "worlds",
+        "eval_tasks",
+        "registry",
+    ):
+        tree = ast.parse((package / f"{module}.py").read_text())
+        imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)} | {
+            alias.name
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Import)
+            for alias in node.names
+        }
+        assert "derl.envs.batched" not in imported, module

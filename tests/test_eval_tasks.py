@@ -35,7 +35,7 @@ def _fly(
     """Throw every body from 3 m above the ground at ``xy`` (default: where it is)."""
     if xy is not None:
         env.qpos[:, env.root : env.root + 2] = xy
-    ground = env.task.ground(env, env.head_pos[:, :2])
+    ground = env.task.arena.ground(env.head_pos[:, :2])
     env.qpos[:, env.root + 2] = ground + 3.0
     env.qvel[:, :] = 0.0
     env.qvel[:, env.root_dof : env.root_dof + 3] = velocity
@@ -69,7 +69,8 @@ def test_patrol_pays_the_approach_and_flips_the_goal(quadruped: Genome) -> None:
     env = _env(quadruped, "patrol", n=1)
     env.reset(0)
     task = env.task
-    np.testing.assert_allclose(task.goal[0], [5.0, 0.0, 0.0])
+    (goal_point,) = task.props
+    np.testing.assert_allclose(goal_point.goal[0], [5.0, 0.0, 0.0])
     _fly(env, (4.0, 0.0, 0.0), xy=(3.8, 0.0))
     task.placed(env, env.all)
     goal, arrivals = 5.0, 0
@@ -82,7 +83,7 @@ def test_patrol_pays_the_approach_and_flips_the_goal(quadruped: Genome) -> None:
         assert reach == pytest.approx(100 * (d_before - d_after) + 10 * arrived, rel=1e-9)
         if arrived:
             goal, arrivals = -goal, arrivals + 1
-        assert task.goal[0, 0] == goal
+        assert goal_point.goal[0, 0] == goal
     assert arrivals == 1 and goal == -5.0
 
 
@@ -99,9 +100,10 @@ def test_point_nav_pays_the_approach_and_ends_on_arrival(quadruped: Genome) -> N
     env = _env(quadruped, "point_nav")
     env.reset(3)
     task = env.task
-    assert (np.abs(task.goal[:, :2]) <= 8.0).all() and not np.array_equal(*task.goal)
+    (goal,) = task.props
+    assert (np.abs(goal.goal[:, :2]) <= 8.0).all() and not np.array_equal(*goal.goal)
     _fly(env, (5.0, 0.0, 0.0), xy=(0.0, 0.0))
-    task.goal[:] = [[1.25, 0.0, 0.0], [-8.0, 8.0, 0.0]]
+    goal.goal[:] = [[1.25, 0.0, 0.0], [-8.0, 8.0, 0.0]]
     task.placed(env, env.all)
     for _ in range(20):
         before = env.head_pos[:, :2].copy()
@@ -111,7 +113,7 @@ def test_point_nav_pays_the_approach_and_ends_on_arrival(quadruped: Genome) -> N
         if result.terminated[0]:
             break
         after = env.head_pos[:, :2]
-        d_before, d_after = (np.linalg.norm(task.goal[:, :2] - p, axis=1) for p in (before, after))
+        d_before, d_after = (np.linalg.norm(goal.goal[:, :2] - p, axis=1) for p in (before, after))
         np.testing.assert_allclose(reach, 100 * (d_before - d_after), rtol=1e-9)
     else:
         pytest.fail("the goal was never reached")
@@ -159,10 +161,10 @@ def test_incline_ground_follows_the_slope(quadruped: Genome) -> None:
     mujoco.mj_forward(env.model, data)
     for x in (-10.0, 0.0, 12.0):
         hit = mujoco.mj_ray(env.model, data, [x, 4.0, 10.0], [0, 0, -1], None, 1, -1, None)
-        ground = env.task.ground(env, np.array([[x, 4.0]]))[0]
+        ground = env.task.arena.ground(np.array([[x, 4.0]]))[0]
         assert 10.0 - hit == pytest.approx(ground, abs=1e-9)
         assert ground == pytest.approx(x * np.tan(SLOPE))
-    ground = env.task.ground(env, env.head_pos[:, :2])
+    ground = env.task.arena.ground(env.head_pos[:, :2])
     # Copy 0 lies on the slope; copy 1 is 2 m above it but below z = 0 (fallen, were it flat).
     env.qpos[:, env.root + 2] = ground + np.array([0.15 * env.rest_height, 2.0])
     env.batch.forward()
@@ -172,7 +174,7 @@ def test_incline_ground_follows_the_slope(quadruped: Genome) -> None:
 def test_escape_pays_the_radial_gain_and_the_rim_bonus(quadruped: Genome) -> None:
     env = _env(quadruped, "escape", n=1)
     env.reset(0)
-    rim = env.task.rim
+    rim = env.task.success.rim
     assert rim == pytest.approx(0.84 * 10.0)
     _fly(env, (5.0, 0.0, 0.0), xy=(6.5, 0.0))
     for _ in range(30):
@@ -214,7 +216,7 @@ def test_heightmap_reads_the_heightfield(quadruped: Genome, task: str) -> None:
         env.qpos[i, env.root : env.root + 7] = [*head, 3.0, 1.0, 0.0, 0.0, 0.0]
     env.batch.forward()
     heightmap = env.task.observe(env, env.all)["heightmap"]
-    points = env.head_pos[:, None, :2] + env.task.grid.offsets[None]
+    points = env.head_pos[:, None, :2] + env.task.arena.grid.offsets[None]
     for i, model in enumerate(terrains.models):
         surface = _ray_heights(model, np.vstack([env.head_pos[i, :2], points[i]]))
         np.testing.assert_allclose(heightmap[i], surface[1:] - surface[0], atol=1e-5)
@@ -235,20 +237,20 @@ def test_obstacles_are_boxes_beyond_the_start_area(quadruped: Genome) -> None:
 def test_push_reward_for_a_known_displacement(quadruped: Genome, task: str) -> None:
     env = _env(quadruped, task)
     env.reset(1)
-    t = env.task
-    box = t.box_qpos
-    start = env.qpos[:, box : box + 2].copy()
+    (obj,) = env.task.props
+    box = env.free_joint("box_root")
+    start = box.qpos[:, :2].copy()
     goal = start + np.array([4.0, 3.0])  # 5 m away
-    t.goal[:, :2] = goal
-    env.qpos[:, box + 2] += 3.0  # the object flies toward the goal at 2 m/s
-    env.qvel[:, t.box_dof : t.box_dof + 6] = 0.0
-    env.qvel[:, t.box_dof : t.box_dof + 2] = 2.0 * np.array([0.8, 0.6])
+    obj.goal[:, :2] = goal
+    box.qpos[:, 2] += 3.0  # the object flies toward the goal at 2 m/s
+    box.qvel[:] = 0.0
+    box.qvel[:, :2] = 2.0 * np.array([0.8, 0.6])
     env.batch.forward()
-    t.placed(env, env.all)
+    env.task.placed(env, env.all)
     push = np.zeros(env.num_envs)
     for _ in range(10):
         push += _idle(env).components["push"]
-    moved = 5.0 - np.linalg.norm(goal - env.qpos[:, box : box + 2], axis=1)
+    moved = 5.0 - np.linalg.norm(goal - box.qpos[:, :2], axis=1)
     np.testing.assert_allclose(push, 100 * moved, rtol=1e-6)
     np.testing.assert_allclose(moved, 2.0 * 10 * 0.02, rtol=0.02)
 
@@ -256,18 +258,18 @@ def test_push_reward_for_a_known_displacement(quadruped: Genome, task: str) -> N
 def test_box_lies_on_the_slope_below_the_goal(quadruped: Genome) -> None:
     env = _env(quadruped, "push_box_incline")
     env.reset(0)
-    t = env.task
-    box = env.qpos[:, t.box_qpos : t.box_qpos + 7].copy()
+    (obj,) = env.task.props
+    box = env.free_joint("box_root").qpos.copy()
     np.testing.assert_allclose(box[:, 3:], [[np.cos(SLOPE / 2), 0, -np.sin(SLOPE / 2), 0]] * 2)
     np.testing.assert_allclose(box[:, 1], 0.0)
     np.testing.assert_allclose(box[:, 0], env.head_pos[:, 0] + 3.0, atol=0.01)
     lift = box[:, 2] - box[:, 0] * np.tan(SLOPE)
     np.testing.assert_allclose(lift, 0.2 / np.cos(SLOPE) + 0.01)
-    np.testing.assert_allclose(t.goal[:, :2], [[15.0 * np.cos(SLOPE) - 5.0, 0.0]] * 2)
-    np.testing.assert_allclose(t.goal[:, 2], t.goal[:, 0] * np.tan(SLOPE))
+    np.testing.assert_allclose(obj.goal[:, :2], [[15.0 * np.cos(SLOPE) - 5.0, 0.0]] * 2)
+    np.testing.assert_allclose(obj.goal[:, 2], obj.goal[:, 0] * np.tan(SLOPE))
     for _ in range(25):  # it stays put
         _idle(env)
-    np.testing.assert_allclose(env.qpos[:, t.box_qpos : t.box_qpos + 3], box[:, :3], atol=0.02)
+    np.testing.assert_allclose(obj.position, box[:, :3], atol=0.02)
 
 
 def test_ball_is_a_rolling_sphere_near_the_agent(quadruped: Genome) -> None:
@@ -279,9 +281,9 @@ def test_ball_is_a_rolling_sphere_near_the_agent(quadruped: Genome) -> None:
     mass = model.body_mass[model.body("box").id]
     assert mass == pytest.approx(600 * 4 / 3 * np.pi * 0.2**3)
     env.reset(0)
-    t = env.task
-    ball_pos = env.qpos[:, t.box_qpos : t.box_qpos + 3]
-    distance = np.linalg.norm(ball_pos[:, :2], axis=1)
+    (ball,) = env.task.props
+    distance = np.linalg.norm(ball.position[:, :2], axis=1)
     assert ((distance >= 1.5) & (distance <= 4.0)).all()
-    np.testing.assert_allclose(ball_pos[:, 2], 0.21)
-    assert (np.abs(t.goal[:, :2]) <= 12.0).all() and np.ptp(t.goal[:, :2], axis=0).min() > 5
+    np.testing.assert_allclose(ball.position[:, 2], 0.21)
+    goal = ball.goal[:, :2]
+    assert (np.abs(goal) <= 12.0).all() and np.ptp(goal, axis=0).min() > 5

@@ -12,6 +12,7 @@ Finished copies reset themselves inside `step`, which satisfies `derl.rl.Batched
 from __future__ import annotations
 
 import operator
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import reduce
 
@@ -21,6 +22,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from derl.envs.task import Arrays, Task
+from derl.envs.view import FreeJoint
 from derl.unimal import Genome, agent_spec
 from derl.unimal.geometry import layout
 from derl.unimal.mjcf import rest_height
@@ -55,7 +57,7 @@ class StepResult:
 
 
 class UnimalEnv:
-    """A batch of copies of one UNIMAL in one task."""
+    """A batch of copies of one UNIMAL in one task; the task's parts see it as an `EnvView`."""
 
     def __init__(
         self, genome: Genome, task: Task, config: EnvConfig | None = None, seed: int = 0
@@ -73,13 +75,13 @@ class UnimalEnv:
         self.rng = np.random.default_rng(seed)
         self._index_model()
         self._bind()
-        task.setup(self)
+        task.bind(self)
         self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
         # Each copy's state rows as `Batch.reset` leaves them: `_reset` writes them directly.
         self._initial_state = self.batch.state.copy()
         self.all = np.arange(self.num_envs)
         self.fall_height = self.config.fall_ratio * self.rest_height  # head below it: fallen
-        self.arena_inside = np.array(task.arena) - ARENA_MARGIN  # head beyond it: off the arena
+        self.arena_inside = np.array(task.arena.half) - ARENA_MARGIN  # head beyond: off the arena
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self.unstable_count = 0
         self._obs_spaces = {"proprioception": self._proprioception(self.all).shape[1]}
@@ -102,7 +104,7 @@ class UnimalEnv:
     def reset(self, seed: int) -> Arrays:
         """Start a new episode in every copy; deterministic for a given seed."""
         self.rng = np.random.default_rng(seed)
-        self.task.start(self)
+        self.task.start()
         return self._reset(self.all)
 
     def step(self, actions: np.ndarray) -> StepResult:
@@ -120,8 +122,8 @@ class UnimalEnv:
         unstable_count = np.count_nonzero(unstable)
         self.unstable_count += unstable_count
         self.steps += 1
-        terms = self.task.rewards(self)
-        components = {**terms, **self.task.metrics(self, terms)}
+        terms = self.task.step(self)
+        components = {**terms, **self.task.metric_values(terms)}
         components["energy"] = np.abs(self.ctrl) @ self.gear
         if unstable_count:
             for values in components.values():
@@ -130,7 +132,8 @@ class UnimalEnv:
         terminated = self._fallen()
         terminated |= unstable
         terminated |= self._off_arena()
-        terminated |= self.task.success(self)
+        if self.task.success is not None:
+            terminated |= self.task.success(self)
         truncated = ~terminated & (self.steps >= self.config.episode_steps)
         obs = self._observe(self.all)
         final_obs = obs
@@ -141,10 +144,11 @@ class UnimalEnv:
                 obs[key][done] = value
         return StepResult(obs, reward, terminated, truncated, final_obs, components)
 
-    # --- state the tasks read -----------------------------------------------------------------
+    # --- what the task's parts see (`EnvView`) --------------------------------------------------
 
     # head_pos (N, 3): head centre in the world; head_vel (N, 3): its linear velocity; head_rot
-    # (N, 3, 3): its orientation, columns are the head's axes in the world. Live views (`_bind`).
+    # (N, 3, 3): its orientation, columns are the head's axes in the world; prev_head (N, 3): the
+    # head centre before the last step; ctrl (N, A): the clipped actions. Live views (`_bind`).
 
     def to_head_frame(self, vectors: np.ndarray) -> np.ndarray:
         """World vectors (N, 3) expressed in each copy's head frame."""
@@ -159,6 +163,25 @@ class UnimalEnv:
     def agent_points(self) -> np.ndarray:
         """(N, P, 3) the head centre and every limb's mid and end sites, in the world."""
         return self.site_xpos[:, self.agent_sites]
+
+    def free_joint(self, name: str) -> FreeJoint:
+        """Live (N, 7) qpos and (N, 6) qvel views of the free joint ``name``."""
+        joint = self.model.joint(name)
+        if joint.type[0] != mujoco.mjtJoint.mjJNT_FREE:
+            raise ValueError(f"joint {name!r} is not a free joint")
+        qpos, dof = int(joint.qposadr[0]), int(joint.dofadr[0])
+        return FreeJoint(self.qpos[:, qpos : qpos + 7], self.qvel[:, dof : dof + 6])
+
+    def mocap_pos(self, body: str) -> np.ndarray:
+        """Live (N, 3) position of the mocap body ``body``."""
+        mocap = int(self.model.body(body).mocapid[0])
+        if mocap < 0:
+            raise ValueError(f"body {body!r} is not a mocap body")
+        return self.batch.bind("mocap_pos")[:, mocap]
+
+    def set_models(self, models: Sequence[mujoco.MjModel]) -> None:
+        """Run copy i on ``models[i]``, a copy of `model` with its own asset data."""
+        self.batch.set_models(models)
 
     # --- internals ----------------------------------------------------------------------------
 
@@ -240,7 +263,7 @@ class UnimalEnv:
         qpos = self.qpos[ids]
         spawn = qpos[:, self.root : self.root + 2]
         spawn[:] = self.task.spawn
-        ground = self.task.ground(self, spawn, ids)
+        ground = self.task.arena.ground(spawn, ids)
         qpos[:, self.root + 2] = ground + self.rest_height + config.spawn_clearance
         qpos[:, self.agent_qpos] += self.rng.uniform(-noise, noise, (n, len(self.agent_qpos)))
         quat = qpos[:, self.root + 3 : self.root + 7]
@@ -269,7 +292,7 @@ class UnimalEnv:
         return unstable
 
     def _fallen(self) -> np.ndarray:
-        height = self.head_pos[:, 2] - self.task.ground(self, self.head_pos[:, :2])
+        height = self.head_pos[:, 2] - self.task.arena.ground(self.head_pos[:, :2])
         return height < self.fall_height
 
     def _off_arena(self) -> np.ndarray:

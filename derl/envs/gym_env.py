@@ -62,7 +62,7 @@ class UnimalGymEnv(gymnasium.Env):
 
 def register_all() -> None:
     """Register ``derl/<Task>-v0`` for every task (idempotent)."""
-    for name, task in TASKS.items():
-        env_id = f"derl/{task.gym_name}-v0"
+    for name in TASKS:
+        env_id = f"derl/{make_task(name).gym_name}-v0"
         if env_id not in gymnasium.registry:
             gymnasium.register(env_id, entry_point=UnimalGymEnv, kwargs={"task": name})

@@ -2,39 +2,47 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
-from derl.envs.eval_tasks import (
-    Escape,
-    Exploration,
-    Incline,
-    ManipulateBall,
-    Obstacle,
-    Patrol,
-    PointNav,
-    PushBoxIncline,
-)
+from derl.envs import eval_tasks, worlds
 from derl.envs.task import Task
-from derl.envs.worlds import Flat, Manipulation, Variable
 
-WORLDS = (Flat, Variable, Manipulation)
+TASKS: dict[str, Callable[..., Task]] = {
+    "ft": worlds.ft,
+    "vt": worlds.vt,
+    "mvt": worlds.mvt,
+    "patrol": eval_tasks.patrol,
+    "point_nav": eval_tasks.point_nav,
+    "obstacle": eval_tasks.obstacle,
+    "exploration": eval_tasks.exploration,
+    "escape": eval_tasks.escape,
+    "incline": eval_tasks.incline,
+    "push_box_incline": eval_tasks.push_box_incline,
+    "manipulate_ball": eval_tasks.manipulate_ball,
+}
+"""Every task's factory: its keyword options (e.g. ``terrain=TerrainConfig(...)``) to a `Task`."""
+
+WORLDS = ("ft", "vt", "mvt")
+"""The evolution worlds (appendix A)."""
+
 TEST_TASKS = (
-    Patrol,
-    PointNav,
-    Obstacle,
-    Exploration,
-    Escape,
-    Incline,
-    PushBoxIncline,
-    ManipulateBall,
+    "patrol",
+    "point_nav",
+    "obstacle",
+    "exploration",
+    "escape",
+    "incline",
+    "push_box_incline",
+    "manipulate_ball",
 )
-TASKS: dict[str, type[Task]] = {task.name: task for task in (*WORLDS, *TEST_TASKS)}
+"""The paper's eight test tasks (appendix C)."""
 
 
 def make_task(name: str, **options: Any) -> Task:
-    """A task by name, with optional constructor options (e.g. ``terrain=TerrainConfig(...)``)."""
+    """A task by name, with optional factory options (e.g. ``terrain=TerrainConfig(...)``)."""
     try:
-        task = TASKS[name]
+        factory = TASKS[name]
     except KeyError:
         raise ValueError(f"unknown task {name!r}; choose from {', '.join(TASKS)}") from None
-    return task(**options)
+    return factory(**options)

@@ -1,70 +1,178 @@
-"""What a task is: the arena it adds to a body's model, its observations, rewards and endings.
+"""What a task is: a composition of parts (an arena, props, reward terms, observations, a
+success test) that the environment drives through a few calls per step.
 
-A task sees the batch through `Sim` (live arrays over all copies) and answers with numpy arrays
-over all copies at once. The environment (`derl.envs.batched`) owns the stepping, the body's own
-observations, the fall test, time limits and resets; a task adds everything world-specific.
+A part overrides the hooks of `Part` it needs; `Task` calls each hook only on the parts that
+override it, in the order the task lists them (arena, props, rewards, observations, success),
+so a step costs a handful of calls. Parts see the environment through `EnvView` and answer with
+numpy arrays over all copies at once. The environment (`derl.envs.batched`) owns the stepping,
+the body's own observations, the fall test, time limits and resets.
 """
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+import operator
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from functools import reduce
 from typing import TYPE_CHECKING, ClassVar
 
 import mujoco
 import numpy as np
 
+from derl.envs.view import EnvView
+
 if TYPE_CHECKING:
-    from derl.envs.batched import UnimalEnv as Sim
+    from derl.envs.terrain_stack import TerrainStack
 
 Arrays = dict[str, np.ndarray]
+HOOKS = ("build", "bind", "start", "reset", "placed", "update")
 
 
-class Task(ABC):
-    """One world and its reward. Subclasses set `name` and `fitness_component`."""
+class Part:
+    """A piece of a task. Every hook is optional; `Task` calls only those a part overrides."""
+
+    def build(self, spec: mujoco.MjSpec) -> None:
+        """Add bodies, geoms or assets to the body's model (before it is compiled)."""
+
+    def bind(self, env: EnvView) -> None:
+        """The copies exist: look up joints, size per-copy state."""
+
+    def start(self) -> None:
+        """A new seeded run begins: forget anything carried between episodes."""
+
+    def reset(self, env: EnvView, ids: np.ndarray) -> None:
+        """New episodes for copies ``ids``, before their bodies are placed: terrain, objects."""
+
+    def placed(self, env: EnvView, ids: np.ndarray) -> None:
+        """The bodies of ``ids`` are placed: record start-of-episode quantities."""
+
+    def update(self, env: EnvView) -> None:
+        """After each control step, before the rewards: advance per-step state."""
+
+
+class Arena(Part):
+    """The ground. ``half``: half extents (x, y); a copy whose head leaves them (less a margin)
+    ends. Objects rest on it rotated by ``tilt`` (a quaternion), their centre raised by their
+    half height / ``cos_slope``."""
+
+    half: tuple[float, float]
+    tilt: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    cos_slope: float = 1.0
+
+    def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+        """(len(xy),) ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
+        raise NotImplementedError
+
+
+class RewardTerm(Part):
+    """One weighted term of the reward (the reward is their sum), reported under `name`."""
 
     name: ClassVar[str]
-    gym_name: ClassVar[str]
-    fitness_component: ClassVar[str]
-    # Half extents (x, y) of the arena; a copy whose head leaves it (less a 1 m margin) ends.
-    arena: tuple[float, float]
+
+    def __call__(self, env: EnvView) -> np.ndarray:
+        """(N,) the term for the last step."""
+        raise NotImplementedError
+
+
+class Observation(Part):
+    """One observation type the task adds: `size` float32 values per copy."""
+
+    name: ClassVar[str]
+    size: int
+
+    def __call__(self, env: EnvView, ids: np.ndarray) -> np.ndarray:
+        """(len(ids), size) the observation of copies ``ids``."""
+        raise NotImplementedError
+
+
+class Success(Part):
+    """A test ending episodes because the task is achieved."""
+
+    def __call__(self, env: EnvView) -> np.ndarray:
+        """(N,) bool: copies that achieved the task in the last step."""
+        raise NotImplementedError
+
+
+@dataclass(eq=False)
+class Task:
+    """One world or test task: its parts, its spawn point, and the reward component that is
+    the fitness. ``metrics`` are components reported beside the terms: each the sum of the
+    named terms (e.g. ``{"manipulation": ("reach", "push")}``)."""
+
+    name: str
+    gym_name: str
+    fitness_component: str
+    arena: Arena
     spawn: tuple[float, float]
+    rewards: tuple[RewardTerm, ...]
+    observations: tuple[Observation, ...] = ()
+    props: tuple[Part, ...] = ()
+    success: Success | None = None
+    metrics: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    _hooks: dict[str, tuple[Callable[..., None], ...]] = field(init=False, repr=False)
 
-    @abstractmethod
-    def build(self, spec: mujoco.MjSpec) -> None:
-        """Add the arena, objects and markers to the body's model."""
+    def __post_init__(self) -> None:
+        terms = [term.name for term in self.rewards]
+        if len(set(terms)) < len(terms):
+            raise ValueError(f"{self.name}: reward terms share a name: {terms}")
+        for metric, summed in self.metrics.items():
+            if not summed or not set(summed) <= set(terms):
+                raise ValueError(f"{self.name}: metric {metric} sums unknown terms {summed}")
+        if self.fitness_component not in {*terms, *self.metrics}:
+            raise ValueError(f"{self.name}: no component {self.fitness_component!r}")
+        parts = (self.arena, *self.props, *self.rewards, *self.observations)
+        parts += (self.success,) if self.success is not None else ()
+        self._hooks = {
+            hook: tuple(
+                getattr(part, hook)
+                for part in parts
+                if getattr(type(part), hook) is not getattr(Part, hook)
+            )
+            for hook in HOOKS
+        }
 
-    def setup(self, sim: Sim) -> None:
-        """Bind what the task needs once the batch exists."""
+    @property
+    def terrains(self) -> TerrainStack:
+        """The copies' terrains, where the arena has a heightfield (else AttributeError)."""
+        return self.arena.terrains  # type: ignore[attr-defined]
 
     def obs_spaces(self) -> dict[str, int]:
         """Observation types the task adds, with their sizes."""
-        return {}
+        return {obs.name: obs.size for obs in self.observations}
 
-    def start(self, sim: Sim) -> None:
-        """A new seeded run begins: forget anything carried between episodes."""
+    def build(self, spec: mujoco.MjSpec) -> None:
+        for build in self._hooks["build"]:
+            build(spec)
 
-    def reset(self, sim: Sim, ids: np.ndarray) -> None:
-        """New episode for copies ``ids``: terrain, objects and goals (the body is placed after)."""
+    def bind(self, env: EnvView) -> None:
+        for bind in self._hooks["bind"]:
+            bind(env)
 
-    def ground(self, sim: Sim, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
-        """Ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
-        return np.zeros(len(xy))
+    def start(self) -> None:
+        for start in self._hooks["start"]:
+            start()
 
-    def placed(self, sim: Sim, ids: np.ndarray) -> None:
-        """Called after the bodies of ``ids`` are placed: record start-of-episode quantities."""
+    def reset(self, env: EnvView, ids: np.ndarray) -> None:
+        for reset in self._hooks["reset"]:
+            reset(env, ids)
 
-    @abstractmethod
-    def rewards(self, sim: Sim) -> Arrays:
-        """Weighted reward terms of the last step; the reward is their sum."""
+    def placed(self, env: EnvView, ids: np.ndarray) -> None:
+        for placed in self._hooks["placed"]:
+            placed(env, ids)
 
-    def metrics(self, sim: Sim, terms: Arrays) -> Arrays:
-        """Per-step quantities reported beside the reward terms (e.g. the fitness component)."""
-        return {}
+    def step(self, env: EnvView) -> Arrays:
+        """Advance the parts' per-step state; the reward terms of the last step."""
+        for update in self._hooks["update"]:
+            update(env)
+        return {term.name: term(env) for term in self.rewards}
 
-    def observe(self, sim: Sim, ids: np.ndarray) -> Arrays:
-        """The task's observations of copies ``ids``, (len(ids), size) each."""
-        return {}
+    def metric_values(self, terms: Arrays) -> Arrays:
+        """The metrics of the last step, from its reward terms."""
+        return {
+            name: reduce(operator.add, (terms[term] for term in summed))
+            for name, summed in self.metrics.items()
+        }
 
-    def success(self, sim: Sim) -> np.ndarray:
-        """(N,) bool: copies whose episode ends because the task is achieved."""
-        return np.zeros(sim.num_envs, dtype=bool)
+    def observe(self, env: EnvView, ids: np.ndarray) -> Arrays:
+        """The task's observations of copies ``ids``."""
+        return {obs.name: obs(env, ids) for obs in self.observations}

@@ -1,7 +1,7 @@
 """Per-copy terrain for a batch: every copy walks its own heightfield, new for each episode.
 
-`mujoco.batch` shares asset data such as ``hfield_data`` between the simulations of a batch, so
-each copy runs on its own shallow copy of the compiled model (``Batch.set_models``); a new terrain
+A batch of simulations shares asset data such as ``hfield_data``, so each copy runs on its own
+shallow copy of the compiled model (`TerrainStack.models`, given to the batch); a new terrain
 is written into that copy's ``hfield_data`` in place (no recompile) and into a stacked, padded
 height array (`HeightStack`) that the heightmap observation and the fall test read for all copies
 at once.
@@ -20,7 +20,6 @@ from collections.abc import Callable
 from functools import partial
 
 import mujoco
-import mujoco.batch
 import numpy as np
 
 from derl.envs.heightmap import HeightmapGrid, HeightStack
@@ -51,8 +50,8 @@ def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig) -> None:
 
 
 class TerrainStack(HeightStack):
-    """The terrains of all copies of a batch (their heights, `HeightStack`'s lookups on them), and
-    their heightfields in the copies' models.
+    """The terrains of ``count`` copies of ``model`` (their heights, `HeightStack`'s lookups on
+    them), and their heightfields in the copies' own models, `models` (run copy i on models[i]).
 
     ``draw(rng)`` makes one terrain laid out like ``config`` (default: the obstacle corridor of
     `generate_terrain`); its segments tell where its obstacles start. ``grid`` is the heightmap
@@ -62,21 +61,21 @@ class TerrainStack(HeightStack):
     def __init__(
         self,
         config: TerrainConfig,
-        batch: mujoco.batch.Batch,
+        model: mujoco.MjModel,
+        count: int,
         grid: HeightmapGrid,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
     ) -> None:
         layout = Terrain(
             np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
         )
-        super().__init__(layout, batch.nsim, grid)
+        super().__init__(layout, count, grid)
         self.config = config
         self.draw = draw or partial(generate_terrain, config)
-        self.models = [copy.copy(batch.model) for _ in range(batch.nsim)]
-        batch.set_models(self.models)
-        self.hfield = batch.model.hfield(HFIELD_NAME).id
-        self.first_obstacle = np.full(batch.nsim, -np.inf)  # x where each copy's course starts
-        self.furthest = np.full(batch.nsim, np.inf)  # furthest head x in the current episode
+        self.models = [copy.copy(model) for _ in range(count)]
+        self.hfield = model.hfield(HFIELD_NAME).id
+        self.first_obstacle = np.full(count, -np.inf)  # x where each copy's course starts
+        self.furthest = np.full(count, np.inf)  # furthest head x in the current episode
         self.generated = 0
 
     def track(self, head_x: np.ndarray) -> None:

@@ -13,7 +13,7 @@ class FrameRecorder:
 
     def __init__(self, env: UnimalEnv, width: int = 480, height: int = 360) -> None:
         self.env = env
-        terrains = getattr(env.task, "terrains", None)
+        terrains = getattr(env.task.arena, "terrains", None)
         self.model = terrains.models[0] if terrains is not None else env.model
         self.data = mujoco.MjData(self.model)
         self.renderer = mujoco.Renderer(self.model, height, width)
@@ -27,7 +27,7 @@ class FrameRecorder:
 
     def frame(self) -> np.ndarray:
         """An RGB image (height, width, 3) of copy 0 now."""
-        terrains = getattr(self.env.task, "terrains", None)
+        terrains = getattr(self.env.task.arena, "terrains", None)
         if terrains is not None and terrains.generated != self.uploaded:
             # the copy's terrain changed: send it to the GPU (the Renderer has no public call)
             self.renderer._gl_context.make_current()

@@ -214,5 +214,3 @@ def local_hosts(launch: LaunchFile) -> list[str]:
 
 def remote_hosts(launch: LaunchFile) -> list[str]:
     return [h.name for h in launch.hosts if h.remote is not None]
-
-

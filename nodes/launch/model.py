@@ -22,7 +22,6 @@ policy::
 `nodes.launch.commands` turns it into command lines, `nodes.launch.supervisor` runs them.
 """
 
-
 from __future__ import annotations
 
 import re
@@ -40,7 +39,6 @@ WILDCARD_HOSTS = {"0.0.0.0", "[::]", "::"}
 _ENDPOINT = re.compile(
     r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<host>\[[^\]]+\]|[^/:\[\]]+):(?P<port>\d+)$"
 )
-
 
 
 def _check_endpoint(value: str) -> str:
@@ -193,5 +191,3 @@ def load(path: Path) -> LaunchFile:
         return LaunchFile.model_validate(data)
     except ValidationError as error:
         raise ValueError(f"{path} is not a valid launch file:\n{error}") from None
-
-

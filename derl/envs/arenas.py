@@ -1,0 +1,226 @@
+"""Arenas: the ground of a task. `Floor` is a plane, level or tilted; `Heightfield` gives every
+copy its own terrain, drawn anew after episodes that saw it (VT's corridor by default, or the
+obstacle boxes and the escape bowl defined here)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import cached_property
+
+import mujoco
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from derl.envs.heightmap import HeightmapGrid
+from derl.envs.task import Arena
+from derl.envs.terrain import Range, Segment, Terrain, TerrainConfig
+from derl.envs.terrain_stack import TerrainStack, add_hfield
+from derl.envs.view import EnvView
+
+BODY_REACH = 2.0  # m: no limb tip is further than this from the head
+
+
+class Floor(Arena):
+    """A ``length`` x ``width`` plane, tilted ``slope`` degrees about y so that +x goes uphill;
+    ``half`` is its footprint on the ground plane."""
+
+    def __init__(self, length: float, width: float, slope: float = 0.0) -> None:
+        self.length, self.width = length, width
+        self.slope = slope
+        self.angle = np.deg2rad(slope)
+        self.tilt = (np.cos(self.angle / 2), 0.0, -np.sin(self.angle / 2), 0.0)
+        self.cos_slope = np.cos(self.angle)
+        self.tan_slope = np.tan(self.angle)
+        self.half = (length / 2 * self.cos_slope, width / 2)
+
+    def build(self, spec: mujoco.MjSpec) -> None:
+        floor = spec.worldbody.add_geom(
+            name="floor",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[self.length / 2, self.width / 2, 0.1],
+            rgba=[0.8, 0.8, 0.78, 1],
+            condim=3,
+            friction=[0.7, 0.1, 0.1],
+        )
+        if self.slope:
+            floor.quat = self.tilt
+
+    def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+        if not self.slope:
+            return np.zeros(len(xy))
+        return xy[:, 0] * self.tan_slope
+
+
+class Heightfield(Arena):
+    """A heightfield laid out like ``config``, one terrain per copy: ``draw(rng)`` makes one
+    (default: `generate_terrain`'s corridor). A copy's terrain is renewed after an episode whose
+    head came within the heightmap's reach plus a body's size of its first obstacle."""
+
+    def __init__(
+        self,
+        config: TerrainConfig,
+        grid: HeightmapGrid,
+        draw: Callable[[np.random.Generator], Terrain] | None = None,
+    ) -> None:
+        self.config, self.grid, self.draw = config, grid, draw
+        self.half = (config.size_x / 2, config.size_y / 2)
+
+    def build(self, spec: mujoco.MjSpec) -> None:
+        add_hfield(spec, self.config)
+
+    def bind(self, env: EnvView) -> None:
+        self.terrains = TerrainStack(self.config, env.model, env.num_envs, self.grid, self.draw)
+        env.set_models(self.terrains.models)
+
+    def start(self) -> None:
+        self.terrains.forget()
+
+    def reset(self, env: EnvView, ids: np.ndarray) -> None:
+        self.terrains.renew(ids, env.rng, self.grid.reach + BODY_REACH)
+
+    def placed(self, env: EnvView, ids: np.ndarray) -> None:
+        self.terrains.track(env.head_pos[:, 0])
+
+    def update(self, env: EnvView) -> None:
+        self.terrains.track(env.head_pos[:, 0])
+
+    def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+        return self.terrains.ground(xy, ids)
+
+
+# --- obstacle: boxes on a corridor --------------------------------------------------------------
+
+
+class ObstacleConfig(BaseModel):
+    """The obstacle corridor; lengths in meters. The paper's sizes and the original's boxes."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    size_x: float = Field(150.0, gt=0)
+    size_y: float = Field(60.0, gt=0)
+    resolution: float = Field(0.1, gt=0)
+    start_flat: float = Field(10.0, ge=0)  # free of boxes at the back end; spawn in its middle
+    count: int = Field(50, ge=0)
+    half_size: Range = (0.5, 3.0)  # footprint half-extents, each U[half_size]
+    height: float = Field(2.0, gt=0)
+
+    @field_validator("half_size")
+    @classmethod
+    def _positive(cls, value: Range) -> Range:
+        if not 0 < value[0] <= value[1]:
+            raise ValueError(f"half_size must satisfy 0 < low <= high, got {value}")
+        return value
+
+    @property
+    def terrain(self) -> TerrainConfig:
+        """The heightfield's geometry (flat until boxes are drawn into it)."""
+        return TerrainConfig.flat(
+            size_x=self.size_x,
+            size_y=self.size_y,
+            resolution=self.resolution,
+            max_height=self.height,
+            start_flat=self.start_flat,
+        )
+
+    def draw(self, rng: np.random.Generator) -> Terrain:
+        """One corridor: flat start area, then `draw_obstacles`' boxes."""
+        x_min = -self.size_x / 2
+        start = x_min + self.start_flat
+        segments = (
+            Segment("flat", x_min, start, 0.0),
+            Segment("boxes", start, -x_min, self.height),
+        )
+        heights = draw_obstacles(self, rng)
+        return Terrain(heights, self.resolution, self.height, segments=segments)
+
+
+def draw_obstacles(config: ObstacleConfig, rng: np.random.Generator) -> np.ndarray:
+    """Heights of ``count`` boxes centred uniformly beyond the start area, all boxes at once:
+    each box fills the vertices of its footprint, clipped to the grid."""
+    nrow, ncol = config.terrain.grid_shape
+    res, n = config.resolution, config.count
+    half = rng.uniform(*config.half_size, (n, 2))
+    low = np.array([-config.size_x / 2 + config.start_flat, -config.size_y / 2])
+    high = np.array([config.size_x / 2, config.size_y / 2])
+    centre = rng.uniform(low + half * [1, 0], high, (n, 2))
+    corner = np.array([-config.size_x / 2, -config.size_y / 2])
+    first = np.maximum(np.ceil((centre - half - corner) / res - 1e-9), 0).astype(np.intp)
+    last = np.minimum(np.floor((centre + half - corner) / res + 1e-9), [ncol - 1, nrow - 1])
+    span = np.arange(int(np.ceil(2 * config.half_size[1] / res)) + 2)
+    cols, rows = (first[:, k, None] + span for k in (0, 1))  # (n, span) each
+    inside = (rows <= last[:, 1, None])[:, :, None] & (cols <= last[:, 0, None])[:, None, :]
+    heights = np.zeros((nrow, ncol), dtype=np.float32)
+    shape = inside.shape
+    rows_at = np.broadcast_to(rows[:, :, None], shape)[inside]
+    cols_at = np.broadcast_to(cols[:, None, :], shape)[inside]
+    heights[rows_at, cols_at] = config.height
+    return heights
+
+
+# --- escape: a bumpy bowl -----------------------------------------------------------------------
+
+
+class BowlConfig(BaseModel):
+    """The escape bowl (the original's ``Bowl`` module); lengths in meters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    size: float = Field(100.0, gt=0)
+    resolution: float = Field(0.1, gt=0)
+    depth: float = Field(1.3, gt=0)  # height scale of the bowl
+    bump_spacing: float = Field(2.0, gt=0)  # random bump factors on this grid, interpolated
+    bumps: tuple[float, float] = (0.15, 1.0)
+    rim: float = Field(0.84, gt=0, lt=1)  # escape radius / half size: 42 of 50 m
+
+    @field_validator("bumps")
+    @classmethod
+    def _unit_range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        if not 0 <= value[0] <= value[1] <= 1:
+            raise ValueError(f"bumps must satisfy 0 <= low <= high <= 1, got {value}")
+        return value
+
+    @property
+    def terrain(self) -> TerrainConfig:
+        return TerrainConfig.flat(
+            size_x=self.size, size_y=self.size, resolution=self.resolution, max_height=self.depth
+        )
+
+
+class Bowl:
+    """Escape terrains: ``depth (1 - cos(2 pi r / R)) / 2`` (r from the centre, clipped to
+    [0.04 R, R], R the half size: a ring of hills at R/2, low again at the edge) times bump
+    factors U[bumps] on a ``bump_spacing`` grid, interpolated bilinearly. The profile and the
+    interpolation indices are computed at the first draw; a draw is two gathers (no BLAS: its
+    threads fight the simulation's for the cores)."""
+
+    def __init__(self, config: BowlConfig) -> None:
+        self.config = config
+        self.knots = max(2, round(config.size / config.bump_spacing) + 1)
+
+    @cached_property
+    def _grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The profile, and for each vertex the knot before it and the weight of the next."""
+        config = self.config
+        n = config.terrain.grid_shape[0]
+        unit = np.linspace(-1.0, 1.0, n)
+        radius = np.clip(np.hypot(unit[:, None], unit[None, :]), 0.04, 1.0)
+        profile = (config.depth * (0.5 - np.cos(2 * np.pi * radius) / 2)).astype(np.float32)
+        position = np.linspace(0.0, self.knots - 1, n)
+        left = np.minimum(position.astype(np.intp), self.knots - 2)
+        return profile, left, (position - left).astype(np.float32)
+
+    def draw(self, rng: np.random.Generator) -> np.ndarray:
+        profile, left, right = self._grid
+        bumps = rng.uniform(*self.config.bumps, (self.knots, self.knots)).astype(np.float32)
+        rows = bumps[left] + (bumps[left + 1] - bumps[left]) * right[:, None]  # (n, knots)
+        low, heights = rows[:, left], rows[:, left + 1]  # (n, n) each
+        heights -= low
+        heights *= right
+        heights += low
+        heights *= profile
+        return np.minimum(heights, np.float32(self.config.depth), out=heights)  # float32 rounding
+
+    def terrain(self, rng: np.random.Generator) -> Terrain:
+        """One bowl as a terrain laid out like ``config.terrain``."""
+        layout = self.config.terrain
+        return Terrain(self.draw(rng), layout.resolution, layout.max_height)

@@ -1,0 +1,69 @@
+"""Observations a task adds to the body's proprioception, each a part a task lists."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from derl.envs.arenas import Heightfield
+from derl.envs.objects import CarriedObject, GoalPoint
+from derl.envs.task import Observation
+from derl.envs.view import EnvView
+
+
+class Heightmap(Observation):
+    """ "heightmap": the arena's terrain around the head on a heading-aligned grid (appendix B),
+    relative to the ground under the head (`derl.envs.heightmap`)."""
+
+    name: ClassVar[str] = "heightmap"
+
+    def __init__(self, arena: Heightfield) -> None:
+        self.arena = arena
+        self.size = arena.grid.size
+
+    def __call__(self, env: EnvView, ids: np.ndarray) -> np.ndarray:
+        terrains = self.arena.terrains
+        if ids is env.all:  # the common case: no row selection
+            return terrains.heightmap(env.head_pos[:, :2], env.yaw)
+        return terrains.heightmap(env.head_pos[ids, :2], env.yaw[ids], ids)
+
+
+class GoalSeen(Observation):
+    """ "goal": the goal relative to the head, in the head frame."""
+
+    name: ClassVar[str] = "goal"
+    size = 3
+
+    def __init__(self, goal: GoalPoint) -> None:
+        self.goal = goal
+
+    def __call__(self, env: EnvView, ids: np.ndarray) -> np.ndarray:
+        goal = env.to_head_frame(self.goal.goal - env.head_pos)
+        return goal[ids].astype(np.float32)
+
+
+class ObjectSeen(Observation):
+    """ "object": relative to the head, in the head frame, the object's position and velocity,
+    then its angular velocity (world frame), then its goal's position."""
+
+    name: ClassVar[str] = "object"
+    size = 12
+
+    def __init__(self, obj: CarriedObject) -> None:
+        self.obj = obj
+
+    def __call__(self, env: EnvView, ids: np.ndarray) -> np.ndarray:
+        obj, head = self.obj, env.head_pos
+        velocity = obj.velocity[:, :3] - env.head_vel
+        seen = np.concatenate(
+            [
+                env.to_head_frame(obj.position - head),
+                env.to_head_frame(velocity),
+                obj.velocity[:, 3:6],
+                env.to_head_frame(obj.goal - head),
+            ],
+            axis=1,
+            dtype=np.float32,
+        )
+        return seen[ids]

@@ -1,0 +1,94 @@
+"""What a task's parts may see of the environment: `EnvView`, a protocol `UnimalEnv` satisfies.
+
+Parts read the batch through these named accessors only, never through the simulation batch
+or private attributes. Arrays are live views over all N copies (rows), valid until the
+environment is gone; parts copy what they keep. The few writes a part may make go through
+accessors too: an object's free joint (`free_joint`), a marker (`mocap_pos`), and the models
+the copies run on (`set_models`, for per-copy terrain).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol, runtime_checkable
+
+import mujoco
+import numpy as np
+
+
+class FreeJoint(NamedTuple):
+    """A free body's state in every copy: live (N, 7) position + quaternion, (N, 6) velocity
+    (linear, then angular, both in the world frame)."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+
+
+@runtime_checkable
+class EnvView(Protocol):
+    """The environment as its task's parts see it."""
+
+    @property
+    def num_envs(self) -> int:
+        """N, the number of copies."""
+        ...
+
+    @property
+    def all(self) -> np.ndarray:
+        """The ids of every copy; ``ids is env.all`` marks a call for all copies (no selection)."""
+        ...
+
+    @property
+    def rng(self) -> np.random.Generator:
+        """The run's random generator (replaced by every seeded reset: read it when drawing)."""
+        ...
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        """The compiled model of the body in its task (shared by the copies unless set)."""
+        ...
+
+    @property
+    def head_pos(self) -> np.ndarray:
+        """(N, 3) head centre in the world."""
+        ...
+
+    @property
+    def prev_head(self) -> np.ndarray:
+        """(N, 3) head centre before the last control step (at placement: where it was put)."""
+        ...
+
+    @property
+    def head_vel(self) -> np.ndarray:
+        """(N, 3) head linear velocity in the world."""
+        ...
+
+    @property
+    def ctrl(self) -> np.ndarray:
+        """(N, A) the last actions, clipped to [-1, 1]."""
+        ...
+
+    @property
+    def yaw(self) -> np.ndarray:
+        """(N,) heading: the head's x axis projected on the ground, from +x towards +y."""
+        ...
+
+    def to_head_frame(self, vectors: np.ndarray) -> np.ndarray:
+        """World vectors (N, 3) expressed in each copy's head frame."""
+        ...
+
+    def agent_points(self) -> np.ndarray:
+        """(N, P, 3) the head centre and every limb's mid and end sites, in the world."""
+        ...
+
+    def free_joint(self, name: str) -> FreeJoint:
+        """Live state views of the free joint ``name`` (writable: parts place objects)."""
+        ...
+
+    def mocap_pos(self, body: str) -> np.ndarray:
+        """Live (N, 3) writable position of the mocap body ``body``."""
+        ...
+
+    def set_models(self, models: Sequence[mujoco.MjModel]) -> None:
+        """Run copy i on ``models[i]`` (copies of `model` with other asset data, e.g. terrain)."""
+        ...
