@@ -25,6 +25,7 @@ from derl.rl import (
     train,
 )
 from derl.rl.episodes import EpisodeTracker
+from derl.rl.fused import FusedActorCritic, PPOCoefficients
 
 DERL_OBS = {"proprioception": 50, "heightmap": 1410}
 
@@ -68,7 +69,7 @@ def test_gae_by_hand_with_termination_and_truncation() -> None:
     np.testing.assert_allclose(ret, expected + values[:-1], atol=1e-6)
 
 
-def test_network_shapes_and_gaussian_matches_torch_distributions() -> None:
+def test_network_shapes_and_init() -> None:
     torch.manual_seed(0)
     net = ActorCritic(DERL_OBS, 12)
     actor = {id(p) for p in net.actor.parameters()}
@@ -76,23 +77,97 @@ def test_network_shapes_and_gaussian_matches_torch_distributions() -> None:
     assert net.actor.fuse[0].in_features == 128
     assert torch.equal(net.log_std, torch.zeros(12))
     assert all(not m.bias.any() for m in net.modules() if isinstance(m, torch.nn.Linear))
-
-    obs = {k: torch.randn(7, d) for k, d in DERL_OBS.items()}
-    with torch.no_grad():
-        net.log_std.copy_(torch.linspace(-1.0, 0.5, 12))
-        actions, log_prob, value = net.act(obs)
-        assert actions.shape == (7, 12) and log_prob.shape == (7,) and value.shape == (7,)
-        mean = net.action_mean(obs)
-        normal = torch.distributions.Normal(mean, net.log_std.exp())
-        torch.testing.assert_close(log_prob, normal.log_prob(actions).sum(-1), atol=1e-5, rtol=0)
-        other, entropy, value2 = net.evaluate(obs, actions)
-        torch.testing.assert_close(other, log_prob, atol=1e-5, rtol=0)
-        # The released code's bonus: the mean over batch and action dimensions, not their sum.
-        torch.testing.assert_close(entropy, normal.entropy().mean(), atol=1e-6, rtol=0)
-        torch.testing.assert_close(value2, value)
-
     single = ActorCritic({"obs": 4}, 1)
     assert single.actor.fuse[0].in_features == 64
+
+
+def _released_loss(
+    net: ActorCritic, obs: dict[str, torch.Tensor], aux: torch.Tensor, coef: PPOCoefficients
+) -> torch.Tensor:
+    """The released code's PPO loss, with torch.distributions and autograd."""
+    a = net.action_dim
+    actions, old_log_prob, adv, old_value, ret = (
+        aux[:, :a],
+        aux[:, a],
+        aux[:, a + 1],
+        aux[:, a + 2],
+        aux[:, a + 3],
+    )
+    pi = torch.distributions.Normal(net.action_mean(obs), net.log_std.exp())
+    ratio = torch.exp(pi.log_prob(actions).sum(-1) - old_log_prob)
+    clipped_ratio = ratio.clamp(1.0 - coef.clip, 1.0 + coef.clip)
+    pi_loss = -torch.min(ratio * adv, clipped_ratio * adv).mean()
+    value = net.value(obs)
+    clipped = old_value + (value - old_value).clamp(-coef.value_clip, coef.value_clip)
+    value_loss = 0.5 * torch.max((value - ret).square(), (clipped - ret).square()).mean()
+    entropy = pi.entropy().mean()  # over batch and action dimensions (released code)
+    return pi_loss + coef.value_coef * value_loss - coef.entropy_coef * entropy
+
+
+def test_fused_network_matches_torch_and_autograd() -> None:
+    """Sampling, values and the hand-written PPO gradient equal torch's on the released loss."""
+    torch.manual_seed(0)
+    rows, a = 64, 12
+    net = ActorCritic(DERL_OBS, a)
+    with torch.no_grad():
+        net.log_std.copy_(torch.linspace(-1.0, 0.5, a))
+        for p in net.parameters():  # biases away from their zero init, so their gradients count
+            p.add_(0.05 * torch.randn_like(p))
+    fused = FusedActorCritic(net, lr=3e-4, adam_eps=1e-5)
+    obs = {k: torch.randn(rows, d) for k, d in DERL_OBS.items()}
+
+    noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
+    actions = np.empty_like(noise)
+    fused.begin_sampling()
+    fused.act(obs, noise, actions)
+    with torch.no_grad():
+        mean = net.action_mean(obs)
+        pi = torch.distributions.Normal(mean, net.log_std.exp())
+        expected = mean + net.log_std.exp() * torch.from_numpy(noise)
+        torch.testing.assert_close(torch.from_numpy(actions), expected, atol=1e-5, rtol=1e-5)
+        log_prob = pi.log_prob(torch.from_numpy(actions)).sum(-1)
+        torch.testing.assert_close(
+            torch.from_numpy(fused.log_prob_of_noise(noise)), log_prob, atol=1e-4, rtol=1e-5
+        )
+        torch.testing.assert_close(
+            torch.from_numpy(fused.values(obs)), net.value(obs), atol=1e-5, rtol=1e-5
+        )
+
+    # Old log-probs shifted so some ratios fall outside the clip range, both signs of advantage,
+    # old values far enough for the value clip to bite on some rows.
+    gen = torch.Generator().manual_seed(1)
+    aux = torch.cat(
+        [
+            torch.from_numpy(actions),
+            (log_prob + 0.4 * torch.randn(rows, generator=gen))[:, None],
+            torch.randn(rows, 1, generator=gen),
+            (net.value(obs).detach() + 0.5 * torch.randn(rows, generator=gen))[:, None],
+            torch.randn(rows, 1, generator=gen),
+        ],
+        1,
+    )
+    coef = PPOCoefficients(
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9
+    )
+    net.zero_grad()
+    _released_loss(net, obs, aux, coef).backward()
+    mb = fused.minibatch(rows, [DERL_OBS[k] for k in fused.keys], aux.shape[1])
+    for x, key in zip(mb.x, fused.keys, strict=True):
+        x.copy_(obs[key])
+    mb.aux.copy_(aux)
+    fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
+    flat = torch.cat(
+        [
+            g
+            for layer in fused.actor.layers + fused.critic.layers
+            for g in (layer.module.weight.grad.T.reshape(-1), layer.module.bias.grad)
+        ]
+        + [net.log_std.grad]
+    )
+    torch.testing.assert_close(fused.grad, flat, atol=2e-6, rtol=1e-4)
+    before = [p.detach().clone() for p in net.parameters()]
+    fused.store_into_net()  # the step moved every parameter, and the net receives it
+    assert all(not torch.equal(b, p) for b, p in zip(before, net.parameters(), strict=True))
 
 
 def test_running_mean_std_matches_numpy_and_round_trips() -> None:

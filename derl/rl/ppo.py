@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch import nn
 
 from derl.rl.checkpoint import Checkpoint
 from derl.rl.config import PPOConfig
 from derl.rl.env_api import BatchedEnv
 from derl.rl.episodes import EpisodeLog, EpisodeTracker, FitnessSource
+from derl.rl.fused import FusedActorCritic, PPOCoefficients
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer, RewardScaler
 
@@ -114,13 +114,19 @@ class _Rollout:
         # One extra row: the observation after the last step, carried to the next rollout.
         self.obs = {k: np.zeros((steps + 1, num_envs, d), f32) for k, d in obs_spaces.items()}
         self.obs_t = {k: torch.from_numpy(v) for k, v in self.obs.items()}
-        self.actions = np.zeros((steps, num_envs, action_dim), f32)
-        self.log_probs = np.zeros((steps, num_envs), f32)
+        self.noise = np.zeros((steps, num_envs, action_dim), f32)
+        # The update's per-transition columns: actions (written while sampling), old log-prob,
+        # advantage, old value, return. Gathered together per minibatch.
+        self.aux = np.zeros((steps, num_envs, action_dim + 4), f32)
+        self.actions = self.aux[..., :action_dim]
+        self.clipped = np.zeros((num_envs, action_dim), f32)
         self.values = np.zeros((steps + 1, num_envs), f32)
         self.final_values = np.zeros((steps, num_envs), f32)
         self.rewards = np.zeros((steps, num_envs), f32)
         self.terminated = np.zeros((steps, num_envs), bool)
         self.truncated = np.zeros((steps, num_envs), bool)
+        self.finals: list[tuple[int, np.ndarray, dict[str, np.ndarray]]] = []
+        """(step, copies, normalised final observations) of the truncated episodes."""
 
     def obs_at(self, t: int) -> dict[str, torch.Tensor]:
         return {k: v[t] for k, v in self.obs_t.items()}
@@ -140,11 +146,15 @@ class _Trainer:
         self.env = env
         self.config = config
         self.net = ActorCritic(env.obs_spaces, env.action_dim)
-        self.optimizer = torch.optim.Adam(  # fused: one kernel per step, ~10% off the update
-            self.net.parameters(), lr=config.lr, eps=config.adam_eps, fused=True
+        self.fused = FusedActorCritic(self.net, config.lr, config.adam_eps)
+        self.coef = PPOCoefficients(
+            clip=config.clip,
+            value_clip=config.value_clip,
+            value_coef=config.value_coef,
+            entropy_coef=config.entropy_coef,
+            max_grad_norm=config.max_grad_norm,
         )
-        self.noise = torch.Generator().manual_seed(config.seed)
-        self.rng = np.random.default_rng(config.seed)
+        self.rng = np.random.default_rng(config.seed)  # action noise and minibatch order
         self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip)
         self.reward_scaler = RewardScaler(env.num_envs, config.gamma, config.reward_clip)
         self.episodes = EpisodeTracker(
@@ -160,17 +170,18 @@ class _Trainer:
         self.obs_norm.normalize(raw, out=self.buf.obs_rows(0))
 
     def collect(self) -> None:
-        """Fill the rollout buffers; row 0 of the observations is already in place."""
-        buf, net, clock = self.buf, self.net, time.perf_counter
+        """Fill the rollout buffers; row 0 of the observations is already in place. Values are
+        computed afterwards, in one pass (`_values`)."""
+        buf, fused, clock = self.buf, self.fused, time.perf_counter
+        buf.finals.clear()
+        fused.begin_sampling()
         for t in range(self.config.rollout_steps):
             t0 = clock()
-            with torch.inference_mode():
-                actions, log_probs, values = net.act(buf.obs_at(t), self.noise)
-            buf.actions[t] = actions.numpy()
-            buf.log_probs[t] = log_probs.numpy()
-            buf.values[t] = values.numpy()
+            self.rng.standard_normal(dtype=np.float32, out=buf.noise[t])
+            fused.act(buf.obs_at(t), buf.noise[t], buf.actions[t])
+            np.minimum(np.maximum(buf.actions[t], -1.0, out=buf.clipped), 1.0, out=buf.clipped)
             t1 = clock()
-            step = self.env.step(np.clip(buf.actions[t], -1.0, 1.0))
+            step = self.env.step(buf.clipped)
             t2 = clock()
             self.env_s += t2 - t1
             self.inference_s += t1 - t0
@@ -184,24 +195,35 @@ class _Trainer:
             self.obs_norm.normalize(step.obs, out=buf.obs_rows(t + 1))
             boot = np.flatnonzero(step.truncated & ~step.terminated)
             if boot.size:
-                final = self.obs_norm.normalize({k: v[boot] for k, v in step.final_obs.items()})
-                t3 = clock()
-                buf.final_values[t, boot] = self._value(final)
-                self.inference_s += clock() - t3
-        t4 = clock()
-        buf.values[-1] = self._value(buf.obs_rows(-1))
-        self.inference_s += clock() - t4
+                final = {k: v[boot] for k, v in step.final_obs.items()}
+                buf.finals.append((t, boot, self.obs_norm.normalize(final)))
 
-    def _value(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        with torch.inference_mode():
-            return self.net.value({k: torch.from_numpy(v) for k, v in obs.items()}).numpy()
+    def _values(self) -> None:
+        """V of every observation of the rollout and of the truncated episodes' final ones."""
+        buf, fused = self.buf, self.fused
+        t0 = time.perf_counter()
+        rows = buf.values.size
+        obs = {k: v.view(rows, -1) for k, v in buf.obs_t.items()}
+        buf.values.reshape(rows)[:] = fused.values(obs)
+        buf.final_values[:] = 0.0
+        if buf.finals:
+            final = {
+                k: torch.from_numpy(np.concatenate([f[k] for _, _, f in buf.finals]))
+                for k in buf.obs
+            }
+            values = fused.values(final, cache=False)
+            start = 0
+            for t, boot, _ in buf.finals:
+                buf.final_values[t, boot] = values[start : start + boot.size]
+                start += boot.size
+        self.inference_s += time.perf_counter() - t0
 
     def update(self, iteration: int) -> None:
-        """GAE, then `epochs` passes of shuffled minibatches over the rollout."""
-        config, buf, net = self.config, self.buf, self.net
+        """Values, GAE, then `epochs` passes of shuffled minibatches over the rollout."""
+        config, buf, fused = self.config, self.buf, self.fused
+        self._values()
         t0 = time.perf_counter()
-        for group in self.optimizer.param_groups:
-            group["lr"] = config.lr * (1.0 - iteration / config.iterations)
+        fused.set_lr(config.lr * (1.0 - iteration / config.iterations))
         advantages, returns = compute_gae(
             buf.rewards,
             buf.values,
@@ -211,41 +233,30 @@ class _Trainer:
             config.gamma,
             config.gae_lambda,
         )
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
-        n = config.batch_size
-        obs = {k: v[:-1].reshape(n, -1) for k, v in buf.obs_t.items()}
-        actions = torch.from_numpy(buf.actions.reshape(n, -1))
-        old_log_probs = torch.from_numpy(buf.log_probs.reshape(n))
-        old_values = torch.from_numpy(buf.values[:-1].reshape(n))
-        advantages_t = torch.from_numpy(advantages.reshape(n))
-        returns_t = torch.from_numpy(returns.reshape(n))
-        size = config.minibatch_size
+        a_dim = self.env.action_dim
+        buf.aux[..., a_dim] = fused.log_prob_of_noise(buf.noise)
+        buf.aux[..., a_dim + 1] = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+        buf.aux[..., a_dim + 2] = buf.values[:-1]
+        buf.aux[..., a_dim + 3] = returns
+        n, size = config.batch_size, config.minibatch_size
+        sources = [buf.obs_t[k][:-1].view(n, -1) for k in fused.keys]
+        aux = torch.from_numpy(buf.aux.reshape(n, -1))
+        mb = fused.minibatch(size, [s.shape[1] for s in sources], aux.shape[1])
         for _ in range(config.epochs):
             order = torch.from_numpy(self.rng.permutation(n))
             for start in range(0, n - size + 1, size):
                 idx = order[start : start + size]
-                log_probs, entropy, values = net.evaluate(
-                    {k: v[idx] for k, v in obs.items()}, actions[idx]
-                )
-                ratio = torch.exp(log_probs - old_log_probs[idx])
-                adv = advantages_t[idx]
-                policy_loss = -torch.min(
-                    ratio * adv, ratio.clamp(1.0 - config.clip, 1.0 + config.clip) * adv
-                ).mean()
-                old_v, target = old_values[idx], returns_t[idx]
-                clipped_v = old_v + (values - old_v).clamp(-config.value_clip, config.value_clip)
-                value_loss = (
-                    0.5
-                    * torch.max((values - target).square(), (clipped_v - target).square()).mean()
-                )
-                loss = policy_loss + config.value_coef * value_loss - config.entropy_coef * entropy
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                nn.utils.clip_grad_norm_(net.parameters(), config.max_grad_norm)
-                self.optimizer.step()
+                for source, x in zip(sources, mb.x, strict=True):
+                    torch.index_select(source, 0, idx, out=x)
+                torch.index_select(aux, 0, idx, out=mb.aux)
+                fused.step(mb, self.coef)
         for rows in buf.obs.values():
             rows[0] = rows[-1]  # the last observation starts the next rollout
         self.update_s += time.perf_counter() - t0
+
+    def checkpoint(self) -> Checkpoint:
+        self.fused.store_into_net()
+        return Checkpoint.capture(self.net, self.obs_norm, self.config)
 
 
 def train(
@@ -294,5 +305,5 @@ def train(
             update_s=trainer.update_s,
             other_s=wall - trainer.env_s - trainer.inference_s - trainer.update_s,
         ),
-        checkpoint=Checkpoint.capture(trainer.net, trainer.obs_norm, config),
+        checkpoint=trainer.checkpoint(),
     )

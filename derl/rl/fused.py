@@ -1,0 +1,285 @@
+"""The actor-critic's sampling, values and PPO minibatch step written out by hand, on one flat
+float32 parameter vector and without autograd: the same arithmetic at a fraction of the per-op
+cost of small layers.
+
+`ActorCritic` (network.py) defines and initialises the network; `FusedActorCritic` copies its
+weights into one flat vector (`store_into` copies them back) and runs
+
+- `act`: the actor on one batched step, Gaussian noise from a numpy generator;
+- `values`: the critic on many rows at once (a rollout's values are computed after it);
+- `step`: one minibatch of the clipped PPO loss of the released code (clipped surrogate, clipped
+  value loss, entropy bonus as the mean over action dimensions), its gradient by the chain rule,
+  gradient-norm clipping and one fused Adam step on the flat vector.
+
+Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed. Products are
+torch's (MKL; one thread under `torch.set_num_threads(1)`), tanh is numpy's, in place on the
+same memory (torch 2.13's CPU tanh is ~10x slower than numpy's). Buffers are allocated once per
+batch size. The gradient equals autograd's on the released code's loss to float32 rounding.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from derl.rl.network import HIDDEN, ActorCritic, Encoder
+
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+_tanh_backward = torch.ops.aten.tanh_backward.grad_input
+"""grad_input = grad_output * (1 - output^2), one kernel."""
+
+
+class _Slab:
+    """Hands out consecutive views of a flat parameter vector and of its gradient."""
+
+    def __init__(self, size: int) -> None:
+        self.theta = torch.zeros(size)
+        self.grad = torch.zeros(size)
+        self.used = 0
+
+    def take(self, *shape: int) -> tuple[torch.Tensor, torch.Tensor]:
+        end = self.used + math.prod(shape)
+        views = self.theta[self.used : end].view(shape), self.grad[self.used : end].view(shape)
+        self.used = end
+        return views
+
+
+class _Linear:
+    """Views of one layer's weight (in, out), bias (out,) and their gradients."""
+
+    def __init__(self, slab: _Slab, module: nn.Linear) -> None:
+        self.module = module
+        self.w, self.gw = slab.take(module.in_features, module.out_features)
+        self.b, self.gb = slab.take(module.out_features)
+
+    def load(self) -> None:
+        self.w.copy_(self.module.weight.detach().T)
+        self.b.copy_(self.module.bias.detach())
+
+    def store(self) -> None:
+        with torch.no_grad():
+            self.module.weight.copy_(self.w.T)
+            self.module.bias.copy_(self.b)
+
+
+@dataclass
+class _Activations:
+    """Forward buffers of one tower for a batch of `rows`; `*_np` are numpy views of the same."""
+
+    a1: list[torch.Tensor]
+    a2: list[torch.Tensor]
+    f: torch.Tensor
+    y: torch.Tensor
+
+    @classmethod
+    def allocate(cls, rows: int, branches: int, out: int) -> _Activations:
+        return cls(
+            a1=[torch.empty(rows, HIDDEN) for _ in range(branches)],
+            a2=[torch.empty(rows, HIDDEN) for _ in range(branches)],
+            f=torch.empty(rows, HIDDEN),
+            y=torch.empty(rows, out),
+        )
+
+
+class _Tower:
+    """One encoder and its linear head (the actor's mean or the critic's value)."""
+
+    def __init__(self, slab: _Slab, encoder: Encoder, head: nn.Linear) -> None:
+        self.branches = [
+            (_Linear(slab, encoder.branches[key][0]), _Linear(slab, encoder.branches[key][2]))
+            for key in encoder.keys
+        ]
+        self.fuse = _Linear(slab, encoder.fuse[0])
+        self.head = _Linear(slab, head)
+        self.layers = [layer for pair in self.branches for layer in pair]
+        self.layers += [self.fuse, self.head]
+        rows = range(0, HIDDEN * len(self.branches), HIDDEN)
+        self.fuse_w = [self.fuse.w[r : r + HIDDEN] for r in rows]
+        self.fuse_gw = [self.fuse.gw[r : r + HIDDEN] for r in rows]
+
+    def activations(self, rows: int) -> _Activations:
+        return _Activations.allocate(rows, len(self.branches), self.head.module.out_features)
+
+    def forward(self, xs: list[torch.Tensor], act: _Activations) -> torch.Tensor:
+        """(rows, out) head output for one (rows, dim) input per observation type."""
+        for (first, second), x, a1, a2 in zip(self.branches, xs, act.a1, act.a2, strict=True):
+            _tanh(torch.addmm(first.b, x, first.w, out=a1))
+            _tanh(torch.addmm(second.b, a1, second.w, out=a2))
+        torch.addmm(self.fuse.b, act.a2[0], self.fuse_w[0], out=act.f)
+        for a2, w in zip(act.a2[1:], self.fuse_w[1:], strict=True):
+            act.f.addmm_(a2, w)
+        _tanh(act.f)
+        return torch.addmm(self.head.b, act.f, self.head.w, out=act.y)
+
+    def backward(
+        self,
+        xs: list[torch.Tensor],
+        act: _Activations,
+        g_y: torch.Tensor,
+        tmp: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    ) -> None:
+        """Write the gradients of every parameter given the gradient `g_y` of the head output;
+        `tmp` are three (rows, HIDDEN) scratch buffers."""
+        g_fuse, g_act, g_pre = tmp
+        torch.mm(act.f.T, g_y, out=self.head.gw)
+        torch.sum(g_y, 0, out=self.head.gb)
+        torch.mm(g_y, self.head.w.T, out=g_act)
+        _tanh_backward(g_act, act.f, grad_input=g_fuse)
+        torch.sum(g_fuse, 0, out=self.fuse.gb)
+        for (first, second), x, a1, a2, w, gw in zip(
+            self.branches, xs, act.a1, act.a2, self.fuse_w, self.fuse_gw, strict=True
+        ):
+            torch.mm(a2.T, g_fuse, out=gw)
+            torch.mm(g_fuse, w.T, out=g_act)
+            _tanh_backward(g_act, a2, grad_input=g_pre)
+            torch.mm(a1.T, g_pre, out=second.gw)
+            torch.sum(g_pre, 0, out=second.gb)
+            torch.mm(g_pre, second.w.T, out=g_act)
+            _tanh_backward(g_act, a1, grad_input=g_pre)
+            torch.mm(x.T, g_pre, out=first.gw)
+            torch.sum(g_pre, 0, out=first.gb)
+
+
+def _tanh(x: torch.Tensor) -> None:
+    """In-place tanh through numpy's (vectorised) float32 kernel on the tensor's memory."""
+    view = x.numpy()
+    np.tanh(view, out=view)
+
+
+@dataclass(frozen=True)
+class PPOCoefficients:
+    """The loss's constants (the config's values)."""
+
+    clip: float
+    value_clip: float
+    value_coef: float
+    entropy_coef: float
+    max_grad_norm: float
+
+
+class _Minibatch:
+    """Buffers of one minibatch of `rows`: gathered inputs, activations and gradient scratch."""
+
+    def __init__(self, net: FusedActorCritic, rows: int, dims: list[int], aux: int) -> None:
+        self.x = [torch.empty(rows, d) for d in dims]
+        self.aux = torch.empty(rows, aux)
+        self.actor = net.actor.activations(rows)
+        self.critic = net.critic.activations(rows)
+        self.g_mean = torch.empty(rows, net.action_dim)
+        self.g_value = torch.empty(rows, 1)
+        self.tmp = (torch.empty(rows, HIDDEN), torch.empty(rows, HIDDEN), torch.empty(rows, HIDDEN))
+
+
+class FusedActorCritic:
+    """An `ActorCritic`'s parameters in one flat vector, trained by `step` with Adam."""
+
+    def __init__(self, net: ActorCritic, lr: float, adam_eps: float) -> None:
+        self.net = net
+        self.keys = net.actor.keys
+        self.action_dim = net.action_dim
+        slab = _Slab(sum(p.numel() for p in net.parameters()))
+        self.actor = _Tower(slab, net.actor, net.mean_head)
+        self.critic = _Tower(slab, net.critic, net.value_head)
+        self.log_std, self.g_log_std = slab.take(net.action_dim)
+        self.theta, self.grad = slab.theta, slab.grad
+        self.theta.grad = self.grad
+        self.load_from_net()
+        self.optimizer = torch.optim.Adam([self.theta], lr=lr, eps=adam_eps, fused=True)
+        self._acting: _Activations | None = None
+        self._valuing: _Activations | None = None
+        self._minibatch: _Minibatch | None = None
+
+    def load_from_net(self) -> None:
+        for layer in self.actor.layers + self.critic.layers:
+            layer.load()
+        self.log_std.copy_(self.net.log_std.detach())
+
+    def store_into_net(self) -> None:
+        """Copy the current parameters into the `ActorCritic` (for checkpoints)."""
+        for layer in self.actor.layers + self.critic.layers:
+            layer.store()
+        with torch.no_grad():
+            self.net.log_std.copy_(self.log_std)
+
+    def act(self, obs: dict[str, torch.Tensor], noise: np.ndarray, actions: np.ndarray) -> None:
+        """Actions mean + std * noise for one batched step (`begin_sampling` first): `noise` holds
+        standard normal draws, `actions` receives the result."""
+        xs = [obs[key] for key in self.keys]
+        if self._acting is None or self._acting.f.shape[0] != len(xs[0]):
+            self._acting = self.actor.activations(len(xs[0]))
+        mean = self.actor.forward(xs, self._acting).numpy()
+        np.multiply(noise, self.std, out=actions)
+        actions += mean
+
+    def begin_sampling(self) -> None:
+        """Cache exp(log_std) for `act` (the parameters stay fixed while sampling)."""
+        self.std = torch.exp(self.log_std).numpy()
+
+    def log_prob_of_noise(self, noise: np.ndarray) -> np.ndarray:
+        """Log-density of actions mean + std * noise: (..., A) noise in, (...) out."""
+        const = float(self.log_std.sum()) + self.action_dim * _HALF_LOG_2PI
+        return -0.5 * np.square(noise).sum(-1) - np.float32(const)
+
+    def values(self, obs: dict[str, torch.Tensor], cache: bool = True) -> np.ndarray:
+        """(rows,) critic values; `cache` keeps the buffers for the next call of the same size."""
+        xs = [obs[key] for key in self.keys]
+        act = self._valuing
+        if act is None or act.f.shape[0] != len(xs[0]):
+            act = self.critic.activations(len(xs[0]))
+            if cache:
+                self._valuing = act
+        return self.critic.forward(xs, act)[:, 0].numpy().copy()
+
+    def minibatch(self, rows: int, dims: list[int], aux: int) -> _Minibatch:
+        """Buffers for `step` (allocated on the first call)."""
+        if self._minibatch is None:
+            self._minibatch = _Minibatch(self, rows, dims, aux)
+        return self._minibatch
+
+    def step(self, mb: _Minibatch, coef: PPOCoefficients) -> None:
+        """One PPO gradient step on the minibatch in `mb`: `mb.x` holds the inputs and `mb.aux`
+        the columns [actions (A), old log-prob, advantage, old value, return]."""
+        a_dim, rows = self.action_dim, mb.aux.shape[0]
+        actions = mb.aux[:, :a_dim]
+        old_log_prob, adv, old_value, ret = mb.aux[:, a_dim : a_dim + 4].unbind(1)
+        mean = self.actor.forward(mb.x, mb.actor)
+        value = self.critic.forward(mb.x, mb.critic)[:, 0]
+
+        # Policy: log pi(a) = sum(-z^2 / 2 - log_std - log(2 pi) / 2), z = (a - mean) / std.
+        inv_std = torch.exp(-self.log_std)
+        z = (actions - mean).mul_(inv_std)
+        sq = z.square()
+        log_prob = sq.sum(1).mul_(-0.5).sub_(self.log_std.sum() + a_dim * _HALF_LOG_2PI)
+        ratio = (log_prob - old_log_prob).exp_()
+        surr = ratio * adv
+        clipped = ratio.clamp_(1.0 - coef.clip, 1.0 + coef.clip).mul_(adv)
+        # d(-mean(min(surr, clipped)))/d log_prob: the min passes the unclipped term's gradient
+        # (ratio * adv) where it is the smaller or the two are equal (ratio inside the clip).
+        g_log_prob = surr.mul_(surr <= clipped).mul_(-1.0 / rows)
+        torch.mul(z, inv_std, out=mb.g_mean).mul_(g_log_prob[:, None])
+        # d log pi / d log_std = z^2 - 1; the entropy bonus is mean(log_std) + const.
+        torch.mv(sq.T, g_log_prob, out=self.g_log_std)
+        self.g_log_std.sub_(g_log_prob.sum() + coef.entropy_coef / a_dim)
+
+        # Value: 0.5 * mean(max((v - R)^2, (v_old + clip(v - v_old) - R)^2)), times value_coef.
+        err = value - ret
+        clipped_err = (value - old_value).clamp_(-coef.value_clip, coef.value_clip)
+        clipped_err.add_(old_value).sub_(ret)
+        keep = err.square() >= clipped_err.square_()
+        torch.mul(err, keep, out=mb.g_value[:, 0]).mul_(coef.value_coef / rows)
+
+        self.actor.backward(mb.x, mb.actor, mb.g_mean, mb.tmp)
+        self.critic.backward(mb.x, mb.critic, mb.g_value, mb.tmp)
+        norm = float(torch.linalg.vector_norm(self.grad))
+        scale = coef.max_grad_norm / (norm + 1e-6)  # clip_grad_norm_'s formula
+        if scale < 1.0:
+            self.grad.mul_(scale)
+        self.optimizer.step()
+
+    def set_lr(self, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
