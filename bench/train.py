@@ -3,8 +3,11 @@
 For FT and VT with a 6- and a 10-limb body, on one core: end-to-end env steps/s of a short
 training, the raw physics rate of the same body measured in the same run (the same
 `mujoco.batch.Batch` stepping alone: the ceiling), their ratio, and the share of wall time in
-physics, observations/rewards/resets, inference and the PPO update. Then two trainings side by
-side in two processes against one alone: the share of single-core speed each keeps.
+physics, observations/rewards/resets, inference and the PPO update. Also the **bound**: the
+end-to-end rate if everything but the physics and the update's arithmetic (its FLOPs at this
+core's best single-thread matrix rate, measured in the same run) were free, and the
+**efficiency** = end-to-end rate / bound. Then K trainings side by side in K processes (K = every
+core of the machine) against one alone: the share of single-training speed each keeps.
 Run: python bench/train.py [--iterations 20] [--repeats 3]
 """
 
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
+import os
 import statistics
 import sys
 import time
@@ -20,12 +24,14 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import make_env
 from derl.lifetime import learn, ppo_config
+from derl.rl import ActorCritic, PPOConfig
 
 
 def raw_physics_rate(world: str, limbs: int, steps: int = 200) -> float:
@@ -39,18 +45,53 @@ def raw_physics_rate(world: str, limbs: int, steps: int = 200) -> float:
     return steps * 32 / (time.perf_counter() - start)
 
 
+def matrix_flops_per_s(repeats: int = 5) -> float:
+    """This core's best float32 matrix rate (one thread): the update's own shapes, a minibatch of
+    512 rows through a 64-wide layer, forward and backward products."""
+    torch.set_num_threads(1)
+    rate = 0.0
+    for rows, inner, cols in ((512, 1410, 64), (512, 64, 64), (64, 512, 64)):
+        a, b, out = torch.randn(rows, inner), torch.randn(inner, cols), torch.empty(rows, cols)
+        calls = max(1, int(2e8 // (2 * rows * inner * cols)))
+        for _ in range(repeats):
+            start = time.perf_counter()
+            for _ in range(calls):
+                torch.mm(a, b, out=out)
+            rate = max(rate, calls * 2 * rows * inner * cols / (time.perf_counter() - start))
+    return rate
+
+
+def update_flops_per_step(world: str, limbs: int) -> float:
+    """The PPO update's multiply-add FLOPs per env step: every sample goes through the actor and
+    the critic `epochs` times, forward (2 FLOPs per weight) and backward (2 per weight for the
+    weight's gradient, 2 more for the layer input's gradient, which the first layers skip)."""
+    env = make_env(reference_body(limbs), world, num_envs=1, seed=0)
+    net = ActorCritic(env.obs_spaces, env.action_dim)
+    first = sum(
+        branch[0].weight.numel()
+        for encoder in (net.actor, net.critic)
+        for branch in encoder.branches.values()
+    )
+    weights = sum(m.weight.numel() for m in net.modules() if isinstance(m, torch.nn.Linear))
+    return PPOConfig().epochs * (6.0 * weights - 2.0 * first)
+
+
 def training(world: str, limbs: int, iterations: int) -> dict[str, float]:
     config = ppo_config(world, iterations * 4096, seed=0)
     summary, _ = learn(reference_body(limbs), world, config)
     return {"steps_per_s": summary.steps_per_second, **summary.time_split}
 
 
-def bench_config(world: str, limbs: int, iterations: int, repeats: int) -> dict[str, object]:
+def bench_config(
+    world: str, limbs: int, iterations: int, repeats: int, flops: float
+) -> dict[str, object]:
     raw, runs = [], []
     for _ in range(repeats):
         raw.append(raw_physics_rate(world, limbs))
         runs.append(training(world, limbs, iterations))
     raw_rate = statistics.median(raw)
+    update_flops = update_flops_per_step(world, limbs)
+    bound = 1.0 / (1.0 / raw_rate + update_flops / flops)
     best = sorted(runs, key=lambda r: r["steps_per_s"])[len(runs) // 2]  # the median run
     wall = sum(best[k] for k in ("env_s", "inference_s", "update_s", "other_s"))
     physics = iterations * 4096 / raw_rate
@@ -60,6 +101,9 @@ def bench_config(world: str, limbs: int, iterations: int, repeats: int) -> dict[
         "end_to_end_steps_per_s": round(best["steps_per_s"]),
         "raw_physics_steps_per_s": round(raw_rate),
         "ratio": round(best["steps_per_s"] / raw_rate, 3),
+        "update_mflop_per_step": round(update_flops / 1e6, 2),
+        "bound_steps_per_s": round(bound),
+        "efficiency": round(best["steps_per_s"] / bound, 3),
         "share": {
             "physics": round(physics / wall, 3),
             "observations_rewards_resets": round((best["env_s"] - physics) / wall, 3),
@@ -74,15 +118,19 @@ def _worker(args: tuple[str, int, int]) -> float:
     return training(*args)["steps_per_s"]
 
 
-def bench_parallel(iterations: int) -> dict[str, float]:
+def bench_parallel(iterations: int) -> dict[str, object]:
+    """K trainings (FT, 6 limbs) at once on K cores against one alone."""
+    cores = len(os.sched_getaffinity(0))
     job = ("ft", 6, iterations)
     alone = _worker(job)
-    with multiprocessing.get_context("spawn").Pool(2) as pool:
-        side_by_side = pool.map(_worker, [job, job])
+    with multiprocessing.get_context("spawn").Pool(cores) as pool:
+        side_by_side = pool.map(_worker, [job] * cores)
     return {
+        "trainings": cores,
         "alone_steps_per_s": round(alone),
         "side_by_side_steps_per_s": [round(s) for s in side_by_side],
-        "kept_share": round(min(side_by_side) / alone, 3),
+        "kept_share_min": round(min(side_by_side) / alone, 3),
+        "kept_share_median": round(statistics.median(side_by_side) / alone, 3),
     }
 
 
@@ -91,12 +139,17 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=20, help="PPO iterations of 4096 steps")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    flops = matrix_flops_per_s()
     results = [
-        bench_config(world, limbs, args.iterations, args.repeats)
+        bench_config(world, limbs, args.iterations, args.repeats, flops)
         for world in ("ft", "vt")
         for limbs in (6, 10)
     ]
-    out = {"configs": results, "two_trainings_on_two_cores": bench_parallel(args.iterations)}
+    out = {
+        "matrix_gflops_per_s": round(flops / 1e9, 1),
+        "configs": results,
+        "k_trainings_on_k_cores": bench_parallel(args.iterations),
+    }
     print(json.dumps(out, indent=2))
 
 
