@@ -225,7 +225,14 @@ class Worker:
 
     def _deliver(self, result: FitnessReport | EvalResult, answers: queue.Queue) -> None:
         """Publish `result` every second until it is acknowledged or rejected (or the node
-        stops, or the coordinator cancels the job)."""
+        stops, or the coordinator cancels the job). Answers that came before the first publish
+        are about someone else's report for this job (one forged under this node's name, say),
+        never about this one: they are dropped."""
+        while True:
+            try:
+                answers.get_nowait()
+            except queue.Empty:
+                break
         while not self.stop.is_set() and result.job not in self.cancelled:
             self.bus.publish(result)
             deadline = time.monotonic() + RESEND_PERIOD_S
