@@ -105,6 +105,10 @@ class Coordinator:
         now = time.monotonic()
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.alive: dict[str, str] = {}  # node -> role
+        self.trainers = 0  # of them, trainers (counted, not scanned: one count per assignment)
+        # the same for every job of the run: built once (each builds the world's task)
+        self.training_ppo = config.training_ppo()
+        self.fitness_bound = config.fitness_bound()
         self.rates: dict[str, float] = {}  # node -> steps/s
         self.rejected = 0
         self.stop = threading.Event()
@@ -270,7 +274,8 @@ class Coordinator:
     # --- assignments -------------------------------------------------------------------------
 
     def _ready(self, ready: WorkerReady) -> None:
-        self.alive.setdefault(ready.node, ready.role)
+        if ready.node not in self.alive:
+            self._join(ready.node, ready.role)
         current = self.state.job_of(ready.node)
         if current is not None:  # it missed its job (e.g. the coordinator restarted)
             self.outbox.append((current.order, encode(current.order), None))
@@ -281,8 +286,7 @@ class Coordinator:
 
     def _assign_training(self, node: str) -> None:
         state, evolution = self.state, self.state.evolution
-        trainers = sum(role == "trainer" for role in self.alive.values())
-        child = state.next_child_for(node, trainers)
+        child = state.next_child_for(node, self.trainers)
         if child is None and not state.waiting and state.wants_tournament():
             decided = evolution.tournament()
             self._commit(tournament_message(self.run, decided))
@@ -297,7 +301,7 @@ class Coordinator:
             node=node,
             genome=genome,
             task=self.config.world,
-            ppo=self.config.training_ppo(),
+            ppo=self.training_ppo,
             parent=evolution.parents[child],
             mutation_seed=mutation_seed,
             lease_s=self.config.lease_s,
@@ -429,7 +433,7 @@ class Coordinator:
                 return "not the body of its job"
         elif report.mutation is None:
             return "a tournament child without its mutation"
-        bound = self.config.fitness_bound()
+        bound = self.fitness_bound
         if not abs(report.fitness) <= bound:
             return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
         if report.env_steps > order.steps:
@@ -498,11 +502,19 @@ class Coordinator:
 
     # --- workers and leases ------------------------------------------------------------------
 
+    def _join(self, node: str, role: str) -> None:
+        self._leave(node)
+        self.alive[node] = role
+        self.trainers += role == "trainer"
+
+    def _leave(self, node: str) -> None:
+        self.trainers -= self.alive.pop(node, None) == "trainer"
+
     def _liveliness(self, role: str, node: str, up: bool) -> None:
         if up:
-            self.alive[node] = role
+            self._join(node, role)
             return
-        self.alive.pop(node, None)
+        self._leave(node)
         self.rates.pop(node, None)
         job = self.state.job_of(node)
         if job is not None:
