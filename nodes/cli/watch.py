@@ -1,10 +1,10 @@
-"""`derl monitor|topic|record|replay|export|log`: the command lines of the watch-and-replay tools.
+"""`derl monitor|foxglove|topic|record|replay|export|log`: the watch-and-replay tools' commands.
 
-Only argument parsing and printing; the work is done by `nodes.tools.monitor`, `nodes.tools.topic`,
-`nodes.tools.recorder` and `nodes.tools.logs`. Every command that joins the bus takes the nodes'
-connection flags (`--connect`, `--mode client`, `--zenoh-config`; multicast stays off), stops
-cleanly on SIGINT/SIGTERM, and reports bad input (a damaged log, no run on the bus, an existing
-output file) in one line on stderr with exit status 1.
+Only argument parsing and printing; the work is done by `nodes.tools.monitor`,
+`nodes.tools.foxglove`, `nodes.tools.topic`, `nodes.tools.recorder` and `nodes.tools.logs`. Every
+command that joins the bus takes the nodes' connection flags (`--connect`, `--mode client`,
+`--zenoh-config`; multicast stays off), stops cleanly on SIGINT/SIGTERM, and reports bad input (a
+damaged log, no run on the bus, an existing output file) in one line on stderr with exit status 1.
 """
 
 from __future__ import annotations
@@ -19,10 +19,14 @@ import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from messages import InvalidKey
 from messages.keys import ARITY
 from nodes.cli.options import add_bus_arguments, options_from
+
+if TYPE_CHECKING:
+    from foxglove.websocket import WebSocketServer
 
 REPLAY_KINDS = sorted(kind for kind in ARITY if kind != "alive")
 
@@ -39,6 +43,18 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     add_bus_arguments(monitor, run_required=False)
     monitor.set_defaults(handler=_clearly(_monitor))
+
+    live = commands.add_parser(
+        "foxglove",
+        help="serve a run live to Foxglove (WebSocket)",
+        description="Serve the run's births, status and progress over the Foxglove WebSocket "
+        "protocol (JSON with JSON schemas) until Ctrl-C; open docs/foxglove-layout.json in "
+        "Foxglove for fitness over births, best fitness, steps/s per worker and the latest births.",
+    )
+    live.add_argument("--host", default="127.0.0.1", help="address to serve on (127.0.0.1)")
+    live.add_argument("--port", type=int, default=8765, help="WebSocket port (8765)")
+    add_bus_arguments(live, run_required=False)
+    live.set_defaults(handler=_clearly(_foxglove))
 
     topic = commands.add_parser("topic", help="list, echo or time live keys (like ros2 topic)")
     verbs = topic.add_subparsers(dest="topic_verb", required=True, metavar="VERB")
@@ -162,6 +178,20 @@ def _monitor(args: argparse.Namespace) -> int:
     from nodes.tools.monitor import monitor
 
     monitor(options_from(args), args.run, args.once, _stop_on_signals())
+    return 0
+
+
+def _foxglove(args: argparse.Namespace) -> int:
+    from nodes.tools.foxglove import CannotServe, serve
+
+    def started(run: str, server: WebSocketServer) -> None:
+        print(f"serving run {run} on ws://{args.host}:{server.port} (Ctrl-C stops)", flush=True)
+
+    try:
+        serve(options_from(args), args.run, args.host, args.port, _stop_on_signals(), started)
+    except CannotServe as error:
+        print(f"derl foxglove: {error}", file=sys.stderr)
+        return 1
     return 0
 
 
