@@ -4,8 +4,10 @@
    bodies that never runs out, lease 1 h) on loopback, driven by `LoadGenerator`: a LOAD-TEST
    TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
    simulated worker sends WorkerReady (again every second while idle, like a real one), and
-   answers each TrainJob with a tiny fake FitnessReport (a tournament child comes back with its
-   parent's body: breeding is the trainers' work, off the coordinator). For W = 100, 1,000,
+   answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (an initial child
+   with its job's body, a tournament child with its parent's body and a mutation's name:
+   breeding is the trainers' work, off the coordinator; env steps within the job's PPO budget; a
+   fitness within the world's bound). Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
    once, i.e. the most assignments/s the coordinator gives; (b) `paced`: each simulated job
    lasts W / R s so the workers offer R = 1,000 assignments/s (the goal's load), and
@@ -76,8 +78,7 @@ from nodes.runtime.bus import Bus, ZenohOptions, open_session
 SCALE_PROFILE = {
     "profile": "paper",
     "total": 10_000_000,  # never runs out during a benchmark
-    "train_steps": 1,  # nothing is trained: the load generator answers
-    "num_envs": 1,
+    "train_steps": 4096,  # one rollout of 32 copies (the least PPO takes); nothing is trained
     "lease_s": 3600.0,
     "eval_top": 0,
     "eval_tasks": [],
@@ -135,8 +136,10 @@ class LoadGenerator:
 
     Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker.node` minus the
     training: it announces WorkerReady, re-sends it every second while idle, answers each new
-    TrainJob after `job_s` (0: at once) with a fake FitnessReport (random fitness, a two-point
-    curve, no checkpoint), and asks for work again once the report is acknowledged."""
+    TrainJob after `job_s` (0: at once) with a fake FitnessReport on its own key
+    (``fitness/<node>/<child>``: random fitness, a two-point curve within the job's budget, no
+    checkpoint), and asks for work again once the report is acknowledged, or rejected (counted:
+    the coordinator must accept every report of this generator)."""
 
     def __init__(self, run: str, endpoint: str, workers: int) -> None:
         self.run, self.keys = run, KeySpace(run)
@@ -148,10 +151,13 @@ class LoadGenerator:
         self.received: list[tuple[float, float, str]] = []  # (time, latency, child)
         self.seen: set[str] = set()  # job ids received
         self.repeated = 0
+        self.rejected: Counter[str] = Counter()  # Reject reasons (none expected)
+        self.cancelled = 0
         self.job_s = 0.0
         self.jitter = random.Random(0)
-        # answers to send: (node, job, child, the job's genome, bred); job "" asks for work
-        self.answers: queue.Queue[tuple[str, str, str, dict | None, bool]] = queue.Queue()
+        # answers to send: (node, job, child, the job's genome, bred, its step budget); job ""
+        # asks for work
+        self.answers: queue.Queue[tuple[str, str, str, dict | None, bool, int]] = queue.Queue()
         self.due: list[tuple[float, int, tuple]] = []  # heap of (when, order, answer)
         self.stop = threading.Event()
         self.sequence = 0
@@ -192,6 +198,10 @@ class LoadGenerator:
     def _on_job(self, sample: zenoh.Sample) -> None:
         now = time.perf_counter()
         job = msgpack.unpackb(sample.payload.to_bytes())
+        if job["type"] != "TrainJob":  # a Cancel (never expected here: one worker per child)
+            with self.lock:
+                self.cancelled += 1
+            return
         node = job["node"]
         with self.lock:
             if job["job"] in self.seen:  # a re-sent job (the worker asked again): done already
@@ -202,7 +212,8 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 self.received.append((now, now - since, job["child"]))
-        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"] is not None)
+        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"] is not None,
+                  job["ppo"]["total_steps"])  # fmt: skip
         if self.job_s <= 0:
             self.answers.put(answer)
         else:
@@ -223,7 +234,7 @@ class LoadGenerator:
         curve = Curve(env_steps=(1, 2), returns=(0.0, 1.0))
         while not self.stop.is_set():
             try:
-                node, job, child, genome, bred = self.answers.get(timeout=0.1)
+                node, job, child, genome, bred, budget = self.answers.get(timeout=0.1)
             except queue.Empty:
                 continue
             if not job:  # acknowledged: ask for the next job
@@ -234,20 +245,24 @@ class LoadGenerator:
                 mutation="gear" if bred else None,
                 fitness=self.jitter.uniform(0, 100), fitness_source="window",
                 fitness_episodes=1, curve=curve, energy=1.0, cost_of_work=1.0, mass=1.0,
-                episodes=1, env_steps=2, wall_s=0.0, steps_per_s=0.0, checkpoint=b"",
+                episodes=1, env_steps=min(2, budget), wall_s=0.0, steps_per_s=0.0,
+                checkpoint=b"",
             )  # fmt: skip
             with self.lock:
                 self.unacked[job] = node
-            self._put(self.keys.fitness(child), encode(report))
+            self._put(self.keys.fitness(node, child), encode(report))
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
-        """Acknowledged: idle again (a real worker also waits for the Ack, then asks for work;
-        it re-sends its report every second until then, which this generator does not)."""
+        """Acknowledged (or rejected, counted): idle again (a real worker also waits for the
+        Ack, then asks for work; it re-sends its report every second until then, which this
+        generator does not)."""
         ack = msgpack.unpackb(sample.payload.to_bytes())
         with self.lock:
             node = self.unacked.pop(ack["job"], None)
+            if ack["type"] == "Reject":
+                self.rejected[ack["reason"][:80]] += 1
         if node is not None:
-            self.answers.put((node, "", "", None, False))
+            self.answers.put((node, "", "", None, False, 0))
 
     def _resend(self) -> None:
         """Idle simulated workers repeat WorkerReady every second, as real ones do."""
@@ -263,6 +278,8 @@ class LoadGenerator:
         with self.lock:
             inside = [(t, lat) for t, lat, _ in self.received if start <= t < end]
             repeated, self.repeated = self.repeated, 0
+            rejected, self.rejected = dict(self.rejected), Counter()
+            cancelled, self.cancelled = self.cancelled, 0
         latencies = [lat for _, lat in inside]
         return {
             "assignments_per_s": round(len(inside) / (end - start), 1),
@@ -271,6 +288,8 @@ class LoadGenerator:
             "latency_max_ms": _ms(max(latencies, default=None)),
             "assignments": len(inside),
             "jobs_sent_again": repeated,  # a worker that re-sent WorkerReady before its job came
+            "reports_rejected": rejected,  # reason -> count; none expected
+            "jobs_cancelled": cancelled,  # none expected
         }
 
     def tournaments_started(self) -> bool:
@@ -440,15 +459,14 @@ class Driver:
 
 BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
     "tournament (drawing contestants)": ("evolution/population.py", "tournament"),
-    "journal writes": ("nodes/journal.py", "write"),
-    "checkpoint hand-off (a thread writes the file)": ("nodes/checkpoints.py", "save"),
-    "journal flushes": ("nodes/journal.py", "flush"),
-    "job_of scan (per WorkerReady)": ("nodes/coordinator_state.py", "job_of"),
-    "supersede scan in _assigned": ("nodes/coordinator_state.py", "_assigned"),
-    "wants_tournament (in-flight count, initial_born)": (
-        "nodes/coordinator_state.py",
-        "wants_tournament",
-    ),
+    "journal writes": ("nodes/journal/segments.py", "write"),
+    "journal flushes (fsync included)": ("nodes/journal/segments.py", "flush"),
+    "checkpoint hand-off (a thread writes the file)": ("nodes/runtime/checkpoints.py", "save"),
+    "messages built (pydantic validation)": ("pydantic/main.py", "__init__"),
+    "encode (msgpack)": ("messages/codec.py", "encode"),
+    "apply (the state's fold)": ("nodes/journal/history.py", "apply"),
+    "job_of (per WorkerReady)": ("nodes/coordinator/state.py", "job_of"),
+    "wants_tournament": ("nodes/coordinator/state.py", "wants_tournament"),
 }
 
 
@@ -502,10 +520,11 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
 
     run = "bench-journal"
     genome = bodies()[0]
+    ppo = load_profile("paper").training_ppo()
     mix = []
     for k in range(messages // 4):
         job = TrainJob(run=run, job=f"c{k:05d}.1", child=f"c{k:05d}", node=f"w{k % 300}",
-                       genome=genome, task="ft", steps=5_000_000, seed=1409, parent="i0001",
+                       genome=genome, task="ft", ppo=ppo, parent="i0001", mutation_seed=k,
                        lease_s=60.0)  # fmt: skip
         mix += [
             Tournament(run=run, child=job.child, contestants=("i0001",) * 4,
@@ -654,7 +673,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             wall = time.perf_counter() - wall0
             checkpoint = result.checkpoint.to_bytes()
             job = TrainJob(run=run, job="c00001.1", child="c00001", node=node, genome=genome,
-                           task="ft", steps=steps, seed=1409, lease_s=60.0)  # fmt: skip
+                           task="ft", ppo=config, lease_s=60.0)  # fmt: skip
             report = _report(run, job, summary.fitness)
             report = report.model_copy(update={"checkpoint": checkpoint})
             timed(report)
