@@ -11,6 +11,7 @@ import pytest
 from derl.unimal import Genome, InvalidBody, Joint, Limb, agent_spec, check_body, describe
 from derl.unimal.geometry import direction, layout, limb_frame
 from derl.unimal.mjcf import to_mjcf
+from derl.unimal.space import HEAD_RADIUS, LIMB_RADIUS
 
 MIRROR = np.array([1.0, -1.0, 1.0])
 ONE = (Joint(axis="x", range=(-30, 30), gear=150),)
@@ -121,5 +122,7 @@ def test_descriptors_of_a_pole_and_a_quadruped(quadruped: Genome) -> None:
     assert not d.passively_stable  # a ball on a stick falls over
     q = describe(quadruped)
     assert q.num_limbs == 6 and q.dof == 10
-    assert q.width == pytest.approx(2 * q.width / 2)
+    # the upper legs point 45 degrees off the y axis: each ends (head + limb radius + 0.3) / 2 out
+    # in y, its lower leg hangs straight down from there, one limb radius thick
+    assert q.width == pytest.approx(HEAD_RADIUS + 3 * LIMB_RADIUS + 0.3)  # 0.55
     assert 0 < q.coverage < 1
