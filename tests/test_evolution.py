@@ -39,8 +39,8 @@ def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body
     with pytest.raises(RuntimeError, match="initial population"):
         evolution.tournament()
     for k, child in enumerate(evolution.initial):
-        assert evolution.to_train(child.child) == (initial[k], None)
-        assert evolution.birth(child.child, float(k), initial[k]) is not None
+        assert evolution.to_train(child.name) == (initial[k], None)
+        assert evolution.birth(child.name, float(k), initial[k]) is not None
     assert evolution.birth("i0000", 99.0, initial[0]) is None  # born already
     assert evolution.birth("c77777", 1.0, initial[0]) is None  # never decided
 
@@ -52,29 +52,29 @@ def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body
         == max(zip(decided.contestants, decided.fitness, strict=True), key=lambda c: c[1])[0]
     )
     evolution.record(decided)
-    assert evolution.tournament().child != decided.child  # the next decision
+    assert evolution.tournament().name != decided.name  # the next decision
     parent_body = evolution.genomes[decided.parent]
-    assert evolution.to_train(decided.child) == (parent_body, decided.mutation_seed)
+    assert evolution.to_train(decided.name) == (parent_body, decided.mutation_seed)
 
     child_body, _ = breed(parent_body, decided.mutation_seed)
-    member = evolution.birth(decided.child, 50.0, child_body)
+    member = evolution.birth(decided.name, 50.0, child_body)
     assert member is not None and member.parent == decided.parent
-    assert evolution.to_train(decided.child) == (child_body, None)
-    assert [m.agent for m in evolution.population] == ["i0001", "i0002", "i0003", decided.child]
+    assert evolution.to_train(decided.name) == (child_body, None)
+    assert [m.agent for m in evolution.population] == ["i0001", "i0002", "i0003", decided.name]
 
 
 def test_replaying_decisions_and_births_rebuilds_the_state(initial: list[Genome]) -> None:
     live, replayed = _evolution(initial), _evolution(initial)
     facts: list[tuple[Child | None, str, float, Genome]] = []
     for k, child in enumerate(live.initial):
-        live.birth(child.child, float(k), initial[k])
-        facts.append((None, child.child, float(k), initial[k]))
+        live.birth(child.name, float(k), initial[k])
+        facts.append((None, child.name, float(k), initial[k]))
     for k in range(6):
         decided = live.tournament()
         live.record(decided)
-        body = breed(*live.to_train(decided.child))[0]
-        live.birth(decided.child, 10.0 + k, body)
-        facts.append((decided, decided.child, 10.0 + k, body))
+        body = breed(*live.to_train(decided.name))[0]
+        live.birth(decided.name, 10.0 + k, body)
+        facts.append((decided, decided.name, 10.0 + k, body))
     for decided, agent, fitness, body in facts:
         if decided is not None:
             replayed.record(decided)
@@ -101,8 +101,8 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     for k, child in enumerate(state.evolution.initial):
         job = TrainJob(
             run="r",
-            job=f"{child.child}.1",
-            child=child.child,
+            job=f"{child.name}.1",
+            child=child.name,
             node="t0",
             genome=child.genome,
             task="ft",
@@ -113,7 +113,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
         state.apply(
             template.model_copy(
                 update={
-                    "child": child.child,
+                    "child": child.name,
                     "parent": None,
                     "job": job.job,
                     "node": "t0",
@@ -130,14 +130,14 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     tournament = tournament_message("r", decided)
     state.apply(tournament)
     state.apply(tournament)  # replayed twice: still one waiting child
-    assert list(state.waiting) == [decided.child] and not state.wants_tournament()
-    genome, seed = state.evolution.to_train(decided.child)
+    assert list(state.waiting) == [decided.name] and not state.wants_tournament()
+    genome, seed = state.evolution.to_train(decided.name)
     assert seed == decided.mutation_seed
     state.apply(
         TrainJob(
             run="r",
-            job=f"{decided.child}.1",
-            child=decided.child,
+            job=f"{decided.name}.1",
+            child=decided.name,
             node="t1",
             genome=genome,
             task="ft",
@@ -147,4 +147,4 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
             lease_s=10.0,
         )
     )
-    assert not state.waiting and state.job_of("t1").subject == decided.child
+    assert not state.waiting and state.job_of("t1").subject == decided.name

@@ -40,7 +40,7 @@ class Child:
     """A body to train: an initial one (its genome, no parent) or a tournament's winner to
     breed (`breed(genome of parent, mutation_seed)`; the genome is known once it is born)."""
 
-    child: str
+    name: str
     genome: Genome | None
     parent: str | None = None
     contestants: tuple[str, ...] = ()
@@ -74,10 +74,10 @@ class Evolution:
                 f"{len(initial)} initial bodies for a population of {config.population}"
             )
         self.initial = [Child(f"i{k:04d}", genome) for k, genome in enumerate(initial)]
-        self.unborn_initial = {child.child for child in self.initial}
-        self.genomes: dict[str, Genome] = {c.child: c.genome for c in self.initial}
-        self.parents: dict[str, str | None] = {c.child: None for c in self.initial}
-        self.seeds: dict[str, int | None] = {c.child: None for c in self.initial}
+        self.unborn_initial = {child.name for child in self.initial}
+        self.genomes: dict[str, Genome] = {c.name: c.genome for c in self.initial}
+        self.parents: dict[str, str | None] = {c.name: None for c in self.initial}
+        self.seeds: dict[str, int | None] = {c.name: None for c in self.initial}
         self.born: list[Member] = []
         self.fitness: dict[str, float] = {}
         self.given_up: set[str] = set()  # children whose trainings kept failing: never born
@@ -98,7 +98,8 @@ class Evolution:
         return len(self.born) + len(self.given_up)
 
     @property
-    def done(self) -> bool:
+    def complete(self) -> bool:
+        """Every child of the run is born or given up."""
         return self.settled >= self.config.total
 
     def best(self) -> Member | None:
@@ -113,7 +114,7 @@ class Evolution:
         drawn = [population[i] for i in rng.integers(len(population), size=self.config.tournament)]
         parent = max(drawn, key=lambda m: m.fitness)
         return Child(
-            child=f"c{self.iterations:05d}",
+            name=f"c{self.iterations:05d}",
             genome=None,
             parent=parent.agent,
             contestants=tuple(m.agent for m in drawn),
@@ -124,10 +125,10 @@ class Evolution:
 
     def record(self, child: Child) -> None:
         """A decided tournament becomes a fact (idempotent)."""
-        if child.child in self.parents:
+        if child.name in self.parents:
             return
-        self.parents[child.child] = child.parent
-        self.seeds[child.child] = child.mutation_seed
+        self.parents[child.name] = child.parent
+        self.seeds[child.name] = child.mutation_seed
         self.iterations = max(self.iterations, child.iteration + 1)
 
     def to_train(self, child: str) -> tuple[Genome, int | None]:

@@ -290,7 +290,7 @@ class Coordinator:
         if child is None and not state.waiting and state.wants_tournament():
             decided = evolution.tournament()
             self._commit(tournament_message(self.run, decided))
-            child = decided.child
+            child = decided.name
         if child is None:
             return
         genome, mutation_seed = evolution.to_train(child)

@@ -35,7 +35,7 @@ def tournament_message(run: str, decided: Child) -> Tournament:
     `on_Tournament` turns it back into the `Child` it records."""
     return Tournament(
         run=run,
-        child=decided.child,
+        child=decided.name,
         contestants=decided.contestants,
         fitness=decided.fitness,
         parent=decided.parent,
@@ -73,7 +73,7 @@ class CoordinatorState(RunHistory):
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
         state = cls(config, Evolution(config, initial))
-        state.waiting.extend(child.child for child in state.evolution.initial)
+        state.waiting.extend(child.name for child in state.evolution.initial)
         return state
 
     # --- the fold ----------------------------------------------------------------------------
@@ -211,7 +211,7 @@ class CoordinatorState(RunHistory):
 
     def _plan_evaluations(self) -> None:
         """Once evolution is over: the best `eval_top` on every test task and seed."""
-        if self.planned or not self.evolution.done:
+        if self.planned or not self.evolution.complete:
             return
         best = sorted(self.evolution.born, key=lambda m: m.fitness, reverse=True)
         for member in best[: self.config.eval_top]:
@@ -238,4 +238,5 @@ class CoordinatorState(RunHistory):
     def finished(self) -> bool:
         """Evolution and the evaluations of the run are over."""
         self._plan_evaluations()
-        return self.evolution.done and self.evaluated >= min(self.eval_target, len(self.planned))
+        evaluated = self.evaluated >= min(self.eval_target, len(self.planned))
+        return self.evolution.complete and evaluated

@@ -63,7 +63,7 @@ class Worker:
     ) -> None:
         self.run, self.node, self.role, self.nthread = run, node, role, nthread
         self.stop = threading.Event()
-        self.run_done = threading.Event()
+        self.run_finished = threading.Event()
         self.finished_jobs: set[str] = set()  # a copy sent again is not trained twice
         self.cancelled: set[str] = set()
 
@@ -110,11 +110,11 @@ class Worker:
 
     def _over(self, max_jobs: int | None) -> bool:
         limit = max_jobs is not None and len(self.finished_jobs) >= max_jobs
-        return self.stop.is_set() or self.run_done.is_set() or limit
+        return self.stop.is_set() or self.run_finished.is_set() or limit
 
     def _status(self, status: RunStatus) -> None:
         if status.done:
-            self.run_done.set()
+            self.run_finished.set()
 
     def _next_job(self, jobs: queue.Queue) -> TrainJob | EvalJob | None:
         ready = WorkerReady(
