@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
+import re
 import typing
 
 import msgpack
@@ -197,9 +197,29 @@ def test_expected_type_is_enforced() -> None:
         decode(encode(_sample("Ack")), FitnessReport)
 
 
-def _decode_or_reject(payload: bytes) -> None:
-    with contextlib.suppress(DecodeError):
+def _reason(payload: bytes) -> str | None:
+    """Why `payload` is refused, or None when it is a valid message."""
+    try:
         decode(payload)
+    except DecodeError as error:
+        return str(error)
+    return None
+
+
+# every reason `decode` gives, by the kind of fault it names; a validator tripping over absurd
+# input ("invalid message: ...") is in none of them
+NOT_MSGPACK = r"not msgpack: "
+NOT_A_MAP = r"not a map but \w+$"
+VERSION = rf"schema version .*, expected {SCHEMA_VERSION}$"
+TYPE = r"unknown message type |no message type$"
+REASONS = re.compile("|".join((NOT_MSGPACK, NOT_A_MAP, VERSION, TYPE, r"invalid [A-Z]\w+: ")))
+
+
+def _invalid(type_name: str, field: str) -> str:
+    """The reason for a bad (dotted) `field` of `type_name`: that field, or a check across the
+    fields of the message or of the nested model holding it."""
+    holder = rf"{re.escape(field.rpartition('.')[0])}: " if "." in field else ""
+    return rf"invalid {type_name}: ({re.escape(field)}[.:]|{holder}Value error, |Value error, )"
 
 
 FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -207,13 +227,20 @@ FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCh
 
 @FUZZ
 @given(st.binary(max_size=512))
-def test_random_bytes_only_raise_decode_error(payload: bytes) -> None:
-    _decode_or_reject(payload)
+def test_random_bytes_say_why(payload: bytes) -> None:
+    try:
+        raw = msgpack.unpackb(payload, use_list=False)
+    except Exception:
+        expected = NOT_MSGPACK
+    else:  # bytes that happen to be msgpack: almost never a map, never one with a version
+        expected = NOT_A_MAP if not isinstance(raw, dict) else VERSION
+    reason = _reason(payload)
+    assert reason is not None and re.match(expected, reason), reason
 
 
 @FUZZ
 @given(st.sampled_from(PAYLOADS), st.data())
-def test_mutated_payloads_only_raise_decode_error(payload: bytes, data: st.DataObject) -> None:
+def test_mutated_payloads_say_why(payload: bytes, data: st.DataObject) -> None:
     buf = bytearray(payload)
     for _ in range(data.draw(st.integers(1, 4))):
         at = data.draw(st.integers(0, len(buf) - 1))
@@ -227,7 +254,8 @@ def test_mutated_payloads_only_raise_decode_error(payload: bytes, data: st.DataO
             break
         else:
             buf[at:at] = data.draw(st.binary(min_size=1, max_size=9))
-    _decode_or_reject(bytes(buf))
+    reason = _reason(bytes(buf))
+    assert reason is None or REASONS.match(reason), reason
 
 
 JUNK = st.recursive(
@@ -244,22 +272,45 @@ JUNK = st.recursive(
 
 @FUZZ
 @given(st.sampled_from(SAMPLES), st.data(), JUNK)
-def test_junk_in_any_field_only_raises_decode_error(
+def test_junk_in_any_field_names_the_field(
     msg: MessageBase, data: st.DataObject, junk: object
 ) -> None:
     raw = _dump(msg)
     field = data.draw(st.sampled_from(sorted(raw)))
     if isinstance(raw[field], dict):  # reach into nested models (genome, curve)
-        raw = _set(raw, f"{field}.{data.draw(st.sampled_from(sorted(raw[field])))}", junk)
-    else:
-        raw[field] = junk
-    _decode_or_reject(msgpack.packb(raw))
+        field = f"{field}.{data.draw(st.sampled_from(sorted(raw[field])))}"
+    raw = _set(raw, field, junk)
+    reason = _reason(msgpack.packb(raw))
+    if reason is None:
+        return  # junk that is a valid value of that field
+    expected = {"schema_version": VERSION, "type": TYPE}.get(field, _invalid(msg.type, field))
+    assert re.match(expected, reason), (field, reason)
+
+
+@FUZZ
+@given(st.sampled_from(SAMPLES), st.data())
+def test_a_missing_field_is_named(msg: MessageBase, data: st.DataObject) -> None:
+    fields = type(msg).model_fields
+    field = data.draw(st.sampled_from(sorted(f for f in fields if fields[f].is_required())))
+    raw = {k: v for k, v in _dump(msg).items() if k != field}
+    expected = {"schema_version": VERSION, "type": TYPE}.get(
+        field, rf"invalid {msg.type}: {field}: Field required$"
+    )
+    reason = _reason(msgpack.packb(raw))
+    assert reason is not None and re.match(expected, reason), reason
 
 
 @FUZZ
 @given(st.dictionaries(st.text(max_size=12), JUNK, max_size=6), st.sampled_from(list(ROUTES)))
-def test_junk_maps_only_raise_decode_error(raw: dict[str, object], type_name: str) -> None:
-    _decode_or_reject(msgpack.packb({"schema_version": SCHEMA_VERSION, "type": type_name, **raw}))
+def test_junk_maps_say_why(raw: dict[str, object], type_name: str) -> None:
+    reason = _reason(msgpack.packb({"schema_version": SCHEMA_VERSION, "type": type_name, **raw}))
+    if "schema_version" in raw:
+        expected = rf"{VERSION}|invalid "
+    elif "type" in raw:
+        expected = rf"{TYPE}|invalid "
+    else:  # required fields missing, unknown ones given
+        expected = rf"invalid {type_name}: "
+    assert reason is not None and re.match(expected, reason), reason
 
 
 def test_deep_nesting_is_a_decode_error() -> None:
