@@ -148,3 +148,21 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
         )
     )
     assert not state.waiting and state.job_of("t1").subject == decided.name
+
+
+def test_replicates_differ_by_their_seed_alone() -> None:
+    """`derl run --seed N`: two runs of one profile start from different initial populations
+    and hold different tournaments; one seed gives the same run."""
+
+    def start(seed: int) -> tuple[list[Genome], tuple]:
+        evolution = Evolution(load_profile("smoke", seed=seed))
+        for k, child in enumerate(evolution.initial):
+            evolution.birth(child.name, float(k), child.genome)
+        decided = evolution.tournament()
+        return [c.genome for c in evolution.initial], (decided.contestants, decided.mutation_seed)
+
+    assert load_profile("smoke", seed=7).seed == 7 and load_profile("smoke").seed == 0
+    one, two = start(1), start(2)
+    assert one == start(1)
+    assert all(a != b for a, b in zip(one[0], two[0], strict=True))
+    assert one[1] != two[1]

@@ -28,6 +28,7 @@ from nodes_fixtures import (
     write_profile,
 )
 
+from derl.evolution import load_profile
 from nodes.cli.main import build_parser
 from nodes.launch.commands import build_commands, dry_run_text, plan
 from nodes.launch.model import LaunchFile, load
@@ -161,6 +162,28 @@ def test_peer_mesh_ports_seed_and_zenoh_config(tmp_path: Path) -> None:
     listens = {c.derl_args()[c.derl_args().index("--listen") + 1]
                for c in build_commands(zero, ["a"])}  # fmt: skip
     assert listens == {"tls/10.1.0.2:0"}
+
+
+def test_a_launch_files_seed_reaches_the_coordinator(tmp_path: Path) -> None:
+    launch = LaunchFile.model_validate({**_mesh(tmp_path), "seed": 3})
+    head = next(c for c in build_commands(launch) if c.role == "coordinator").derl_args()
+    assert head[head.index("--seed") + 1] == "3"
+    assert build_parser().parse_args(head).seed == 3
+    unseeded = next(c for c in build_commands(LaunchFile.model_validate(_mesh(tmp_path))))
+    assert "--seed" not in unseeded.derl_args()
+
+
+def test_a_run_directory_refuses_another_seed(tmp_path: Path) -> None:
+    """Resuming a run with another --seed would mix two replicates in one journal."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "profile.json").write_text(load_profile("smoke", seed=0).model_dump_json())
+    port = free_port()
+    result = _derl("coordinator", "--run", "r", "--profile", "smoke", "--seed", "1",
+                   "--run-dir", str(run_dir), "--listen", f"tcp/127.0.0.1:{port}")  # fmt: skip
+    assert result.returncode != 0
+    assert "with seed 0, not smoke in ft with seed 1" in result.stderr
+    assert not list((run_dir).glob("*.mcap"))
 
 
 def test_wildcard_listen_on_the_seed_host_is_the_seed(tmp_path: Path) -> None:

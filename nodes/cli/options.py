@@ -88,6 +88,12 @@ def fail_on_bus(error: zenoh.ZError) -> NoReturn:
 def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
     parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        help="the run's evolution seed: initial bodies and tournaments (overrides the profile; "
+        "replicates of one profile differ by it)",
+    )
 
 
 def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
@@ -95,7 +101,7 @@ def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
     from derl.evolution import EvolutionConfig, load_profile
 
     try:
-        return load_profile(args.profile, world=args.env)
+        return load_profile(args.profile, world=args.env, seed=args.seed)
     except ValidationError as error:
         unknown = [e["loc"] for e in error.errors() if e["type"] == "extra_forbidden"]
         if unknown:

@@ -45,7 +45,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="run evolution on this host (all nodes, supervised)")
     add_profile_arguments(run)
     run.add_argument("--workers", type=at_least_one, default=2, help="trainer processes (2)")
-    run.add_argument("--run-dir", type=Path, help="default: runs/<profile>-<world>")
+    run.add_argument("--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>]")
     run.add_argument(
         "--port",
         type=_port,
@@ -68,7 +68,10 @@ def _port(text: str) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     config = profile_from(args)
-    run_dir = run_directory(args.run_dir or Path("runs") / f"{config.name}-{config.world}")
+    replicate = "" if args.seed is None else f"-s{args.seed}"
+    run_dir = run_directory(
+        args.run_dir or Path("runs") / f"{config.name}-{config.world}{replicate}"
+    )
     try:
         with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
             pass
@@ -116,7 +119,8 @@ def _commands(
 ) -> list[NodeCommand]:
     """The coordinator, the trainers and the evaluator, each restarted when it fails."""
     env = ["--env", args.env] if args.env else []
-    coordinator = ("coordinator", "--run", run, "--profile", args.profile, *env,
+    seed = ["--seed", str(args.seed)] if args.seed is not None else []
+    coordinator = ("coordinator", "--run", run, "--profile", args.profile, *env, *seed,
                    "--run-dir", str(run_dir), "--listen", endpoint)  # fmt: skip
     nodes = [("coordinator", "coordinator", coordinator)]
     for role, count in (("trainer", args.workers), ("evaluator", int(evaluator))):

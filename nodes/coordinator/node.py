@@ -131,11 +131,11 @@ class Coordinator:
             saved = EvolutionConfig.model_validate_json(path.read_text())
         except ValidationError as error:
             raise SystemExit(f"derl: {path} is not a valid run configuration:\n{error}") from None
-        if saved.name != given.name or saved.world != given.world:
+        if (saved.name, saved.world, saved.seed) != (given.name, given.world, given.seed):
             raise SystemExit(
-                f"derl: {self.run_dir} holds a run of profile {saved.name} in {saved.world}, not "
-                f"{given.name} in {given.world}; resume it with the same profile or use a new "
-                "--run-dir"
+                f"derl: {self.run_dir} holds a run of profile {saved.name} in {saved.world} with "
+                f"seed {saved.seed}, not {given.name} in {given.world} with seed {given.seed}; "
+                "resume it with the same profile and seed or use a new --run-dir"
             )
         if saved != given:
             changed = sorted(k for k in type(given).model_fields if getattr(saved, k) !=

@@ -124,7 +124,8 @@ def ssh_command(launch: LaunchFile, file: Path, host: HostSpec) -> NodeCommand:
 def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     if spec.role == "coordinator":
         env = ["--env", launch.env] if launch.env else []
-        return ["--run", launch.run, "--profile", launch.profile, *env, "--run-dir",
+        seed = ["--seed", str(launch.seed)] if launch.seed is not None else []
+        return ["--run", launch.run, "--profile", launch.profile, *env, *seed, "--run-dir",
                 str(launch.run_dir)]  # fmt: skip
     if spec.role == "router":
         return []

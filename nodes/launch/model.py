@@ -7,6 +7,7 @@ policy::
     run: exp1
     run_dir: runs/exp1
     profile: demo                  # a built-in profile or a profile YAML file
+    seed: 1                        # optional: the evolution seed (one per replicate)
     topology: {kind: peer_mesh, seed: "tcp/10.0.0.5:7447"}     # or {kind: router, endpoint, host}
     zenoh_config: launch/zenoh/tls-acl.json5                   # optional (TLS, access control)
     hosts:
@@ -126,6 +127,7 @@ class LaunchFile(_Strict):
     run_dir: Path
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
     env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
+    seed: int | None = Field(None, ge=0, description="evolution seed (overrides profile)")
     topology: Annotated[PeerMesh | RouterTopology, Field(discriminator="kind")]
     zenoh_config: Path | None = Field(None, description="Zenoh JSON5 config of every node")
     hosts: list[HostSpec] = Field(min_length=1)
