@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from derl.unimal import Genome, Joint, Limb
+from derl.unimal import Genome, Joint, Limb, body_hash
 from derl.unimal.count import _bodies, count_design_space, joint_configurations
 from derl.unimal.mutations import (
     PAIR_ON_PAIR_DIRECTIONS,
@@ -11,15 +11,6 @@ from derl.unimal.mutations import (
 )
 
 JOINTS = (Joint(axis="x", range=(-30, 0), gear=150),)
-
-
-def _canonical(genome: Genome, parent: int | None = None) -> tuple:
-    return tuple(
-        sorted(
-            (limb.site, limb.paired, limb.theta, limb.phi, _canonical(genome, limb.id))
-            for limb in genome.children(parent)
-        )
-    )
 
 
 def _grown(genome: Genome) -> list[Genome]:
@@ -58,10 +49,10 @@ def _grown(genome: Genome) -> list[Genome]:
 def test_generating_functions_match_enumeration() -> None:
     max_limbs = 3
     frontier = [Genome(head_density=500, limb_density=500)]
-    seen: dict[tuple, int] = {}
+    seen: dict[str, int] = {}
     while frontier:
         genome = frontier.pop()
-        key = _canonical(genome)
+        key = body_hash(genome)
         if key in seen or genome.num_limbs > max_limbs:
             continue
         seen[key] = genome.num_limbs

@@ -1,0 +1,55 @@
+"""A body's identity: a canonical form of its genome, and a stable hash of it.
+
+Two genomes are the same body when they differ only in limb ids and the order of the limb entries,
+or in which twin of a mirror pair grown on a sagittal site is the stored (primary) one: that pair
+and every pair grown on it then store the mirror direction (theta -> 360 - theta), and each x
+hinge the negated range, since the mirror image of an x hinge axis is the twin's axis reversed
+(`derl.unimal.geometry`); y hinges keep theirs. Everything else that shapes the body's physics is
+in the form: both densities, and per entry its site, pairing, length, direction and hinges (axis,
+range, gear), with the entries grown on it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+from derl.unimal.genome import Genome, Limb
+
+Form = tuple
+
+
+def canonical_form(genome: Genome) -> Form:
+    """The genome as nested sorted tuples, equal exactly for equal bodies."""
+    return (genome.head_density, genome.limb_density, _children(genome, None, mirrored=False))
+
+
+def body_hash(genome: Genome) -> str:
+    """A stable 64-bit hex digest of `canonical_form` (equal bodies, equal hashes)."""
+    return hashlib.sha256(repr(canonical_form(genome)).encode()).hexdigest()[:16]
+
+
+def _children(genome: Genome, parent: int | None, mirrored: bool) -> Form:
+    forms = []
+    for limb in genome.children(parent):
+        if limb.paired and genome.is_sagittal(parent):  # either twin may be the stored one
+            forms.append(min(_entry(genome, limb, False), _entry(genome, limb, True)))
+        else:
+            forms.append(_entry(genome, limb, mirrored))
+    return tuple(sorted(forms))
+
+
+def _entry(genome: Genome, limb: Limb, mirrored: bool) -> Form:
+    theta = (360 - limb.theta) % 360 if mirrored else limb.theta
+    joints = tuple(
+        (j.axis, (-j.range[1], -j.range[0]) if mirrored and j.axis == "x" else j.range, j.gear)
+        for j in limb.joints
+    )
+    return (
+        limb.site,
+        limb.paired,
+        limb.length,
+        theta,
+        limb.phi,
+        joints,
+        _children(genome, limb.id, mirrored),
+    )
