@@ -1,22 +1,26 @@
 """The coordinator's handlers on a real Zenoh session: group commit (nothing is published before
 the journal file holds it) and checkpoint files (an Ack only once the file is on disk, and a
-lost file written again from the repeated report)."""
+lost file written again from the repeated report), and a child whose body is born already born
+as its repeat, untrained, through a restart."""
 
 from __future__ import annotations
 
 import logging
 import queue
 import shutil
+import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from derl.evolution import load_profile
-from derl.unimal import sample_population
+from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
+from derl.unimal import Genome, sample_population
 from messages import Ack, Birth, Curve, FitnessReport, MessageBase, TrainJob, WorkerReady, decode
 from nodes.coordinator.node import INITIAL_FILE, Coordinator
+from nodes.journal.history import load_history
 from nodes.journal.segments import read_segment
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
 from tests.nodes_fixtures import free_port, run_id
@@ -24,14 +28,13 @@ from tests.nodes_fixtures import free_port, run_id
 QUIET_S = 0.5  # how long "nothing was published" is watched for
 
 
-@pytest.fixture
-def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[MessageBase]]]:
-    """A coordinator of a 2-body run whose bus is a real Zenoh session, and a queue of what an
-    observer in another session hears it publish."""
-    run = run_id()
-    config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
-    initial = sample_population(2, np.random.default_rng(3))
-    (tmp_path / INITIAL_FILE).write_text("[" + ",".join(g.model_dump_json() for g in initial) + "]")
+@contextmanager
+def _serving(
+    run: str, run_dir: Path, config: EvolutionConfig, initial: list[Genome]
+) -> Iterator[tuple[Coordinator, queue.Queue[MessageBase]]]:
+    """A coordinator of a run of `initial` bodies whose bus is a real Zenoh session, and a queue
+    of what an observer in another session hears it publish."""
+    (run_dir / INITIAL_FILE).write_text("[" + ",".join(g.model_dump_json() for g in initial) + "]")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     heard: queue.Queue[MessageBase] = queue.Queue()
     with (
@@ -41,7 +44,7 @@ def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[Messa
         subscriber = observer.declare_subscriber(
             f"derl/{run}/**", lambda sample: heard.put(decode(sample.payload.to_bytes()))
         )
-        coordinator = Coordinator(run, tmp_path, config)
+        coordinator = Coordinator(run, run_dir, config)
         coordinator.bus = Bus(own, run)
         try:
             yield coordinator, heard
@@ -49,6 +52,15 @@ def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[Messa
             subscriber.undeclare()
             coordinator.checkpoints.close()
             coordinator.journal.close()
+
+
+@pytest.fixture
+def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[MessageBase]]]:
+    """The coordinator of a 2-body run of 3 children."""
+    config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
+    initial = sample_population(2, np.random.default_rng(3))
+    with _serving(run_id(), tmp_path, config, initial) as served:
+        yield served
 
 
 def _quiet(heard: queue.Queue[MessageBase]) -> bool:
@@ -138,3 +150,63 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(ack, Ack) and ack.child == second.child
     assert coordinator.checkpoints.path(second.child).read_bytes() == b"weights-2"
     assert coordinator.born == 2
+
+
+def _wait_for(path: Path) -> bytes:
+    deadline = time.monotonic() + 10
+    while not path.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return path.read_bytes()
+
+
+def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
+    tmp_path: Path,
+) -> None:
+    """Tournament 0's child is made the body of the other founder: it is born at once with that
+    founder's result and checkpoint, the trainer gets the next child, and a restarted coordinator
+    knows it (and links its checkpoint again if the link was lost)."""
+    run = run_id()
+    config = load_profile("smoke").model_copy(update={"population": 2, "total": 4})
+    body = sample_population(1, np.random.default_rng(5))[0]
+    evolution = Evolution(config, [body, body])  # who wins tournament 0 does not depend on bodies
+    for founder in evolution.initial:
+        evolution.birth(founder.name, 1.0, body)
+    decided = evolution.tournament()
+    child_body = breed(body, decided.mutation_seed)[0]
+    initial = [body, child_body] if decided.parent == "i0000" else [child_body, body]
+    twin = "i0001" if decided.parent == "i0000" else "i0000"
+
+    with _serving(run, tmp_path, config, initial) as (coordinator, heard):
+        for node, weights in (("w1", b"weights-1"), ("w2", b"weights-2")):
+            coordinator._fitness(_report(_job_for(coordinator, node), weights))
+        _ready(coordinator, "w1")
+        coordinator._flush()
+        journaled = _journaled(coordinator)
+        births = {m.child: m for m in journaled if isinstance(m, Birth)}
+        repeat = births["c00000"]
+        assert repeat.repeat_of == twin and repeat.parent == decided.parent
+        assert (repeat.fitness, repeat.job, repeat.generation) == (1.0, births[twin].job, 1)
+        assert repeat.genome == child_body and repeat.mutation is not None
+        trained = {m.child for m in journaled if isinstance(m, TrainJob)}
+        assert "c00000" not in trained and "c00001" in trained  # the worker got the next one
+        assert coordinator.state.job_of("w1").subject == "c00001"
+        while not (isinstance(msg := heard.get(timeout=10), Birth) and msg.child == "c00000"):
+            pass
+        assert msg.repeat_of == twin  # in the birth stream
+        assert coordinator._status().repeats == 1
+        checkpoint = coordinator.checkpoints.path("c00000")
+        assert _wait_for(checkpoint) == coordinator.checkpoints.path(twin).read_bytes()
+
+    checkpoint.unlink()  # as if the coordinator died before the link was on disk
+    restarted = Coordinator(run, tmp_path, config)
+    try:
+        state = restarted.state
+        assert state.born["c00000"].repeat_of == twin
+        assert state.evolution.repeat_of(child_body) == twin
+        assert "c00000" not in state.waiting and restarted._status().repeats == 1
+        assert _wait_for(checkpoint) == restarted.checkpoints.path(twin).read_bytes()
+    finally:
+        restarted.checkpoints.close()
+        restarted.journal.close()
+    history = load_history(tmp_path)
+    assert history.reports["c00000"] == history.reports[twin]  # its curve, in `derl report`

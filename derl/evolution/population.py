@@ -8,9 +8,11 @@ was made in: replaying recorded decisions and births rebuilds the same state, an
 decision is the one the crashed run would have made.
 
 A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child.
-Breeding (a mutation and its validity check, a few ms) is deterministic, so it can run wherever
-the child is trained, as in the original DERL where every worker mutated its own child: the
-coordinator only draws contestants, and a child's body becomes known when it is born.
+Breeding (a mutation and its validity check, a few ms) is deterministic, so it runs wherever the
+child is trained, as in the original DERL where every worker mutated its own child, and also
+where it is decided: training is deterministic within a run, so a child whose body equals one
+already born (`repeat_of`, by `body_hash`: the same body whatever its limb numbering) is born as
+a repeat with that body's result instead of being trained again.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from derl.evolution.config import EvolutionConfig
-from derl.unimal import Genome, Mutation, MutationFailed, mutate, sample_population
+from derl.unimal import Genome, Mutation, MutationFailed, body_hash, mutate, sample_population
 
 MAX_DRAWS = 100
 
@@ -33,6 +35,7 @@ class Member:
     fitness: float
     parent: str | None
     birth: int
+    repeat_of: str | None = None  # the earlier agent with this body, whose result it took
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,7 @@ class Evolution:
         self.born: list[Member] = []
         self.fitness: dict[str, float] = {}
         self.given_up: set[str] = set()  # children whose trainings kept failing: never born
+        self.bodies: dict[str, str] = {}  # body_hash -> the first agent born with that body
         self.iterations = 0
 
     @property
@@ -144,13 +148,20 @@ class Evolution:
             self.given_up.add(child)
             self.unborn_initial.discard(child)
 
-    def birth(self, agent: str, fitness: float, genome: Genome) -> Member | None:
-        """`agent` is born with body `genome` and `fitness`; None if it was born already or is
-        unknown."""
+    def repeat_of(self, genome: Genome) -> str | None:
+        """The first agent born with the body `genome` (None: a body not born yet)."""
+        return self.bodies.get(body_hash(genome))
+
+    def birth(
+        self, agent: str, fitness: float, genome: Genome, repeat_of: str | None = None
+    ) -> Member | None:
+        """`agent` is born with body `genome` and `fitness` (`repeat_of`: taken from that earlier
+        agent with the same body); None if it was born already or is unknown."""
         if agent in self.fitness or agent not in self.parents:
             return None
         self.genomes.setdefault(agent, genome)
-        member = Member(agent, fitness, self.parents[agent], len(self.born))
+        self.bodies.setdefault(body_hash(genome), agent)
+        member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
         self.born.append(member)
         self.fitness[agent] = fitness
         self.unborn_initial.discard(agent)

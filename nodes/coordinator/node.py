@@ -13,6 +13,10 @@ Reject when it can never be accepted (a job never issued to the sender, another 
 job's, an impossible fitness); a message whose node differs from its key's node segment is
 rejected by the bus check. Each of these is journaled and counted. A failed job (JobFailed) is
 retried on another worker up to `max_attempts` times, then the child is given up (ChildFailed).
+Before a tournament child is assigned the coordinator breeds it too (a few ms): a body born
+already is not trained again, the child is born at once as its repeat (Birth `repeat_of`, with
+its result, and its checkpoint file linked) and the worker gets the next child. A child whose
+equal is still in training is trained (only born bodies are known by their result).
 Births and failed children go out on ``births/<child>``; a Zenoh query on ``births/*`` or
 ``population`` answers a monitor that starts late.
 """
@@ -34,8 +38,8 @@ from pathlib import Path
 import zenoh
 from pydantic import ValidationError
 
-from derl.evolution import EvolutionConfig
-from derl.unimal import Genome, to_mjcf
+from derl.evolution import EvolutionConfig, breed
+from derl.unimal import Genome, MutationFailed, to_mjcf
 from messages import (
     Ack,
     Birth,
@@ -96,6 +100,11 @@ class Coordinator:
         self.logged_born = self.born
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
+        for birth in self.state.births:  # a crash may have lost a repeat's link
+            if birth.repeat_of is not None and not self.checkpoints.path(birth.child).exists():
+                self.checkpoints.link(birth.child, birth.repeat_of).add_done_callback(
+                    _log_failed_link
+                )
         # published after the journal flush (and, for an Ack, once its checkpoint is on disk)
         self.outbox: list[tuple[MessageBase, bytes, Future[None] | None]] = []
         self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
@@ -285,15 +294,20 @@ class Coordinator:
             self._assign_evaluation(ready.node)
 
     def _assign_training(self, node: str) -> None:
+        """The next child to train for `node`; children whose body is born already are born as
+        repeats on the way, without training."""
         state, evolution = self.state, self.state.evolution
-        child = state.next_child_for(node, self.trainers)
-        if child is None and not state.waiting and state.wants_tournament():
-            decided = evolution.tournament()
-            self._commit(tournament_message(self.run, decided))
-            child = decided.name
-        if child is None:
-            return
-        genome, mutation_seed = evolution.to_train(child)
+        while True:
+            child = state.next_child_for(node, self.trainers)
+            if child is None and not state.waiting and state.wants_tournament():
+                decided = evolution.tournament()
+                self._commit(tournament_message(self.run, decided))
+                child = decided.name
+            if child is None:
+                return
+            genome, mutation_seed = evolution.to_train(child)
+            if mutation_seed is None or not self._born_as_repeat(child, genome, mutation_seed):
+                break
         job = TrainJob(
             run=self.run,
             job=state.next_job_id(child),
@@ -309,6 +323,36 @@ class Coordinator:
         self._commit(job)
         self.heard[job.job] = time.monotonic()
         log.debug("%s -> %s (%s)", child, node, job.job)
+
+    def _born_as_repeat(self, child: str, parent_body: Genome, mutation_seed: int) -> bool:
+        """Breed `child` here; if its body is born already (a repeat: training is deterministic
+        within a run), it is born with that body's result and checkpoint, and True."""
+        state = self.state
+        try:
+            genome, mutation = breed(parent_body, mutation_seed)
+        except MutationFailed:  # its trainer fails the same way, and the child is given up
+            return False
+        earlier = state.evolution.repeat_of(genome)
+        if earlier is None:
+            return False
+        first = state.born[earlier]
+        parent = state.evolution.parents[child]
+        birth = first.model_copy(
+            update={
+                "child": child,
+                "parent": parent,
+                "birth": len(state.births),
+                "generation": state.generation(parent),
+                "mutation": mutation.op,
+                "mutation_detail": mutation.detail,
+                "genome": genome,
+                "repeat_of": earlier,
+            }
+        )
+        self.checkpoints.link(child, earlier).add_done_callback(_log_failed_link)
+        self._commit(birth)
+        log.debug("born %s as a repeat of %s", child, earlier)
+        return True
 
     def _assign_evaluation(self, node: str) -> None:
         key = self.state.next_evaluation()
@@ -575,7 +619,7 @@ class Coordinator:
     def _write_results(self) -> None:
         """The best bodies (genome, MJCF, checkpoint, the run's settings) and a summary."""
         evolution = self.state.evolution
-        ranked = sorted(evolution.born, key=lambda m: m.fitness, reverse=True)
+        ranked = self.state.best()
         best_dir = self.run_dir / "best"
         settings = json.dumps({"task": self.config.world, "ppo": self.config.training_ppo()
                                .model_dump()}, indent=2)  # fmt: skip
@@ -601,6 +645,11 @@ class Coordinator:
         }
         write_atomic(self.run_dir / "summary.json", json.dumps(summary, indent=2, default=str))
         log.info("run %s finished: %d born, results in %s", self.run, self.born, self.run_dir)
+
+
+def _log_failed_link(done: Future[None]) -> None:
+    if done.exception() is not None:
+        log.error("a repeat's checkpoint could not be linked: %s", done.exception())
 
 
 def check_jobs(run: str, config: EvolutionConfig) -> None:

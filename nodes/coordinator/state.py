@@ -5,8 +5,9 @@ restarted coordinator replays its journal: a Tournament decides a child (`derl.e
 the rule), a TrainJob or EvalJob puts a job in flight, a Birth makes a child born, a JobLost or a
 JobFailed takes a job back (its subject waits for the next worker), a Cancel ends a job whose
 child was born from another, a ChildFailed gives a child up, an EvalResult completes an
-evaluation. Which jobs are in flight, who holds them and what waits for a worker are all derived
-here; time (leases) and the checks of incoming messages are the node's business.
+evaluation; a Birth with `repeat_of` is a child never trained (its body is an earlier one's).
+Which jobs are in flight, who holds them and what waits for a worker are all derived here; time
+(leases) and the checks of incoming messages are the node's business.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from derl.evolution import Child, Evolution, EvolutionConfig
+from derl.evolution import Child, Evolution, EvolutionConfig, Member
 from derl.unimal import Genome
 from messages import (
     Birth,
@@ -116,7 +117,7 @@ class CoordinatorState(RunHistory):
 
     def on_Birth(self, msg: Birth) -> None:
         super().on_Birth(msg)
-        self.evolution.birth(msg.child, msg.fitness, msg.genome)
+        self.evolution.birth(msg.child, msg.fitness, msg.genome, msg.repeat_of)
         self._remove(msg.job)
         if msg.child in self.waiting:  # born from a late report while it waited
             self.waiting.remove(msg.child)
@@ -210,16 +211,20 @@ class CoordinatorState(RunHistory):
     # --- evaluation stage --------------------------------------------------------------------
 
     def _plan_evaluations(self) -> None:
-        """Once evolution is over: the best `eval_top` on every test task and seed."""
+        """Once evolution is over: the best `eval_top` bodies on every test task and seed."""
         if self.planned or not self.evolution.complete:
             return
-        best = sorted(self.evolution.born, key=lambda m: m.fitness, reverse=True)
-        for member in best[: self.config.eval_top]:
+        for member in self.best()[: self.config.eval_top]:
             for task in self.config.eval_tasks:
                 for seed in range(self.config.eval_seeds):
                     key = (member.agent, task, seed)
                     self.planned[key] = None
                     self.eval_waiting.append(key)
+
+    def best(self) -> list[Member]:
+        """The born bodies, fittest first, each once (a repeat is its earlier agent's body)."""
+        trained = (m for m in self.evolution.born if m.repeat_of is None)
+        return sorted(trained, key=lambda m: m.fitness, reverse=True)
 
     def next_evaluation(self) -> EvalKey | None:
         self._plan_evaluations()

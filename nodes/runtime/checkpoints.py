@@ -7,6 +7,10 @@ coordinator acknowledges a report only once it is done. File system calls releas
 the writes run in parallel with the coordinator's loop instead of inside it (measured: creating
 a file is the largest single cost of an assignment on a busy machine).
 
+A body born as a repeat of an earlier one (the same body, so the same training) gets the earlier
+one's file as its own, a hard link made by the same writer after the batch's files are in place
+(`link`), so `checkpoints/<agent>.pt` holds every born agent's policy.
+
 Group commit, as the journal's: the writer takes every checkpoint waiting for it as one batch,
 writes the files, fsyncs them at the same time (`SYNC_THREADS` threads: the file system merges
 concurrent fsyncs into one journal commit and one cache flush, where one after another each
@@ -24,14 +28,15 @@ from pathlib import Path
 FOLDER = "checkpoints"
 SYNC_THREADS = 8  # fsyncs of a batch under way at once
 
+Item = tuple[str, bytes | str, Future[None]]
+
 
 class CheckpointFiles:
     def __init__(self, run_dir: Path) -> None:
         self.folder = Path(run_dir) / FOLDER
         self.folder.mkdir(parents=True, exist_ok=True)
-        self._waiting: queue.SimpleQueue[tuple[str, bytes, Future[None]] | None] = (
-            queue.SimpleQueue()
-        )
+        # (agent, its checkpoint or the agent whose file it shares, future)
+        self._waiting: queue.SimpleQueue[Item | None] = queue.SimpleQueue()
         self._syncs = ThreadPoolExecutor(SYNC_THREADS, thread_name_prefix="checkpoint-fsync")
         self._lock = threading.Lock()
         self._closed = False
@@ -44,11 +49,19 @@ class CheckpointFiles:
     def save(self, agent: str, checkpoint: bytes) -> Future[None]:
         """Write `agent`'s checkpoint in the background; the future says when it is on disk
         (or why it is not)."""
+        return self._put(agent, checkpoint)
+
+    def link(self, agent: str, source: str) -> Future[None]:
+        """Make `source`'s file (saved before, or by an earlier `save`) `agent`'s too, in the
+        background; the future says when the link is on disk (or why it is not)."""
+        return self._put(agent, source)
+
+    def _put(self, agent: str, what: bytes | str) -> Future[None]:
         future: Future[None] = Future()
         with self._lock:
             if self._closed:
                 raise RuntimeError("checkpoint files closed")
-            self._waiting.put((agent, checkpoint, future))
+            self._waiting.put((agent, what, future))
         return future
 
     def close(self) -> None:
@@ -82,32 +95,43 @@ class CheckpointFiles:
                     if not future.done():
                         future.set_exception(error)
 
-    def _write(self, batch: list[tuple[str, bytes, Future[None]]]) -> None:
-        """One batch: the files' data onto the disk before their renames, and the renames (the
-        folder's entries) onto the disk before any future completes."""
-        wanted: dict[str, tuple[bytes, list[Future[None]]]] = {}
-        for agent, checkpoint, future in batch:
-            if future.set_running_or_notify_cancel():
-                # the same agent twice (its report re-sent while the file was written): once
-                wanted.setdefault(agent, (checkpoint, []))[1].append(future)
-        if not wanted:
+    def _write(self, batch: list[Item]) -> None:
+        """One batch: the files' data onto the disk before their renames, the links once the
+        renames are made, and the folder's entries onto the disk before any future completes."""
+        data: dict[str, bytes] = {}
+        sources: dict[str, str] = {}
+        waiting: dict[str, list[Future[None]]] = {}
+        for agent, what, future in batch:
+            if not future.set_running_or_notify_cancel():
+                continue
+            # the same agent twice (its report re-sent while the file was written): once
+            if agent in waiting:
+                pass
+            elif isinstance(what, bytes):
+                data[agent] = what
+            else:
+                sources[agent] = what
+            waiting.setdefault(agent, []).append(future)
+        if not waiting:
             return
-        written: dict[str, list[Future[None]]] = {}
-        agents = list(wanted)
+        agents = list(data)
         if len(agents) == 1:
-            outcomes = [self._write_file(agents[0], wanted[agents[0]][0])]
+            outcomes = [self._write_file(agents[0], data[agents[0]])]
         else:
-            outcomes = list(self._syncs.map(lambda a: self._write_file(a, wanted[a][0]), agents))
-        for agent, failed in zip(agents, outcomes, strict=True):
+            outcomes = list(self._syncs.map(lambda a: self._write_file(a, data[a]), agents))
+        failures = dict(zip(agents, outcomes, strict=True))
+        written: dict[str, list[Future[None]]] = {}
+        for agent in [*agents, *sources]:  # links once the files they share are in place
+            failed = failures[agent] if agent in data else self._link_file(agent, sources[agent])
             if failed is None:
                 try:
                     self._tmp(agent).replace(self.path(agent))
                 except OSError as error:
                     failed = error
             if failed is None:
-                written[agent] = wanted[agent][1]
+                written[agent] = waiting[agent]
             else:
-                for future in wanted[agent][1]:
+                for future in waiting[agent]:
                     future.set_exception(failed)
         if not written:
             return
@@ -136,6 +160,15 @@ class CheckpointFiles:
                 file.write(checkpoint)
                 file.flush()
                 os.fsync(file.fileno())
+        except OSError as error:
+            return error
+        return None
+
+    def _link_file(self, agent: str, source: str) -> OSError | None:
+        """The temporary file of `agent`, a link to `source`'s file; the error, if any."""
+        try:
+            self._tmp(agent).unlink(missing_ok=True)
+            self._tmp(agent).hardlink_to(self.path(source))
         except OSError as error:
             return error
         return None
