@@ -25,8 +25,8 @@ from derl.envs.view import EnvView
 from derl.unimal import Genome
 
 SMALL_VT = TerrainConfig.variable(size_x=30.0, size_y=10.0)
-SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=20.0)
-SMALL_OBSTACLE = ObstacleConfig(size_x=30.0, size_y=12.0, count=12, start_flat=6.0)
+SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=24.0)
+SMALL_OBSTACLE = ObstacleConfig(size_x=30.0, size_y=12.0, count=12, end_buffer=6.0)
 
 
 def _env(genome: Genome, task: str, n: int = 4, **config: object) -> UnimalEnv:
@@ -72,11 +72,14 @@ def test_ctrl_cost_and_energy(quadruped: Genome) -> None:
 
 
 def test_push_and_reach_rewards(quadruped: Genome) -> None:
+    """Push pays 100 x the box's approach to its goal once the agent has reached the box, and
+    nothing before (the released code)."""
     env = _env(quadruped, "mvt", n=2)
     env.reset(1)
     task = env.task
     box = env.free_joint("box_root")
     (obj,) = task.props
+    reach = task.rewards[0]
     goal = obj.goal[:, :2].copy()
     start = box.qpos[:, :2].copy()
     toward = (goal - start) / np.linalg.norm(goal - start, axis=1, keepdims=True)
@@ -85,15 +88,31 @@ def test_push_and_reach_rewards(quadruped: Genome) -> None:
     box.qvel[:, :2] = 2.0 * toward
     env.batch.forward()
     task.placed(env, np.arange(2))
+    reach.reached[0] = True  # copy 0 has reached the box, copy 1 not
     push = np.zeros(2)
     for _ in range(10):
         result = env.step(np.zeros((2, env.action_dim), np.float32))
         push += result.components["push"]
     moved = np.linalg.norm(goal - start, axis=1) - np.linalg.norm(goal - box.qpos[:, :2], axis=1)
-    np.testing.assert_allclose(push, 100 * moved, rtol=1e-6)
+    np.testing.assert_allclose(push, [100 * moved[0], 0.0], rtol=1e-6)
     np.testing.assert_allclose(moved, 2.0 * 10 * 0.02, rtol=0.02)
     manipulation = result.components["manipulation"]
     np.testing.assert_allclose(manipulation, result.components["reach"] + result.components["push"])
+
+
+def test_delivery_bonus_is_paid_at_every_step_at_the_goal(quadruped: Genome) -> None:
+    env = _env(quadruped, "mvt", n=2)
+    env.reset(1)
+    task = env.task
+    (obj,) = task.props
+    box = env.free_joint("box_root")
+    box.qpos[:, :2] = obj.goal[:, :2] + [[0.7, 0.0], [0.8, 0.0]]  # within 0.75 m, and not
+    env.batch.forward()
+    task.placed(env, env.all)
+    task.rewards[0].reached[:] = True
+    for _ in range(3):
+        push = env.step(np.zeros((2, env.action_dim), np.float32)).components["push"]
+        assert push[0] == pytest.approx(10.0, abs=0.5) and abs(push[1]) < 0.5
 
 
 def test_reach_bonus_is_paid_once(quadruped: Genome) -> None:
@@ -105,6 +124,77 @@ def test_reach_bonus_is_paid_once(quadruped: Genome) -> None:
     first = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
     second = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
     assert first > 9.0 and abs(second) < 5.0
+
+
+def test_the_box_is_reached_at_its_face_centres(quadruped: Genome) -> None:
+    """A 0.4 m cube (the released code's BOX_SIDE 0.2 is a half size), reached at the centres
+    of its faces, which turn with it."""
+    env = _env(quadruped, "mvt", n=1)
+    assert env.model.geom("box").size.tolist() == [0.2, 0.2, 0.2]
+    env.reset(2)
+    (obj,) = env.task.props
+    turn = np.pi / 4  # 45 degrees about z
+    obj.qpos[0, :7] = [1.0, 2.0, 0.2, np.cos(turn / 2), 0.0, 0.0, np.sin(turn / 2)]
+    env.batch.forward()
+    points = obj.reach_points()[0]
+    diagonal = 0.2 * np.sqrt(0.5)
+    expected = [
+        [1 + diagonal, 2 + diagonal, 0.2],
+        [1 - diagonal, 2 - diagonal, 0.2],
+        [1 - diagonal, 2 + diagonal, 0.2],
+        [1 + diagonal, 2 - diagonal, 0.2],
+        [1.0, 2.0, 0.4],
+        [1.0, 2.0, 0.0],
+    ]
+    np.testing.assert_allclose(points, expected, atol=1e-12)
+    reach = env.task.rewards[0]
+    nearest = np.linalg.norm(env.agent_points()[0][:, None] - points[None], axis=2).min()
+    assert reach.distance(env)[0] == pytest.approx(nearest)
+
+
+def test_object_is_seen_in_the_head_frame(quadruped: Genome) -> None:
+    """All four parts of the "object" observation are rotated into the head frame, the angular
+    velocity too (from the box's own frame, MuJoCo's qvel, through the world frame)."""
+    env = _env(quadruped, "mvt", n=1)
+    env.reset(2)
+    (obj,) = env.task.props
+    yaw = np.pi / 2  # head x axis along world +y
+    head = env.qpos[0, env.root : env.root + 3].copy()
+    env.qpos[0, env.root + 3 : env.root + 7] = [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
+    env.qvel[0] = 0.0
+    tilt = np.pi / 2  # the box turned 90 degrees about world x: its z axis is world -y
+    obj.qpos[0, :3] = head + np.array([1.0, 2.0, 0.0])
+    obj.qpos[0, 3:7] = [np.cos(tilt / 2), np.sin(tilt / 2), 0, 0]
+    obj.velocity[0] = [0.5, 0.0, 0.0, 0.0, 0.0, 3.0]  # spinning about its own z: world -y
+    env.batch.forward()
+    seen = env.task.observe(env, env.all)["object"][0]
+    goal = obj.goal[0] - env.head_pos[0]
+    np.testing.assert_allclose(seen[0:3], [2.0, -1.0, 0.0], atol=1e-6)  # world (1, 2, 0)
+    np.testing.assert_allclose(seen[3:6], [0.0, -0.5, 0.0], atol=1e-6)  # world (0.5, 0, 0)
+    np.testing.assert_allclose(seen[6:9], [-3.0, 0.0, 0.0], atol=1e-6)  # world (0, -3, 0)
+    np.testing.assert_allclose(seen[9:12], [goal[1], -goal[0], goal[2]], atol=1e-5)
+
+
+def test_mvt_places_box_and_goal_as_the_released_code(quadruped: Genome) -> None:
+    """The box a whole 15-24 m ahead of the spawn, the goal 15-24 m beyond it; 10 m (plus half
+    sizes) kept free along the sides; the goal's centre 0.11 m above the ground."""
+    task = make_task("mvt")
+    env = UnimalEnv(quadruped, task, EnvConfig(num_envs=64))
+    env.reset(0)
+    (obj,) = task.props
+    spawn_x = task.spawn[0]
+    assert spawn_x == -27.0  # 3 m from the back edge of 60 m
+    box, goal = obj.position, obj.goal
+    ahead = box[:, 0] - spawn_x
+    np.testing.assert_allclose(ahead, np.round(ahead))
+    assert set(np.round(ahead).astype(int)) <= set(range(15, 25)) and len(set(ahead)) > 5
+    beyond = goal[:, 0] - box[:, 0]  # never capped on 60 m: at most 3 + 48 m from the back
+    np.testing.assert_allclose(beyond, np.round(beyond))
+    assert (beyond >= 15).all() and (beyond <= 24).all()
+    assert (np.abs(box[:, 1]) <= 20.0 - 10.0 - 0.2).all() and np.abs(box[:, 1]).max() > 7.0
+    assert (np.abs(goal[:, 1]) <= 20.0 - 10.0 - 0.5).all()
+    ground = task.arena.ground(goal[:, :2])
+    np.testing.assert_allclose(goal[:, 2], ground + 0.11)
 
 
 def test_fall_ends_the_episode(quadruped: Genome) -> None:

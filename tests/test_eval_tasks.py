@@ -9,17 +9,22 @@ import numpy as np
 import pytest
 
 from derl.envs import EnvConfig, StepResult, UnimalEnv, make_task
-from derl.envs.eval_tasks import BowlConfig, ObstacleConfig
+from derl.envs.arenas import place_boxes
+from derl.envs.eval_tasks import BowlConfig, ObstacleConfig, PushBoxPlacement
 from derl.unimal import Genome
 
 SMALL: dict[str, dict[str, object]] = {
     "patrol": {"size": 20.0},
-    "point_nav": {"size": 20.0},
-    "obstacle": {"config": ObstacleConfig(size_x=30.0, size_y=12.0, count=12, start_flat=6.0)},
+    "point_nav": {"size": 40.0},
+    "obstacle": {"config": ObstacleConfig(size_x=30.0, size_y=12.0, count=12, end_buffer=6.0)},
     "exploration": {"size": 20.0},
     "escape": {"config": BowlConfig(size=20.0)},
     "incline": {"length": 30.0, "width": 10.0},
-    "push_box_incline": {"length": 30.0, "width": 10.0},
+    "push_box_incline": {
+        "length": 30.0,
+        "width": 10.0,
+        "placement": PushBoxPlacement(box_x=-10.0, goal_x=10.0),
+    },
     "manipulate_ball": {},
 }
 SLOPE = np.deg2rad(10.0)
@@ -70,7 +75,8 @@ def test_patrol_pays_the_approach_and_flips_the_goal(quadruped: Genome) -> None:
     env.reset(0)
     task = env.task
     (goal_point,) = task.props
-    np.testing.assert_allclose(goal_point.goal[0], [5.0, 0.0, 0.0])
+    np.testing.assert_allclose(goal_point.goal[0], [5.0, 0.0, 0.1])  # 0.1 m above the floor
+    np.testing.assert_allclose(env.head_pos[0, :2], [-5.0, 0.0], atol=0.01)  # at the other end
     _fly(env, (4.0, 0.0, 0.0), xy=(3.8, 0.0))
     task.placed(env, env.all)
     goal, arrivals = 5.0, 0
@@ -93,39 +99,57 @@ def test_goal_is_seen_in_the_head_frame(quadruped: Genome) -> None:
     yaw = np.pi / 2
     env.qpos[0, env.root : env.root + 7] = [0.0, 0.0, 1.0, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
     env.batch.forward()
-    np.testing.assert_allclose(env.task.observe(env, env.all)["goal"][0], [0, -5, -1], atol=1e-9)
+    seen = env.task.observe(env, env.all)["goal"][0]
+    np.testing.assert_allclose(seen, [0, -5, -0.9], atol=1e-6)
 
 
-def test_point_nav_pays_the_approach_and_ends_on_arrival(quadruped: Genome) -> None:
+def test_point_nav_pays_the_approach_and_the_bonus_at_the_goal(quadruped: Genome) -> None:
+    """100 x the approach, +10 at every step within 0.5 m; arriving does not end the episode
+    (the released code's ReachReward, and no success test)."""
     env = _env(quadruped, "point_nav")
     env.reset(3)
     task = env.task
     (goal,) = task.props
-    assert (np.abs(goal.goal[:, :2]) <= 8.0).all() and not np.array_equal(*goal.goal)
+    assert task.success is None
+    assert (np.abs(goal.goal[:, 0]) <= 20.0 - 6.5).all() and not np.array_equal(*goal.goal)
+    assert (np.abs(goal.goal[:, 1]) <= 20.0 - 10.5).all()
+    np.testing.assert_allclose(goal.goal[:, 2], 0.11)
     _fly(env, (5.0, 0.0, 0.0), xy=(0.0, 0.0))
-    goal.goal[:] = [[1.25, 0.0, 0.0], [-8.0, 8.0, 0.0]]
+    goal.goal[:, :2] = [[1.25, 0.0], [-8.0, 8.0]]
     task.placed(env, env.all)
+    arrivals = 0
     for _ in range(20):
         before = env.head_pos[:, :2].copy()
         result = _idle(env)
-        reach = result.components["reach"]
-        assert not result.terminated[1]
-        if result.terminated[0]:
-            break
+        assert not result.terminated.any()
         after = env.head_pos[:, :2]
         d_before, d_after = (np.linalg.norm(goal.goal[:, :2] - p, axis=1) for p in (before, after))
-        np.testing.assert_allclose(reach, 100 * (d_before - d_after), rtol=1e-9)
-    else:
-        pytest.fail("the goal was never reached")
-    d_before = np.hypot(1.25 - before[0, 0], before[0, 1])
-    assert 0.5 < d_before <= 0.6  # it arrived (within 0.5 m) on this step, moving 0.1 m
-    assert reach[0] == pytest.approx(10 + 100 * 5.0 * 0.02, rel=0.05)
+        arrived = d_after <= 0.5
+        arrivals += arrived[0]
+        np.testing.assert_allclose(
+            result.components["reach"], 100 * (d_before - d_after) + 10 * arrived, rtol=1e-9
+        )
+    assert arrivals == 10  # 1 m at 5 m/s: 10 steps within 0.5 m of the goal
+
+
+GOAL_FLOOR_HALF = (100 / 2 - 6.5, 100 / 2 - 10.5)
+
+
+def test_point_nav_goals_keep_the_released_codes_buffers() -> None:
+    task = make_task("point_nav")
+    (goal,) = task.props
+    draws = goal.draw(np.random.default_rng(0), 4000)
+    np.testing.assert_allclose(np.abs(draws).max(axis=0), GOAL_FLOOR_HALF, atol=0.1)
+    assert (np.abs(draws) <= GOAL_FLOOR_HALF).all()
+    with pytest.raises(ValueError, match="no room"):
+        make_task("point_nav", size=20.0)
 
 
 def test_exploration_pays_each_new_cell_once(quadruped: Genome) -> None:
     env = _env(quadruped, "exploration", n=1)
     env.reset(0)
-    visited = {(0, 0)}  # the spawn cell, relative to the centre: not paid
+    np.testing.assert_allclose(env.head_pos[0, :2], 0.0, atol=0.01)  # the centre: a cell corner
+    visited: set[tuple[int, ...]] = set()  # the spawn cell is paid at the first step
     total = 0.0
     for velocity in (4.0, -6.0, 4.0):
         _fly(env, (velocity, 0.0, 0.0))
@@ -135,7 +159,7 @@ def test_exploration_pays_each_new_cell_once(quadruped: Genome) -> None:
             assert result.components["explore"][0] == (cell not in visited)
             visited.add(cell)
             total += result.components["explore"][0]
-    assert total == len(visited) - 1 >= 3
+    assert total == len(visited) >= 3
 
 
 def test_incline_pays_the_distance_along_the_slope(quadruped: Genome) -> None:
@@ -165,10 +189,15 @@ def test_incline_ground_follows_the_slope(quadruped: Genome) -> None:
         assert 10.0 - hit == pytest.approx(ground, abs=1e-9)
         assert ground == pytest.approx(x * np.tan(SLOPE))
     ground = env.task.arena.ground(env.head_pos[:, :2])
-    # Copy 0 lies on the slope; copy 1 is 2 m above it but below z = 0 (fallen, were it flat).
-    env.qpos[:, env.root + 2] = ground + np.array([0.15 * env.rest_height, 2.0])
+    # The slopes' fall height is 20% of the resting height (50% elsewhere); copy 1 is 2 m above
+    # the slope but below z = 0 (fallen, were it flat).
+    assert env.fall_height == pytest.approx(0.2 * env.rest_height)
+    env.qpos[:, env.root + 2] = ground + np.array([0.19 * env.rest_height, 2.0])
     env.batch.forward()
-    assert _idle(env).terminated.tolist() == [True, False]
+    assert env._fallen().tolist() == [True, False]
+    env.qpos[0, env.root + 2] = ground[0] + 0.21 * env.rest_height
+    env.batch.forward()
+    assert not env._fallen().any()
 
 
 def test_escape_pays_the_radial_gain_and_the_rim_bonus(quadruped: Genome) -> None:
@@ -247,6 +276,7 @@ def test_push_reward_for_a_known_displacement(quadruped: Genome, task: str) -> N
     box.qvel[:, :2] = 2.0 * np.array([0.8, 0.6])
     env.batch.forward()
     env.task.placed(env, env.all)
+    env.task.rewards[0].reached[:] = True  # push pays once the agent has reached the object
     push = np.zeros(env.num_envs)
     for _ in range(10):
         push += _idle(env).components["push"]
@@ -262,18 +292,34 @@ def test_box_lies_on_the_slope_below_the_goal(quadruped: Genome) -> None:
     box = env.free_joint("box_root").qpos.copy()
     np.testing.assert_allclose(box[:, 3:], [[np.cos(SLOPE / 2), 0, -np.sin(SLOPE / 2), 0]] * 2)
     np.testing.assert_allclose(box[:, 1], 0.0)
-    np.testing.assert_allclose(box[:, 0], env.head_pos[:, 0] + 3.0, atol=0.01)
+    np.testing.assert_allclose(box[:, 0], -10.0)
     lift = box[:, 2] - box[:, 0] * np.tan(SLOPE)
     np.testing.assert_allclose(lift, 0.2 / np.cos(SLOPE) + 0.01)
-    np.testing.assert_allclose(obj.goal[:, :2], [[15.0 * np.cos(SLOPE) - 5.0, 0.0]] * 2)
-    np.testing.assert_allclose(obj.goal[:, 2], obj.goal[:, 0] * np.tan(SLOPE))
+    np.testing.assert_allclose(obj.goal[:, :2], [[10.0, 0.0]] * 2)
+    np.testing.assert_allclose(obj.goal[:, 2], obj.goal[:, 0] * np.tan(SLOPE) + 0.11)
+    assert env.task.rewards[0].weights.margin == 0.5
     for _ in range(25):  # it stays put
         _idle(env)
     np.testing.assert_allclose(obj.position, box[:, :3], atol=0.02)
 
 
-def test_ball_is_a_rolling_sphere_near_the_agent(quadruped: Genome) -> None:
-    env = _env(quadruped, "manipulate_ball", n=16)
+def test_push_box_incline_is_the_released_codes() -> None:
+    """A 0.4 m cube of 2 kg at x = -35, its goal at x = +35, on 80 m x 40 m at 10 degrees."""
+    task = make_task("push_box_incline")
+    (obj,) = task.props
+    assert obj.placement.box_size == 0.4 and obj.placement.box_mass == 2.0
+    box, goal = obj.placement.draw(np.random.default_rng(0), 2, task.arena.half, task.spawn)
+    np.testing.assert_array_equal(box, [[-35.0, 0.0]] * 2)
+    np.testing.assert_array_equal(goal, [[35.0, 0.0]] * 2)
+    assert task.spawn[0] == pytest.approx(-38.0 * np.cos(SLOPE))
+
+
+def test_ball_is_a_rolling_sphere_placed_like_the_box(quadruped: Genome) -> None:
+    """The released code's ball task is MVT's on a flat 30 m corridor: spawn 2 m from the back
+    edge, the ball a whole 15-24 m ahead (capped 6.2 m before the far edge), within 4.8 m of the
+    centre line; its goal beyond (capped 6.5 m before the far edge: nearly always), within
+    4.5 m; reached at its centre, within 0.5 m."""
+    env = _env(quadruped, "manipulate_ball", n=64)
     model = env.model
     ball = model.geom("box")
     assert ball.type[0] == mujoco.mjtGeom.mjGEOM_SPHERE and ball.size[0] == 0.2
@@ -282,8 +328,41 @@ def test_ball_is_a_rolling_sphere_near_the_agent(quadruped: Genome) -> None:
     assert mass == pytest.approx(600 * 4 / 3 * np.pi * 0.2**3)
     env.reset(0)
     (ball,) = env.task.props
-    distance = np.linalg.norm(ball.position[:, :2], axis=1)
-    assert ((distance >= 1.5) & (distance <= 4.0)).all()
+    assert env.task.spawn == (-13.0, 0.0)
+    np.testing.assert_allclose(env.head_pos[:, 0], -13.0, atol=0.01)
+    x, y = ball.position[:, 0], ball.position[:, 1]
+    capped = np.isclose(x, 15.0 - 6.2)
+    assert capped.any() and (~capped).any()
+    ahead = x[~capped] + 13.0
+    np.testing.assert_allclose(ahead, np.round(ahead))
+    assert ((ahead >= 15) & (ahead <= 21)).all()
+    assert (np.abs(y) <= 4.8).all() and np.abs(y).max() > 4.0
     np.testing.assert_allclose(ball.position[:, 2], 0.21)
-    goal = ball.goal[:, :2]
-    assert (np.abs(goal) <= 12.0).all() and np.ptp(goal, axis=0).min() > 5
+    goal = ball.goal
+    np.testing.assert_allclose(goal[:, 0], 15.0 - 6.5)
+    assert (np.abs(goal[:, 1]) <= 4.5).all()
+    np.testing.assert_allclose(goal[:, 2], 0.11)
+    overlap = (np.abs(goal[:, 0] - x) < 0.7) & (np.abs(goal[:, 1] - y) < 0.7)
+    assert not overlap.any()
+    np.testing.assert_array_equal(ball.reach_points(), ball.position[:, None])
+    assert env.task.rewards[0].weights.margin == 0.5
+
+
+def test_obstacle_boxes_are_placed_as_the_released_code() -> None:
+    """Half-extents from {0.5, ..., 3} m, centres clear of both ends by 10 m plus the half
+    extent, inside the sides, footprints not overlapping; spawn 3 m from the back edge."""
+    config = ObstacleConfig()
+    task = make_task("obstacle")
+    assert task.spawn == (-75.0 + 3.0, 0.0)
+    centre, half = place_boxes(config, np.random.default_rng(0))
+    assert len(centre) == 50
+    assert set(half.ravel()) <= {0.5, 1.0, 1.5, 2.0, 2.5, 3.0} and len(set(half.ravel())) == 6
+    assert (centre[:, 0] - half[:, 0] >= -75.0 + 10.0).all()
+    assert (centre[:, 0] + half[:, 0] <= 75.0 - 10.0).all()
+    assert (np.abs(centre[:, 1]) + half[:, 1] <= 30.0).all()
+    gap = np.abs(centre[:, None] - centre[None]) - (half[:, None] + half[None])
+    apart = (gap >= -1e-12).any(axis=2)
+    np.fill_diagonal(apart, True)
+    assert apart.all()
+    crowded = ObstacleConfig(size_x=30.0, size_y=12.0, count=200, end_buffer=6.0)
+    assert len(place_boxes(crowded, np.random.default_rng(0))[0]) < 200  # some left out

@@ -9,11 +9,11 @@ from functools import cached_property
 
 import mujoco
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from derl.envs.heightmap import HeightmapGrid
 from derl.envs.task import Arena
-from derl.envs.terrain import Range, Segment, Terrain, TerrainConfig
+from derl.envs.terrain import Segment, Terrain, TerrainConfig
 from derl.envs.terrain_stack import TerrainStack, add_hfield
 from derl.envs.view import EnvView
 
@@ -92,24 +92,41 @@ class Heightfield(Arena):
 
 
 class ObstacleConfig(BaseModel):
-    """The obstacle corridor; lengths in meters. The paper's sizes and the original's boxes."""
+    """The obstacle corridor, as the released code's (configs/eval/obstacle.yml and
+    ``Objects.add_obstacles``); lengths in meters."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     size_x: float = Field(150.0, gt=0)
     size_y: float = Field(60.0, gt=0)
     resolution: float = Field(0.1, gt=0)
-    start_flat: float = Field(10.0, ge=0)  # free of boxes at the back end; spawn in its middle
+    spawn_from_end: float = Field(3.0, gt=0)  # START_FLAT: 3
+    end_buffer: float = Field(10.0, ge=0)  # boxes keep clear of both ends: 2 x PLACEMENT_BUFFER_LEN
     count: int = Field(50, ge=0)
-    half_size: Range = (0.5, 3.0)  # footprint half-extents, each U[half_size]
+    half_sizes: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # each footprint half-extent
     height: float = Field(2.0, gt=0)
+    tries: int = Field(10, ge=1)  # draws of a box's centre before it is left out
 
-    @field_validator("half_size")
+    @field_validator("half_sizes")
     @classmethod
-    def _positive(cls, value: Range) -> Range:
-        if not 0 < value[0] <= value[1]:
-            raise ValueError(f"half_size must satisfy 0 < low <= high, got {value}")
+    def _positive(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if not value or min(value) <= 0:
+            raise ValueError(f"half_sizes must be positive, got {value}")
         return value
+
+    @model_validator(mode="after")
+    def _room(self) -> ObstacleConfig:
+        largest = max(self.half_sizes)
+        if self.size_x <= 2 * (self.end_buffer + largest) or self.size_y <= 2 * largest:
+            raise ValueError("the corridor leaves no room for the largest box")
+        if self.spawn_from_end >= self.end_buffer:
+            raise ValueError("the spawn point must lie before the first box")
+        return self
+
+    @property
+    def start_flat(self) -> float:
+        """The box-free length at the back end."""
+        return self.end_buffer
 
     @property
     def terrain(self) -> TerrainConfig:
@@ -134,20 +151,38 @@ class ObstacleConfig(BaseModel):
         return Terrain(heights, self.resolution, self.height, segments=segments)
 
 
+def place_boxes(config: ObstacleConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 2) centres and (m, 2) footprint half-extents of the boxes placed, m <= ``count``:
+    each box's half-extents drawn from ``half_sizes``, then up to ``tries`` centres uniformly
+    in the corridor (``end_buffer`` from both ends) until its footprint overlaps none placed
+    before (the released code's placement grid); a box with no free draw is left out."""
+    n, tries = config.count, config.tries
+    sizes = np.asarray(config.half_sizes, dtype=np.float64)
+    half = sizes[rng.integers(len(sizes), size=(n, 2))]
+    low = np.array([-config.size_x / 2 + config.end_buffer, -config.size_y / 2]) + half
+    high = np.array([config.size_x / 2 - config.end_buffer, config.size_y / 2]) - half
+    draws = rng.uniform(low[:, None], high[:, None], (n, tries, 2))
+    centres, halves, m = np.empty((n, 2)), np.empty((n, 2)), 0
+    for k in range(n):
+        for centre in draws[k]:
+            apart = np.abs(centres[:m] - centre) >= halves[:m] + half[k]
+            if np.logical_or.reduce(apart, axis=1).all():
+                centres[m], halves[m], m = centre, half[k], m + 1
+                break
+    return centres[:m], halves[:m]
+
+
 def draw_obstacles(config: ObstacleConfig, rng: np.random.Generator) -> np.ndarray:
-    """Heights of ``count`` boxes centred uniformly beyond the start area, all boxes at once:
-    each box fills the vertices of its footprint, clipped to the grid."""
+    """Heights of the boxes of `place_boxes`, all at once: each box fills the vertices of its
+    footprint, clipped to the grid."""
     nrow, ncol = config.terrain.grid_shape
-    res, n = config.resolution, config.count
-    half = rng.uniform(*config.half_size, (n, 2))
-    low = np.array([-config.size_x / 2 + config.start_flat, -config.size_y / 2])
-    high = np.array([config.size_x / 2, config.size_y / 2])
-    centre = rng.uniform(low + half * [1, 0], high, (n, 2))
+    res = config.resolution
+    centre, half = place_boxes(config, rng)
     corner = np.array([-config.size_x / 2, -config.size_y / 2])
     first = np.maximum(np.ceil((centre - half - corner) / res - 1e-9), 0).astype(np.intp)
     last = np.minimum(np.floor((centre + half - corner) / res + 1e-9), [ncol - 1, nrow - 1])
-    span = np.arange(int(np.ceil(2 * config.half_size[1] / res)) + 2)
-    cols, rows = (first[:, k, None] + span for k in (0, 1))  # (n, span) each
+    span = np.arange(int(np.ceil(2 * max(config.half_sizes) / res)) + 2)
+    cols, rows = (first[:, k, None] + span for k in (0, 1))  # (m, span) each
     inside = (rows <= last[:, 1, None])[:, :, None] & (cols <= last[:, 0, None])[:, None, :]
     heights = np.zeros((nrow, ncol), dtype=np.float32)
     shape = inside.shape

@@ -4,8 +4,9 @@ The model is compiled once per body and task; terrain, objects and goals change 
 writing into the model copies and the state, never by recompiling. Observations, rewards and
 endings are numpy operations over all copies at once. Each step applies the actions (clipped to
 [-1, 1]) for 4 physics steps of 5 ms (50 Hz control); an episode lasts 1000 control steps unless
-the head falls below half its resting height, leaves the arena, the task is achieved, or the
-physics goes unstable (MuJoCo error, warning or non-finite state: that copy ends, and is counted).
+the head falls below half its resting height (or the task's `fall_ratio`), leaves the arena, the
+task is achieved, or the physics goes unstable (MuJoCo error, warning or non-finite state: that
+copy ends, and is counted).
 Finished copies reset themselves inside `step`, which satisfies `derl.rl.BatchedEnv`.
 """
 
@@ -80,7 +81,8 @@ class UnimalEnv:
         # Each copy's state rows as `Batch.reset` leaves them: `_reset` writes them directly.
         self._initial_state = self.batch.state.copy()
         self.all = np.arange(self.num_envs)
-        self.fall_height = self.config.fall_ratio * self.rest_height  # head below it: fallen
+        fall_ratio = self.config.fall_ratio if task.fall_ratio is None else task.fall_ratio
+        self.fall_height = fall_ratio * self.rest_height  # head below it: fallen
         self.arena_inside = np.array(task.arena.half) - ARENA_MARGIN  # head beyond: off the arena
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self.unstable_count = 0

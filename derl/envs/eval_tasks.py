@@ -1,42 +1,45 @@
 """The eight test tasks of the paper (appendix C), on the same batched environment as evolution.
 
+Each follows the released code (agrimgupta92/derl: configs/eval/*.yml, derl/envs/tasks/*.py)
+where it is more precise than the paper or disagrees with it; docs/fidelity.md lists each point.
 Every task keeps the control cost ``-0.001 |a|^2`` ("ctrl") and the environment's endings (fall,
 arena edge, time limit); distances are of the head centre in the ground plane (xy).
 
-- patrol: 60 x 60 m floor; the goal alternates between x = +5 and x = -5 (y = 0). "reach" =
-  100 x the decrease in head-goal distance, +10 on each arrival (within 0.5 m), which flips it.
-- point_nav: 100 x 100 m floor, a goal drawn uniformly each episode; "reach" as in patrol, and the
-  episode ends (success) on arrival.
-- obstacle: 150 x 60 m corridor with 50 boxes (footprint half-sizes U[0.5, 3] m, 2 m tall) drawn
-  into the heightfield each episode; "forward" = x velocity, as FT; the heightmap is observed.
-- exploration: 100 x 100 m floor cut into 1 m cells; "explore" = +1 for each cell the head
-  enters for the first time in the episode.
+- patrol: 60 x 60 m floor; spawn at x = -5, the goal alternates between x = +5 and x = -5
+  (y = 0), first +5. "reach" = 100 x the decrease in head-goal distance, +10 on each arrival
+  (within 0.5 m), which flips it.
+- point_nav: 100 x 100 m floor, spawn at the centre, a goal drawn uniformly each episode (6.5 m
+  inside the x edges, 10.5 m inside the y edges); "reach" as in patrol, +10 at every step within
+  0.5 m of the goal; arriving does not end the episode.
+- obstacle: 150 x 60 m corridor, spawn 3 m from the back edge; 50 boxes (footprint half-sizes
+  from {0.5, 1, ..., 3} m, 2 m tall, not overlapping, 10 m clear of both ends) drawn into the
+  heightfield each episode; "forward" = x velocity, as FT; the heightmap is observed.
+- exploration: 100 x 100 m floor cut into 1 m cells, spawn at the centre; "explore" = +1 for
+  each cell the head is in for the first time in the episode (the spawn cell at the first step).
 - escape: 100 x 100 m bowl of random bumps, new each episode; "escape" = the per-step increase in
-  distance from the centre, +100 and success on reaching 84% of the half size (42 m).
-- incline: 150 x 40 m plane tilted 10 degrees, +x uphill; "forward" = x velocity / cos 10 deg,
-  the speed along the slope.
-- push_box_incline: 80 x 40 m plane tilted 10 degrees, a 0.4 m 2 kg box 3 m ahead of the agent,
-  the goal 5 m before the far end; MVT's "reach" and "push" rewards and "object" observation.
-- manipulate_ball: 30 x 30 m floor, a ball (r = 0.2 m, density 600, rolling friction) 1.5-4 m
-  from the agent in any direction, the goal anywhere 3 m inside the edges; MVT's rewards and
-  observation.
-
-Where the paper is silent: spawns are the arena centre for patrol, point_nav, escape and the ball
-(the centre of the middle cell for exploration, so spawning never pays) and 2 m (along the slope)
-from the low end for the corridors and slopes; goals and objects lie on the ground; obstacles
-start 10 m after the back edge and may overlap or run past the sides.
+  distance from the centre, +100 and success on reaching 42 m (the half size less 8 m).
+- incline: 150 x 40 m plane tilted 10 degrees, +x uphill, spawn 2 m (along the slope) from the
+  low end; "forward" = x velocity / cos 10 deg, the speed along the slope; a fall is the head
+  below 20% of its resting height.
+- push_box_incline: 80 x 40 m plane tilted 10 degrees, a 0.4 m 2 kg box at x = -35 and its goal
+  at x = +35 (y = 0), spawn as incline; MVT's "reach" and "push" rewards (margin 0.5 m) and
+  "object" observation; falls as incline.
+- manipulate_ball: 30 x 30 m floor, spawn 2 m from the back edge, a ball (r = 0.2 m, density
+  600, rolling friction) placed like MVT's box (15-24 m ahead, within 4.8 m of the centre line)
+  and its goal beyond it (at most 6.5 m before the far edge); MVT's rewards (margin 0.5 m, reached
+  at the ball's centre) and observation.
 """
 
 from __future__ import annotations
 
 import mujoco
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from derl.envs.arenas import Bowl, BowlConfig, Floor, Heightfield, ObstacleConfig
-from derl.envs.endings import Arrived, Escaped
+from derl.envs.endings import Escaped
 from derl.envs.heightmap import HeightmapGrid
-from derl.envs.objects import CarriedObject, GoalPoint
+from derl.envs.objects import CarriedObject, ForwardPlacement, GoalPoint
 from derl.envs.observations import GoalSeen, Heightmap, ObjectSeen
 from derl.envs.rewards import (
     REWARD_WEIGHTS,
@@ -50,7 +53,6 @@ from derl.envs.rewards import (
     RewardWeights,
 )
 from derl.envs.task import Arena, Task
-from derl.envs.terrain import Range
 
 __all__ = [
     "BallPlacement",
@@ -68,45 +70,61 @@ __all__ = [
 ]
 
 SPAWN_FROM_END = 2.0  # m (along the slope) between the back edge and the spawn of a slope
+SLOPE_FALL_RATIO = 0.2  # the slopes' STAND_HEIGHT_RATIO in the released code (0.5 elsewhere)
 
 
 # --- goals on the floor: patrol and point navigation -------------------------------------------
 
 
 def _reach(
-    name: str, gym_name: str, size: float, goal: GoalPoint, weights: RewardWeights, end: bool
+    name: str,
+    gym_name: str,
+    size: float,
+    spawn: tuple[float, float],
+    goal: GoalPoint,
+    weights: RewardWeights,
 ) -> Task:
-    """A goal on a ``size`` x ``size`` floor, spawn at the centre; ``end``: arriving ends it."""
+    """A goal on a ``size`` x ``size`` floor; arriving pays, and does not end the episode."""
     return Task(
         name=name,
         gym_name=gym_name,
         fitness_component="reach",
         arena=Floor(size, size),
-        spawn=(0.0, 0.0),
+        spawn=spawn,
         props=(goal,),
         rewards=(ReachGoal(goal, weights), Ctrl(weights)),
         observations=(GoalSeen(goal),),
-        success=Arrived(goal) if end else None,
     )
 
 
 def patrol(
     size: float = 60.0, half_length: float = 5.0, weights: RewardWeights | None = None
 ) -> Task:
-    """Run back and forth between x = -half_length and x = +half_length (first goal: +)."""
+    """Run back and forth between x = -half_length and x = +half_length, from the first (the
+    goal is the other first); the goal's centre is 0.1 m above the floor."""
     w = weights or REWARD_WEIGHTS["patrol"]
     first = np.array([half_length, 0.0])
-    goal = GoalPoint(lambda rng, n: first, w.margin, alternate=True)
-    return _reach("patrol", "Patrol", size, goal, w, end=False)
+    goal = GoalPoint(lambda rng, n: first, w.margin, alternate=True, lift=0.1)
+    return _reach("patrol", "Patrol", size, (-half_length, 0.0), goal, w)
 
 
-def point_nav(size: float = 100.0, weights: RewardWeights | None = None) -> Task:
-    """Reach a goal drawn uniformly on the floor (2 m inside its edges); arriving ends the
-    episode."""
+GOAL_EDGES = (6.5, 10.5)  # m kept free before the x and y edges by point_nav's goals
+
+
+def point_nav(
+    size: float = 100.0,
+    weights: RewardWeights | None = None,
+    edges: tuple[float, float] = GOAL_EDGES,
+) -> Task:
+    """From the centre, reach a goal drawn uniformly on the floor, ``edges`` m inside its x and
+    y edges (the released code's placement buffers of 3 and 5 m, counted twice, and the goal's
+    half size); the bonus is paid at every step within the margin."""
     w = weights or REWARD_WEIGHTS["point_nav"]
-    edge = size / 2 - 2.0
-    goal = GoalPoint(lambda rng, n: rng.uniform(-edge, edge, (n, 2)), w.margin)
-    return _reach("point_nav", "PointNav", size, goal, w, end=True)
+    half = np.array([size / 2 - edges[0], size / 2 - edges[1]])
+    if (half <= 0).any():
+        raise ValueError(f"a {size} m floor leaves no room for goals {edges} m inside its edges")
+    goal = GoalPoint(lambda rng, n: rng.uniform(-half, half, (n, 2)), w.margin)
+    return _reach("point_nav", "PointNav", size, (0.0, 0.0), goal, w)
 
 
 # --- exploration --------------------------------------------------------------------------------
@@ -115,14 +133,15 @@ def point_nav(size: float = 100.0, weights: RewardWeights | None = None) -> Task
 def exploration(
     size: float = 100.0, cell: float = 1.0, weights: RewardWeights | None = None
 ) -> Task:
-    """Visit as many distinct ``cell`` x ``cell`` squares of the floor as possible."""
+    """Visit as many distinct ``cell`` x ``cell`` squares of the floor as possible, from its
+    centre."""
     w = weights or REWARD_WEIGHTS["exploration"]
     return Task(
         name="exploration",
         gym_name="Exploration",
         fitness_component="explore",
         arena=Floor(size, size),
-        spawn=(cell / 2, cell / 2),
+        spawn=(0.0, 0.0),
         rewards=(Explore(size / 2, cell), Ctrl(w)),
     )
 
@@ -144,7 +163,7 @@ def obstacle(
         gym_name="Obstacle",
         fitness_component="forward",
         arena=arena,
-        spawn=(-config.size_x / 2 + config.start_flat / 2, 0.0),
+        spawn=(-config.size_x / 2 + config.spawn_from_end, 0.0),
         rewards=(Forward(w), Ctrl(w)),
         observations=(Heightmap(arena),),
     )
@@ -197,6 +216,7 @@ def incline(
         arena=floor,
         spawn=_slope_spawn(floor),
         rewards=(Forward(w, floor.cos_slope), Ctrl(w)),
+        fall_ratio=SLOPE_FALL_RATIO,
     )
 
 
@@ -207,8 +227,10 @@ def _carry(
     spawn: tuple[float, float],
     obj: CarriedObject,
     weights: RewardWeights,
+    fall_ratio: float | None = None,
 ) -> Task:
     """MVT's reach and push rewards and "object" observation, for ``obj`` on ``arena``."""
+    reach = ReachObject(obj, weights)
     return Task(
         name=name,
         gym_name=gym_name,
@@ -216,22 +238,24 @@ def _carry(
         arena=arena,
         spawn=spawn,
         props=(obj,),
-        rewards=(ReachObject(obj, weights), PushObject(obj, weights), Ctrl(weights)),
+        rewards=(reach, PushObject(obj, weights, reach), Ctrl(weights)),
         observations=(ObjectSeen(obj),),
         metrics={"manipulation": ("reach", "push")},
+        fall_ratio=fall_ratio,
     )
 
 
 class PushBoxPlacement(BaseModel):
     """The box of push box incline and where it and its goal go (world x, on the centre line):
-    the original's 0.4 m 2 kg box from near the low end to a goal near the high end."""
+    the released code's 0.4 m 2 kg box (``BOX_SIDE: 0.20`` is MuJoCo's half size) at
+    ``BOX_POS: [-35, 0]``, its goal at ``GOAL_POS: [35, 0]``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     box_size: float = Field(0.4, gt=0)  # side (the paper says 0.2 m)
     box_mass: float = Field(2.0, gt=0)
-    box_ahead: float = Field(3.0, gt=0)  # m from the spawn to the box
-    goal_from_end: float = Field(5.0, ge=0)  # m from the far edge to the goal
+    box_x: float = -35.0  # world x of the box
+    goal_x: float = 35.0  # world x of the goal
 
     def draw(
         self,
@@ -240,9 +264,9 @@ class PushBoxPlacement(BaseModel):
         half: tuple[float, float],
         spawn: tuple[float, float],
     ) -> tuple[np.ndarray, np.ndarray]:
-        box = [spawn[0] + self.box_ahead, 0.0]
-        goal = [half[0] - self.goal_from_end, 0.0]
-        return np.tile(box, (n, 1)), np.tile(goal, (n, 1))
+        if not -half[0] < self.box_x < self.goal_x < half[0]:
+            raise ValueError(f"box at x = {self.box_x} and goal at {self.goal_x} off the slope")
+        return np.tile([self.box_x, 0.0], (n, 1)), np.tile([self.goal_x, 0.0], (n, 1))
 
 
 def push_box_incline(
@@ -257,25 +281,19 @@ def push_box_incline(
     spawn = _slope_spawn(floor)
     box = CarriedObject(floor, spawn, placement or PushBoxPlacement())
     w = weights or REWARD_WEIGHTS["push_box_incline"]
-    return _carry("push_box_incline", "PushBoxIncline", floor, spawn, box, w)
+    return _carry("push_box_incline", "PushBoxIncline", floor, spawn, box, w, SLOPE_FALL_RATIO)
 
 
-class BallPlacement(BaseModel):
-    """The ball of manipulate ball (the original's) and where it and its goal go."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class BallPlacement(ForwardPlacement):
+    """The ball of manipulate ball (the released code's) and where it and its goal go: as MVT's
+    box (`ForwardPlacement`; the released task is MVT's on a 30 m flat corridor)."""
 
     radius: float = Field(0.2, gt=0)
     density: float = Field(600.0, gt=0)  # kg/m^3
-    near: Range = (1.5, 4.0)  # m from the spawn, in any direction
-    goal_edge: float = Field(3.0, ge=0)  # goal uniform in the arena, this far inside its edges
 
-    @field_validator("near")
-    @classmethod
-    def _ordered(cls, value: Range) -> Range:
-        if not 0 <= value[0] <= value[1]:
-            raise ValueError(f"near must satisfy 0 <= low <= high, got {value}")
-        return value
+    @property
+    def object_half(self) -> float:
+        return self.radius
 
     @property
     def box_size(self) -> float:
@@ -298,17 +316,8 @@ class BallPlacement(BaseModel):
             "solref": [-10000.0, -30.0],
         }
 
-    def draw(
-        self,
-        rng: np.random.Generator,
-        n: int,
-        half: tuple[float, float],
-        spawn: tuple[float, float],
-    ) -> tuple[np.ndarray, np.ndarray]:
-        distance, heading = rng.uniform(*self.near, n), rng.uniform(-np.pi, np.pi, n)
-        ball = np.column_stack([np.cos(heading), np.sin(heading)]) * distance[:, None]
-        edge = half[0] - self.goal_edge
-        return ball + spawn, rng.uniform(-edge, edge, (n, 2))
+
+BALL_SPAWN_FROM_END = 2.0  # m: manipulate ball's START_FLAT in the released code
 
 
 def manipulate_ball(
@@ -316,10 +325,10 @@ def manipulate_ball(
     placement: BallPlacement | None = None,
     weights: RewardWeights | None = None,
 ) -> Task:
-    """Roll a ball to a goal on a square floor, from its centre. The object keeps MVT's names
-    ("box", "box_root")."""
+    """Roll a ball to a goal on a square floor, from 2 m before its back edge. The object keeps
+    MVT's names ("box", "box_root"); the agent reaches it at its centre."""
     placement = placement or BallPlacement()
-    floor, spawn = Floor(size, size), (0.0, 0.0)
-    ball = CarriedObject(floor, spawn, placement, placement.geom())
+    floor, spawn = Floor(size, size), (-size / 2 + BALL_SPAWN_FROM_END, 0.0)
+    ball = CarriedObject(floor, spawn, placement, placement.geom(), faces=False)
     w = weights or REWARD_WEIGHTS["manipulate_ball"]
     return _carry("manipulate_ball", "ManipulateBall", floor, spawn, ball, w)

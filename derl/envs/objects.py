@@ -9,24 +9,43 @@ from typing import Protocol
 
 import mujoco
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from derl.envs.task import Arena, Part
 from derl.envs.view import EnvView
 
 Draw = Callable[[np.random.Generator, int], np.ndarray]
 
+GOAL_LIFT = 0.11  # m: a goal's centre above the ground (the released code's goal marker)
+FACES = np.array(
+    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64
+)  # a cube's face centres, in half sides
+
+
+def rotate(quat: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """(N, ..., 3) vectors of copy k's body frame turned into the world by its (N, 4) unit
+    quaternion (w, x, y, z)."""
+    middle = (1,) * (vectors.ndim - 2)
+    w, u = quat[:, 0].reshape(len(quat), *middle, 1), quat[:, 1:].reshape(len(quat), *middle, 3)
+    t = 2.0 * np.cross(u, vectors)
+    return vectors + w * t + np.cross(u, t)
+
 
 class GoalPoint(Part):
     """A goal on the ground: ``draw(rng, n)`` gives (n, 2) positions for n new episodes. After
     each step, ``gain`` is the decrease in head-goal distance (xy) and ``arrived`` whether the
-    head is within ``margin``; with ``alternate``, an arrival mirrors the goal's x (patrol)."""
+    head is within ``margin``; with ``alternate``, an arrival mirrors the goal's x (patrol).
+    The goal's centre is ``lift`` m above the (flat) floor: only its observation sees that."""
 
-    def __init__(self, draw: Draw, margin: float, alternate: bool = False) -> None:
-        self.draw, self.margin, self.alternate = draw, margin, alternate
+    def __init__(
+        self, draw: Draw, margin: float, alternate: bool = False, lift: float = GOAL_LIFT
+    ) -> None:
+        self.draw, self.margin, self.alternate, self.lift = draw, margin, alternate, lift
 
     def bind(self, env: EnvView) -> None:
         n = env.num_envs
         self.goal = np.zeros((n, 3))
+        self.goal[:, 2] = self.lift
         self.dist = np.zeros(n)
         self.gain = np.zeros(n)
         self.arrived = np.zeros(n, dtype=bool)
@@ -72,11 +91,57 @@ class ObjectPlacement(Protocol):
         ...
 
 
+class ForwardPlacement(BaseModel):
+    """The released code's ``forward_placement`` (derl/utils/placement.py): the object a whole
+    number of metres ``ahead`` (inclusive) of the spawn along +x, its goal as far again beyond
+    it; each x capped ``far_buffer`` m plus its half size before the far edge, each y uniform
+    with ``side_buffer`` m plus its half size kept free along the sides; a goal whose footprint
+    overlaps the object's is redrawn (up to 10 times, as the released code's placement grid)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    ahead: tuple[int, int] = (15, 24)  # FORWARD_PLACEMENT_DIST [15, 25): randint
+    side_buffer: float = Field(10.0, ge=0)  # 2 x PLACEMENT_BUFFER_WIDTH (grid cells are 2 per m)
+    far_buffer: float = Field(6.0, ge=0)  # 2 x PLACEMENT_BUFFER_LEN
+    goal_half: float = Field(0.5, gt=0)  # the goal marker's footprint half size
+
+    @property
+    def object_half(self) -> float:
+        raise NotImplementedError
+
+    def draw(
+        self,
+        rng: np.random.Generator,
+        n: int,
+        half: tuple[float, float],
+        spawn: tuple[float, float],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        low, high = self.ahead
+        obj_half, goal_half = self.object_half, self.goal_half
+        x_far = half[0] - self.far_buffer
+        y_obj, y_goal = (half[1] - self.side_buffer - h for h in (obj_half, goal_half))
+        if min(y_obj, y_goal) < 0 or x_far - goal_half < spawn[0]:
+            raise ValueError(f"an arena of half size {half} leaves no room for {self}")
+        obj_x = np.minimum(spawn[0] + rng.integers(low, high + 1, n), x_far - obj_half)
+        goal_x = np.minimum(obj_x + rng.integers(low, high + 1, n), x_far - goal_half)
+        obj_y = rng.uniform(-y_obj, y_obj, n)
+        goal_y = rng.uniform(-y_goal, y_goal, n)
+        reach = obj_half + goal_half
+        for _ in range(9):
+            overlap = (np.abs(goal_x - obj_x) < reach) & (np.abs(goal_y - obj_y) < reach)
+            if not overlap.any():
+                break
+            goal_y[overlap] = rng.uniform(-y_goal, y_goal, np.count_nonzero(overlap))
+        return np.column_stack([obj_x, obj_y]), np.column_stack([goal_x, goal_y])
+
+
 class CarriedObject(Part):
     """A cube (body "box", free joint "box_root", geom "box"; ``geom`` overrides attributes of
     the geom, e.g. to make it a ball) resting on ``arena`` where ``placement`` says, and a goal
-    marker (mocap body "goal") on the ground. `position` is the object's live (N, 3) centre,
-    `velocity` its (N, 6) linear and angular velocity, `goal` (N, 3) its goals."""
+    marker (mocap body "goal") `GOAL_LIFT` m above the ground. `position` is the object's live
+    (N, 3) centre, `velocity` its (N, 6) free-joint velocity (linear in the world frame, angular
+    in the object's own frame, MuJoCo's convention), `goal` (N, 3) its goals. ``faces``: the
+    agent reaches the cube at its six face centres (else at its centre, as for a ball)."""
 
     def __init__(
         self,
@@ -84,9 +149,11 @@ class CarriedObject(Part):
         spawn: tuple[float, float],
         placement: ObjectPlacement,
         geom: Mapping[str, object] | None = None,
+        faces: bool = True,
     ) -> None:
         self.arena, self.spawn, self.placement = arena, spawn, placement
         self.geom = dict(geom or {})
+        self.faces = faces
         self.half = placement.box_size / 2
 
     def build(self, spec: mujoco.MjSpec) -> None:
@@ -116,6 +183,7 @@ class CarriedObject(Part):
         joint = env.free_joint("box_root")
         self.qpos = joint.qpos
         self.position = joint.qpos[:, :3]
+        self.orientation = joint.qpos[:, 3:7]
         self.velocity = joint.qvel
         self.marker = env.mocap_pos("goal")
         self.goal = np.zeros((env.num_envs, 3))
@@ -126,5 +194,16 @@ class CarriedObject(Part):
         self.qpos[ids, :2] = obj
         self.qpos[ids, 2] = arena.ground(obj, ids) + self.half / arena.cos_slope + 0.01
         self.qpos[ids, 3:7] = arena.tilt
-        self.goal[ids] = np.column_stack([goal, arena.ground(goal, ids)])
+        self.goal[ids] = np.column_stack([goal, arena.ground(goal, ids) + GOAL_LIFT])
         self.marker[ids] = self.goal[ids]
+
+    def angular_velocity(self) -> np.ndarray:
+        """(N, 3) the object's angular velocity in the world frame."""
+        return rotate(self.orientation, self.velocity[:, 3:6])
+
+    def reach_points(self) -> np.ndarray:
+        """(N, K, 3) where the agent reaches the object: its face centres, or its centre."""
+        if not self.faces:
+            return self.position[:, None]
+        faces = rotate(self.orientation, np.broadcast_to(FACES * self.half, (len(self.qpos), 6, 3)))
+        return self.position[:, None] + faces

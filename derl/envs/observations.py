@@ -44,8 +44,11 @@ class GoalSeen(Observation):
 
 
 class ObjectSeen(Observation):
-    """ "object": relative to the head, in the head frame, the object's position and velocity,
-    then its angular velocity (world frame), then its goal's position."""
+    """ "object": in the head frame, the object's position and velocity relative to the head's,
+    its angular velocity, and its goal's position relative to the head (the released code
+    rotates all four into the head frame, derl/envs/modules/objects.py; it takes the angular
+    velocity from the free joint's qvel, which MuJoCo gives in the object's own frame, as a
+    world vector: derl turns it into the world frame first)."""
 
     name: ClassVar[str] = "object"
     size = 12
@@ -60,7 +63,7 @@ class ObjectSeen(Observation):
             [
                 env.to_head_frame(obj.position - head),
                 env.to_head_frame(velocity),
-                obj.velocity[:, 3:6],
+                env.to_head_frame(obj.angular_velocity()),
                 env.to_head_frame(obj.goal - head),
             ],
             axis=1,

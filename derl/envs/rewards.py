@@ -45,8 +45,8 @@ REWARD_WEIGHTS: dict[str, RewardWeights] = {
     "exploration": RewardWeights(),
     "escape": RewardWeights(bonus=100.0),
     "incline": RewardWeights(),
-    "push_box_incline": RewardWeights(),
-    "manipulate_ball": RewardWeights(),
+    "push_box_incline": RewardWeights(margin=0.5),  # SUCCESS_MARGIN's default in the released
+    "manipulate_ball": RewardWeights(margin=0.5),  # code: their configs do not set it
 }
 """Each task's weights (a task's factory takes others as its ``weights`` option)."""
 
@@ -94,8 +94,10 @@ class ReachGoal(RewardTerm):
 
 
 class ReachObject(RewardTerm):
-    """``w_reach (d_prev - d)`` with d the distance from the object's centre to the nearest of
-    the head and limb sites, plus ``bonus`` the first time d < margin in an episode."""
+    """``w_reach (d_prev - d)`` with d the distance from the nearest of the head and limb sites
+    to the nearest of the object's reach points (`CarriedObject.reach_points`), plus ``bonus``
+    the first time d <= margin in an episode, after which `reached` is set (the released code,
+    derl/envs/tasks/manipulation.py)."""
 
     name: ClassVar[str] = "reach"
 
@@ -104,57 +106,57 @@ class ReachObject(RewardTerm):
 
     def bind(self, env: EnvView) -> None:
         self.dist = np.zeros(env.num_envs)
-        self.paid = np.zeros(env.num_envs, dtype=bool)
+        self.reached = np.zeros(env.num_envs, dtype=bool)
 
     def distance(self, env: EnvView) -> np.ndarray:
-        points = env.agent_points()
-        return np.linalg.norm(points - self.obj.position[:, None], axis=2).min(axis=1)
+        points, targets = env.agent_points(), self.obj.reach_points()
+        gaps = points[:, :, None] - targets[:, None]  # (N, P, K, 3)
+        return np.sqrt(np.square(gaps).sum(axis=3)).min(axis=(1, 2))
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         self.dist[ids] = self.distance(env)[ids]
-        self.paid[ids] = False
+        self.reached[ids] = False
 
     def __call__(self, env: EnvView) -> np.ndarray:
         w, dist = self.weights, self.distance(env)
-        now = ~self.paid & (dist < w.margin)
+        now = ~self.reached & (dist <= w.margin)
         term = w.reach * (self.dist - dist) + w.bonus * now
         self.dist = dist
-        self.paid |= now
+        self.reached |= now
         return term
 
 
 class PushObject(RewardTerm):
-    """``w_push (d_prev - d)`` with d the object-goal distance in the ground plane, plus
-    ``bonus`` the first time d < margin in an episode."""
+    """``w_push (d_prev - d) + bonus [d <= margin]`` with d the object-goal distance in the
+    ground plane: the bonus at every step the object is within the margin, and the whole term
+    zero until ``reach`` has `reached` the object (the released code; list ``reach`` before
+    this term)."""
 
     name: ClassVar[str] = "push"
 
-    def __init__(self, obj: CarriedObject, weights: RewardWeights) -> None:
-        self.obj, self.weights = obj, weights
+    def __init__(self, obj: CarriedObject, weights: RewardWeights, reach: ReachObject) -> None:
+        self.obj, self.weights, self.reach = obj, weights, reach
 
     def bind(self, env: EnvView) -> None:
         self.dist = np.zeros(env.num_envs)
-        self.paid = np.zeros(env.num_envs, dtype=bool)
 
     def distance(self) -> np.ndarray:
         return np.linalg.norm(self.obj.position[:, :2] - self.obj.goal[:, :2], axis=1)
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         self.dist[ids] = self.distance()[ids]
-        self.paid[ids] = False
 
     def __call__(self, env: EnvView) -> np.ndarray:
         w, dist = self.weights, self.distance()
-        now = ~self.paid & (dist < w.margin)
-        term = w.push * (self.dist - dist) + w.bonus * now
+        term = w.push * (self.dist - dist) + w.bonus * (dist <= w.margin)
         self.dist = dist
-        self.paid |= now
-        return term
+        return np.where(self.reach.reached, term, 0.0)
 
 
 class Explore(RewardTerm):
-    """+1 for each ``cell`` x ``cell`` square of a floor of half size ``half`` that the head
-    enters for the first time in the episode (the spawn square is not paid)."""
+    """+1 for each ``cell`` x ``cell`` square of a floor of half size ``half`` that the head is
+    in for the first time in the episode, the first step's square included (the released
+    code's ExploreTerrainReward)."""
 
     name: ClassVar[str] = "explore"
 
@@ -174,8 +176,6 @@ class Explore(RewardTerm):
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         self.visited[ids] = False
-        col, row = self._cell(env.head_pos[ids, :2])
-        self.visited[ids, row, col] = True
 
     def __call__(self, env: EnvView) -> np.ndarray:
         col, row = self._cell(env.head_pos[:, :2])

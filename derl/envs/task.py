@@ -97,7 +97,9 @@ class Success(Part):
 class Task:
     """One world or test task: its parts, its spawn point, and the reward component that is
     the fitness. ``metrics`` are components reported beside the terms: each the sum of the
-    named terms (e.g. ``{"manipulation": ("reach", "push")}``)."""
+    named terms (e.g. ``{"manipulation": ("reach", "push")}``). ``fall_ratio``, where set,
+    replaces the environment's (`EnvConfig.fall_ratio`): the head falls below this fraction of
+    its resting height."""
 
     name: str
     gym_name: str
@@ -109,6 +111,7 @@ class Task:
     props: tuple[Part, ...] = ()
     success: Success | None = None
     metrics: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    fall_ratio: float | None = None
     _hooks: dict[str, tuple[Callable[..., None], ...]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

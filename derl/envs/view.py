@@ -18,7 +18,7 @@ import numpy as np
 
 class FreeJoint(NamedTuple):
     """A free body's state in every copy: live (N, 7) position + quaternion, (N, 6) velocity
-    (linear, then angular, both in the world frame)."""
+    (linear in the world frame, then angular in the body's own frame: MuJoCo's qvel)."""
 
     qpos: np.ndarray
     qvel: np.ndarray

@@ -4,18 +4,18 @@ FT and VT reward forward progress, ``w_x v_x - w_c |a|^2`` with w_x = 1, w_c = 0
 fitness is the forward term alone, whose episode sum is 50 x the distance walked along +x.
 MVT rewards bringing a box to a goal: ``100 d_ao + 100 d_og - w_c |a|^2`` where d_ao and d_og
 are the decreases in agent-box and box-goal distance, plus 10 the first time the agent comes
-within 0.75 m of the box and 10 the first time the box comes within 0.75 m of the goal; the
-fitness is the reach and push terms without the control cost. Weights: `REWARD_WEIGHTS`.
+within 0.75 m of the box and 10 at every step the box is within 0.75 m of the goal; the push
+term is paid only once the agent has reached the box (the released code); the fitness is the
+reach and push terms without the control cost. Weights: `REWARD_WEIGHTS`.
 """
 
 from __future__ import annotations
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from derl.envs.arenas import Floor, Heightfield
 from derl.envs.heightmap import HeightmapGrid
-from derl.envs.objects import CarriedObject
+from derl.envs.objects import CarriedObject, ForwardPlacement
 from derl.envs.observations import Heightmap, ObjectSeen
 from derl.envs.rewards import REWARD_WEIGHTS, Ctrl, Forward, PushObject, ReachObject, RewardWeights
 from derl.envs.task import Task
@@ -23,14 +23,15 @@ from derl.envs.terrain import TerrainConfig
 
 
 def ft(size: float = 150.0, weights: RewardWeights | None = None) -> Task:
-    """FT: a ``size`` x ``size`` flat floor; walk along +x from 2 m before its back edge."""
+    """FT: a ``size`` x ``size`` flat floor; walk along +x from 3 m before its back edge (the
+    released code's ``START_FLAT: 3``)."""
     w = weights or REWARD_WEIGHTS["ft"]
     return Task(
         name="ft",
         gym_name="FT",
         fitness_component="forward",
         arena=Floor(size, size),
-        spawn=(-size / 2 + 2.0, 0.0),
+        spawn=(-size / 2 + 3.0, 0.0),
         rewards=(Forward(w), Ctrl(w)),
     )
 
@@ -56,33 +57,17 @@ def vt(
     )
 
 
-class BoxPlacement(BaseModel):
-    """MVT's box, and where it and its goal go relative to the spawn point (the original's
-    ranges): the box 15-24 m ahead, the goal 15-24 m beyond it, both at a uniform y."""
+class BoxPlacement(ForwardPlacement):
+    """MVT's box (the released code's: ``BOX_SIDE: 0.20`` is MuJoCo's half size, a 0.4 m cube
+    of 1 kg) and where it and its goal go (`ForwardPlacement`: the box 15-24 m ahead, the goal
+    15-24 m beyond it)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    box_size: float = Field(0.2, gt=0)  # side of the cube (the paper); the original used 0.4
+    box_size: float = Field(0.4, gt=0)  # side of the cube
     box_mass: float = Field(1.0, gt=0)
-    box_ahead: tuple[float, float] = (15.0, 24.0)
-    goal_ahead: tuple[float, float] = (15.0, 24.0)  # beyond the box
-    side_buffer: float = Field(5.0, ge=0)  # m kept free along the side edges
-    far_buffer: float = Field(6.0, ge=0)  # m kept free before the far edge
 
-    def draw(
-        self,
-        rng: np.random.Generator,
-        n: int,
-        half: tuple[float, float],
-        spawn: tuple[float, float],
-    ) -> tuple[np.ndarray, np.ndarray]:
-        x_far = half[0] - self.far_buffer
-        y_half = half[1] - self.side_buffer
-        box_x = np.minimum(spawn[0] + rng.uniform(*self.box_ahead, n), x_far - 1.0)
-        goal_x = np.minimum(box_x + rng.uniform(*self.goal_ahead, n), x_far)
-        box = np.stack([box_x, rng.uniform(-y_half, y_half, n)], axis=1)
-        goal = np.stack([goal_x, rng.uniform(-y_half, y_half, n)], axis=1)
-        return box, goal
+    @property
+    def object_half(self) -> float:
+        return self.box_size / 2
 
 
 def mvt(
@@ -97,6 +82,7 @@ def mvt(
     arena = Heightfield(terrain, grid or HeightmapGrid())
     spawn = (-terrain.size_x / 2 + terrain.start_flat / 2, 0.0)
     box = CarriedObject(arena, spawn, placement or BoxPlacement())
+    reach = ReachObject(box, w)
     return Task(
         name="mvt",
         gym_name="MVT",
@@ -104,7 +90,7 @@ def mvt(
         arena=arena,
         spawn=spawn,
         props=(box,),
-        rewards=(ReachObject(box, w), PushObject(box, w), Ctrl(w)),
+        rewards=(reach, PushObject(box, w, reach), Ctrl(w)),
         observations=(Heightmap(arena), ObjectSeen(box)),
         metrics={"manipulation": ("reach", "push")},
     )
