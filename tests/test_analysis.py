@@ -35,6 +35,7 @@ from derl.analysis.lineage import (
 from derl.analysis.morphology import Morphology, column, over_time, sample
 from derl.analysis.selection import new_seeds, top_of_surviving_lineages
 from derl.analysis.statistics import BootstrapConfig, estimate, mann_whitney, pearson, stars
+from derl.analysis.tables import body_rows
 from derl.analysis.testsuite import compare, results, summarize
 from derl.unimal import Genome
 
@@ -312,9 +313,14 @@ def test_retraining_plan(quadruped: Genome) -> None:
 
 def test_analyse_a_run(quadruped: Genome) -> None:
     config = AnalysisConfig(time_points=5)
-    (result,) = analyse([make_run(quadruped)], config).runs
+    run = make_run(quadruped)
+    repeat = run.bodies[-1].model_copy(update={"repeat_of": "d"})  # g took d's result
+    (result,) = analyse(
+        [run.model_copy(update={"bodies": (*run.bodies[:-1], repeat)})], config
+    ).runs
     s = result.summary
-    assert (s.bodies, s.population, s.generations) == (7, 3, 3)
+    assert (s.bodies, s.repeats, s.population, s.generations) == (7, 1, 3, 3)
+    assert [row.repeat_of for row in body_rows(result)] == [None] * 6 + ["d"]  # bodies.csv
     assert (s.top_of_population, s.top_agents) == (2, 2)
     assert (s.beneficial_threshold, s.beneficial_mutations, s.surviving_lineages) == (300, 2, 2)
     assert (s.learning_speed_defined, s.learning_speed_undefined) == (5, 2)

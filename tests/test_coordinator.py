@@ -20,7 +20,7 @@ from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
 from derl.unimal import Genome, sample_population
 from messages import Ack, Birth, Curve, FitnessReport, MessageBase, TrainJob, WorkerReady, decode
 from nodes.coordinator.node import INITIAL_FILE, Coordinator
-from nodes.journal.history import load_history
+from nodes.journal.history import run_log
 from nodes.journal.segments import read_segment
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
 from tests.nodes_fixtures import free_port, run_id
@@ -208,5 +208,6 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
     finally:
         restarted.checkpoints.close()
         restarted.journal.close()
-    history = load_history(tmp_path)
-    assert history.reports["c00000"] == history.reports[twin]  # its curve, in `derl report`
+    bodies = {body.id: body for body in run_log(tmp_path).bodies}  # what `derl report` reads
+    assert bodies["c00000"].repeat_of == twin and bodies[twin].repeat_of is None
+    assert bodies["c00000"].curve_returns == bodies[twin].curve_returns == (0.0, 1.0)

@@ -44,6 +44,8 @@ class RunSummary(Record):
     run: str
     world: str
     bodies: int
+    repeats: int
+    """Bodies born as repeats of an earlier equal body, with its result (never trained)."""
     population: int
     generations: int
     top_of_population: int
@@ -162,6 +164,7 @@ def analyse_run(run: RunLog, config: AnalysisConfig) -> RunAnalysis:
         run=run.name,
         world=run.world,
         bodies=len(run.bodies),
+        repeats=sum(body.repeat_of is not None for body in run.bodies),
         population=run.population,
         generations=int(tree.generation.max()) + 1,
         top_of_population=k_population,

@@ -24,6 +24,7 @@ SUMMARY_COLUMNS = {
     "run": "run",
     "world": "world",
     "bodies": "bodies",
+    "repeats": "repeats (untrained)",
     "population": "P",
     "generations": "generations",
     "surviving_lineages": "surviving lineages",

@@ -35,6 +35,8 @@ class Body(Record):
     mutation: str | None = None
     """The operator that made this body from its parent (None for the initial bodies)."""
     genome: Genome | None = None
+    repeat_of: str | None = None
+    """The earlier body equal to this one, whose training result it took (None: trained)."""
 
     @model_validator(mode="after")
     def _curve_aligned(self) -> Body:

@@ -1,7 +1,8 @@
 """The machine-readable tables of a report: CSV files (one pydantic row model each) and
 stats.json (run sizes and thresholds, correlations, Mann-Whitney tests, what was sampled).
 
-bodies.csv      one row per body: tree, fitness, energy, descriptors, stability, learning speed
+bodies.csv      one row per body: tree, fitness, energy, descriptors, stability, learning speed,
+                the earlier body a repeat took its result from (repeat_of)
 lineages.csv    one row per lineage: founder, rank, size, survival, beneficial mutations
 series.csv      every plotted curve: figure series, run, x, n, mean and CI
 muller.csv      abundance and mean fitness of the top lineages after each number of births
@@ -36,6 +37,7 @@ class BodyRow(Record):
     energy: float
     mass: float
     mutation: str | None
+    repeat_of: str | None
     beneficial: bool
     descendants: int
     length: float
@@ -94,6 +96,7 @@ def body_rows(result: RunAnalysis) -> list[BodyRow]:
             energy=body.energy,
             mass=body.mass,
             mutation=body.mutation,
+            repeat_of=body.repeat_of,
             beneficial=bool(result.beneficial[i]),
             descendants=int(tree.descendants[i]),
             steps_to_criterion=None if math.isnan(result.speed[i]) else float(result.speed[i]),

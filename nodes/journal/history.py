@@ -150,6 +150,7 @@ def run_log(path: Path) -> RunLog:
                 mass=birth.mass,
                 mutation=birth.mutation,
                 genome=birth.genome,
+                repeat_of=birth.repeat_of,
             )
         )
     if not bodies:
