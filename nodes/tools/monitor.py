@@ -3,14 +3,14 @@
 It taps ``derl/<run>/**`` through a ring (`nodes.tools.topic.Tap`) and follows the run's liveliness
 tokens, so a slow terminal never slows the run: the tap's thread only validates and queues, and
 the main loop folds the queue into a `RunView` and draws it with rich: a header (bodies born of
-the target, best fitness and agent, steps/s, evaluations, rejections), the workers (role, job,
-body, env steps, recent return, steps/s, last heard), the latest births (parent, mutation,
-fitness, node) and a sparkline of fitness over births. Births come from the coordinator's birth
-stream (``births/*``, the journal's Birth records), folded by `nodes.journal.history.RunHistory`,
-the one reading of a run every tool shares; a monitor started mid-run first asks the coordinator
-for the recent births (a Zenoh query), so it is complete without the journal. It works on
-replayed logs too: when no RunStatus is heard (a journal holds none), the best comes from the
-births.
+the target, best fitness and agent, steps/s, evaluations, repeats, rejections), the workers (role,
+job, body, env steps, recent return, steps/s, last heard), the latest births (parent, mutation,
+fitness, node or the earlier body a repeat took its result from) and a sparkline of fitness over
+births. Births come from the coordinator's birth stream (``births/*``, the journal's Birth
+records), folded by `nodes.journal.history.RunHistory`, the one reading of a run every tool
+shares; a monitor started mid-run first asks the coordinator for the recent births (a Zenoh
+query), so it is complete without the journal. It works on replayed logs too: when no RunStatus
+is heard (a journal holds none), the best comes from the births.
 """
 
 from __future__ import annotations
@@ -179,6 +179,7 @@ class RunView:
             fields += [
                 f"evaluated {s.evaluated}/{s.eval_target}",
                 f"failed {s.failed}",
+                f"repeats {s.repeats}",
                 f"in flight {s.in_flight}",
                 f"workers {s.workers_alive}",
                 f"rejected {s.rejected}",
@@ -220,11 +221,17 @@ class RunView:
         for column in ("child", "parent", "mutation"):
             table.add_column(column)
         table.add_column("fitness", justify="right")
-        table.add_column("node")
+        table.add_column("node (or the body it repeats)")
         first = max(0, len(self.births) - RECENT_BIRTHS)
         for number, b in enumerate(self.births[first:], start=first + 1):
+            trained = f"= {b.repeat_of}" if b.repeat_of else b.node
             table.add_row(
-                str(number), b.child, b.parent or "-", b.mutation or "-", f"{b.fitness:.2f}", b.node
+                str(number),
+                b.child,
+                b.parent or "-",
+                b.mutation or "-",
+                f"{b.fitness:.2f}",
+                trained,
             )
         return table
 
