@@ -20,10 +20,12 @@ install-test: $(BIN)/python
 	$(BIN)/pip install -q -e '.[test]'
 
 # The main job: a whole evolution run on this host (coordinator, trainers, evaluator over
-# Zenoh on loopback), then a picture of its best bodies.
+# Zenoh on loopback), then a picture of its best bodies and a short clip of the best one walking.
 run: install
 	$(BIN)/derl run --profile smoke --run-dir runs/smoke
 	$(BIN)/derl unimal render runs/smoke/best --out runs/smoke/best.png
+	$(BIN)/derl rollout runs/smoke/best/01-* --episodes 1 --episode-steps 150 \
+		--video runs/smoke/best.gif
 
 lint: install-test
 	$(BIN)/ruff check .

@@ -1,7 +1,7 @@
 """The paper's analyses of evolution runs, from plain records (never messages or files):
 lineages, Muller abundances, morphology over time, the Baldwin effect, energy efficiency, the
 test-task suite, and the appendix D selection of bodies to retrain; plotted and tabulated by
-`write_report`."""
+`write_report`, which also films the best bodies from their checkpoints."""
 
 from derl.analysis.compute import Analysis, RunAnalysis, analyse
 from derl.analysis.config import AnalysisConfig

@@ -39,6 +39,7 @@ class AnalysisConfig(BaseModel):
     )
     processes: int = Field(1, ge=1, description="processes for the stability simulations")
     pictures: int = Field(8, ge=0, description="best bodies drawn")
+    gaits: int = Field(3, ge=0, description="best bodies filmed walking, a GIF each (0: none)")
     bootstrap: BootstrapConfig = BootstrapConfig()
 
     def threshold(self, world: str) -> float:

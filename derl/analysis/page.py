@@ -1,6 +1,7 @@
-"""The report's HTML page: the figures beside it with their captions, the run summaries, links
-to the tables and the notes (what was sampled, what had too little data). One file, no scripts,
-no external resources; the PNGs are referenced by relative path.
+"""The report's HTML page: the figures beside it with their captions, the best bodies' gaits,
+the run summaries, links to the tables and the notes (what was sampled, what had too little
+data). One file, no scripts, no external resources; the PNGs and GIFs are referenced by relative
+path.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ figcaption { font-size: 0.9em; color: #444; max-width: 900px; }
 table { border-collapse: collapse; font-size: 0.85em; }
 td, th { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
 .notes li { font-size: 0.9em; }
+figure.gait { display: inline-block; margin: 0.5em; vertical-align: top; }
 """
 
 SUMMARY_COLUMNS = {
@@ -45,10 +47,37 @@ class FigureEntry(Record):
     caption: str
 
 
+class Gait(Record):
+    """A best body's gait on the page: its clip (a GIF beside the page) and who it is."""
+
+    file: str
+    label: str
+
+
+GAITS_TITLE = "The best bodies' gaits"
+
+
 def _cell(value: object) -> str:
     if value is None:
         return "-"
     return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
+
+
+def _gaits(gaits: list[Gait]) -> list[str]:
+    """The gaits' section, side by side (none without gaits)."""
+    if not gaits:
+        return []
+    clips = (
+        f'<figure class="gait"><img src="{escape(g.file)}" alt="{escape(g.label)}">'
+        f"<figcaption>{escape(g.label)}</figcaption></figure>"
+        for g in gaits
+    )
+    return [
+        f'<section id="gaits"><h2>{escape(GAITS_TITLE)}</h2>',
+        *clips,
+        "<p>Each body's trained policy (its mean actions) replayed from its checkpoint in its "
+        "run's world: the first episode, at half speed; run/id: fitness.</p></section>",
+    ]
 
 
 def write_page(
@@ -58,6 +87,7 @@ def write_page(
     summaries: list[RunSummary],
     tables: list[Path],
     notes: list[str],
+    gaits: list[Gait],
 ) -> Path:
     rows = "".join(
         "<tr>" + "".join(f"<td>{_cell(getattr(s, key))}</td>" for key in SUMMARY_COLUMNS) + "</tr>"
@@ -79,6 +109,7 @@ def write_page(
             f"<figcaption>{escape(f.caption)}</figcaption></figure>"
             for f in figures
         ),
+        *_gaits(gaits),
     ]
     path.write_text(
         "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"

@@ -8,6 +8,7 @@ birth order (the order in which the coordinator accepted fitness), the analyses'
 from __future__ import annotations
 
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
@@ -65,6 +66,9 @@ class RunLog(Record):
     evaluations: tuple[Evaluation, ...] = ()
     train_steps: int | None = None
     training_seed: int | None = None
+    checkpoints: Path | None = None
+    """The folder of the bodies' trained policies (``<id>.pt``), where the run was read from a
+    directory that has one (a log alone has none)."""
 
     @model_validator(mode="after")
     def _a_tree_in_birth_order(self) -> RunLog:

@@ -1,9 +1,11 @@
-"""A whole report in a folder: the figures (PNG), the tables (CSV, stats.json) and index.html.
+"""A whole report in a folder: the figures (PNG), the gaits (GIF), the tables (CSV, stats.json)
+and index.html.
 
 `write_report(runs, out)` analyses the runs (`compute.analyse`), draws every figure of the paper
-that a run's journal supports, writes the tables and a page that shows them, and returns what it
-wrote. Captions say what each figure shows and how many bodies it covers; the notes say what was
-sampled and where the data were too few.
+that a run's journal supports, films the best bodies' gaits where their checkpoints are at hand,
+writes the tables and a page that shows them, and returns what it wrote. Captions say what each
+figure shows and how many bodies it covers; the notes say what was sampled and where the data
+were too few.
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ from pydantic import BaseModel, ConfigDict
 from derl.analysis import plots
 from derl.analysis.compute import Analysis, RunAnalysis, analyse
 from derl.analysis.config import AnalysisConfig
+from derl.analysis.gaits import write_gaits
 from derl.analysis.page import FigureEntry, write_page
-from derl.analysis.records import RunLog
+from derl.analysis.records import Body, RunLog
 from derl.analysis.tables import write_tables
 
 log = logging.getLogger("derl.analysis")
@@ -31,6 +34,7 @@ class ReportFiles(BaseModel):
 
     page: Path
     figures: list[Path]
+    gaits: list[Path]
     tables: list[Path]
     notes: list[str]
 
@@ -45,11 +49,17 @@ def write_report(
     notes = _notes(analysis)
     log.info("drawing figures")
     entries = _figures(analysis, out, notes)
+    gaits = write_gaits(_ranked(analysis), config.gaits, out, notes)
     tables = write_tables(analysis, out, notes)
     title = "DERL report: " + ", ".join(f"{r.name} ({r.world.upper()})" for r in runs)
-    page = write_page(out / PAGE, title, entries, [r.summary for r in analysis.runs], tables, notes)
+    summaries = [r.summary for r in analysis.runs]
+    page = write_page(out / PAGE, title, entries, summaries, tables, notes, gaits)
     return ReportFiles(
-        page=page, figures=[out / e.file for e in entries], tables=tables, notes=notes
+        page=page,
+        figures=[out / e.file for e in entries],
+        gaits=[out / g.file for g in gaits],
+        tables=tables,
+        notes=notes,
     )
 
 
@@ -210,10 +220,15 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
     return entries
 
 
-def _pictures(analysis: Analysis, out: Path, notes: list[str]) -> FigureEntry:
-    ranked = sorted(
+def _ranked(analysis: Analysis) -> list[tuple[RunLog, Body]]:
+    """Every body of the runs with its run, fittest first."""
+    return sorted(
         ((r.run, b) for r in analysis.runs for b in r.run.bodies), key=lambda rb: -rb[1].fitness
-    )[: analysis.config.pictures]
+    )
+
+
+def _pictures(analysis: Analysis, out: Path, notes: list[str]) -> FigureEntry:
+    ranked = _ranked(analysis)[: analysis.config.pictures]
     path = out / "bodies.png"
     title = "The best bodies"
     if not ranked:

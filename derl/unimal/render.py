@@ -20,6 +20,17 @@ from derl.unimal.mjcf import standalone_spec
 GRID_GAP = 4
 
 
+def offscreen_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
+    """A renderer of `model`; `RuntimeError` with the remedy when offscreen OpenGL is missing."""
+    try:
+        return mujoco.Renderer(model, height, width)
+    except Exception as error:  # no usable OpenGL backend
+        raise RuntimeError(
+            "offscreen rendering is not available: set MUJOCO_GL=egl (Mesa EGL or a GPU driver) "
+            f"or MUJOCO_GL=osmesa (Debian's libosmesa6) before starting Python ({error})"
+        ) from error
+
+
 def render_body(genome: Genome, width: int = 320, height: int = 240) -> np.ndarray:
     """An RGB image (height, width, 3) of the body at rest, seen from the front left."""
     model = standalone_spec(genome).compile()
@@ -33,14 +44,7 @@ def render_body(genome: Genome, width: int = 320, height: int = 240) -> np.ndarr
     camera.distance = 1.2 * float(np.linalg.norm(high - low)) + 0.6
     camera.azimuth = 135.0
     camera.elevation = -20.0
-    try:
-        renderer = mujoco.Renderer(model, height, width)
-    except Exception as error:  # no usable OpenGL backend
-        raise RuntimeError(
-            "offscreen rendering is not available: set MUJOCO_GL=egl (Mesa EGL or a GPU driver) "
-            f"or MUJOCO_GL=osmesa (Debian's libosmesa6) before starting Python ({error})"
-        ) from error
-    with renderer:
+    with offscreen_renderer(model, width, height) as renderer:
         renderer.update_scene(data, camera)
         return renderer.render().copy()
 

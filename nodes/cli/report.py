@@ -40,7 +40,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         "report",
         help="plots and tables of the paper's analyses of one or more runs",
         description="Write DIR/index.html, one PNG per figure (figs. 2-6 of the paper and the "
-        "best bodies), CSV tables (bodies, lineages, series, muller, tests, test_summary) and "
+        "best bodies), a GIF of each of the best bodies' gaits (from a run directory's "
+        "checkpoints), CSV tables (bodies, lineages, series, muller, tests, test_summary) and "
         "stats.json, from the runs' journals alone.",
     )
     report.add_argument(
@@ -72,6 +73,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="processes for the stability simulations (default: up to 4 cores)",
     )
     report.add_argument("--pictures", type=int, help="best bodies drawn (default 8)")
+    report.add_argument(
+        "--gaits",
+        type=int,
+        metavar="N",
+        help="best bodies filmed walking, a short GIF each (default 3; 0: none)",
+    )
     report.set_defaults(handler=_report)
 
     select = commands.add_parser(
@@ -133,6 +140,7 @@ def _report(args: argparse.Namespace) -> int:
         "stability_sample": args.stability_sample,
         "processes": args.processes,
         "pictures": args.pictures,
+        "gaits": args.gaits,
     }
     try:
         config = AnalysisConfig(
@@ -150,7 +158,8 @@ def _report(args: argparse.Namespace) -> int:
     for note in files.notes:
         console.print(f"note: {note}", highlight=False)
     console.print(
-        f"wrote {files.page} ({len(files.figures)} figures, {len(files.tables)} tables) in "
+        f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
+        f"{len(files.tables)} tables) in "
         f"{time.monotonic() - start:.1f} s",
         highlight=False,
     )

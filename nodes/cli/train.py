@@ -10,17 +10,12 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from derl.replay import CHECKPOINT, EPISODE_STEPS, GENOME, RESULT
 from nodes.cli.options import at_least_one, fail, problems
 
 console = Console()
 
-GENOME, CHECKPOINT, RESULT, CURVE_CSV, CURVE_PNG = (
-    "genome.json",
-    "checkpoint.pt",
-    "result.json",
-    "curve.csv",
-    "curve.png",
-)
+CURVE_CSV, CURVE_PNG = "curve.csv", "curve.png"
 FLAGS = {"total_steps": "--steps", "num_envs": "--envs", "seed": "--seed"}  # PPOConfig's
 
 
@@ -39,10 +34,22 @@ def register(commands: argparse._SubParsersAction) -> None:
     train.add_argument("--out", type=Path, required=True, help="output directory")
     train.set_defaults(handler=_train)
 
-    rollout = commands.add_parser("rollout", help="replay a trained policy deterministically")
-    rollout.add_argument("dir", type=Path, help="output directory of `derl train`")
+    rollout = commands.add_parser(
+        "rollout",
+        help="replay a trained policy deterministically",
+        description="Replay the trained body of DIR: the output folder of `derl train`, or a "
+        "run's best/NN-agent folder (the body is replayed in the task it was trained in).",
+    )
+    rollout.add_argument("dir", type=Path, help="folder with genome.json and checkpoint.pt")
     rollout.add_argument("--episodes", type=at_least_one, default=3)
     rollout.add_argument("--seed", type=int, default=0)
+    rollout.add_argument(
+        "--episode-steps",
+        type=at_least_one,
+        default=EPISODE_STEPS,
+        metavar="N",
+        help=f"end an episode after N control steps of 20 ms (default {EPISODE_STEPS})",
+    )
     rollout.add_argument("--video", type=Path, help="write a video (.mp4 or .gif) of episode 1")
     rollout.set_defaults(handler=_rollout)
 
@@ -112,56 +119,26 @@ def _write_curve(out: Path, steps: list[int], returns: list[float], task: str) -
 
 
 def _rollout(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from derl.envs import make_env
-    from derl.rl import Policy
-    from nodes.cli.unimal import load_genome
+    from derl.envs.video import write_video
+    from derl.replay import NotTrained, Trained, play
 
     try:
-        result = json.loads((args.dir / RESULT).read_text())
-        policy = Policy.from_checkpoint((args.dir / CHECKPOINT).read_bytes())
-    except (OSError, ValueError) as error:
-        raise SystemExit(f"derl: {args.dir} holds no finished training: {error}") from None
-    task = result["task"]
-    env = make_env(load_genome(args.dir / GENOME), task, num_envs=1, seed=args.seed)
-    component = env.task.fitness_component
-    recorder = _recorder(env) if args.video else None
-    frames = []
-    obs = env.reset(args.seed)
-    for episode in range(1, args.episodes + 1):
-        total, steps = 0.0, 0
-        while True:
-            if recorder is not None and episode == 1:
-                frames.append(recorder.frame())
-            step = env.step(policy(obs))
-            obs, total, steps = step.obs, total + float(step.components[component][0]), steps + 1
-            if step.terminated[0] or step.truncated[0]:
-                break
-        end = "fell/ended" if step.terminated[0] else "time limit"
-        console.print(f"episode {episode}: {component} {total:.1f} over {steps} steps ({end})")
-    if recorder is not None:
-        _write_video(args.video, np.stack(frames))
-        console.print(f"wrote {args.video} ({len(frames)} frames)")
-    return 0
-
-
-def _recorder(env):  # -> FrameRecorder
-    from derl.envs.video import FrameRecorder
-
-    return FrameRecorder(env)
-
-
-def _write_video(path: Path, frames) -> None:
-    import imageio.v3 as iio
-
-    fps = 50 // 2  # every control step is 20 ms; play at half speed
-    try:
-        iio.imwrite(path, frames, fps=fps) if path.suffix != ".gif" else iio.imwrite(
-            path, frames, duration=1000 / fps, loop=0
+        trained = Trained.load(args.dir)
+    except NotTrained as error:
+        fail(str(error), code=2)
+    film = (480, 360) if args.video else None
+    for number, episode in enumerate(
+        play(trained, args.episodes, args.seed, args.episode_steps, film), start=1
+    ):
+        end = "fell/ended" if episode.fell else "time limit"
+        console.print(
+            f"episode {number}: {episode.component} {episode.total:.1f} over {episode.steps} "
+            f"steps ({end})"
         )
-    except (ImportError, ValueError, OSError) as error:
-        raise SystemExit(
-            f"derl: cannot write {path}: {error}. For .mp4 install imageio-ffmpeg "
-            "(pip install 'derl[video]'), or ask for a .gif"
-        ) from None
+        if number == 1 and args.video:
+            try:
+                write_video(args.video, episode.frames)
+            except OSError as error:
+                fail(str(error))
+            console.print(f"wrote {args.video} ({len(episode.frames)} frames)")
+    return 0

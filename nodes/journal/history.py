@@ -27,6 +27,7 @@ from messages import (
     TrainJob,
 )
 from nodes.journal.segments import read_segment, replay, segments
+from nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog
@@ -173,4 +174,5 @@ def run_log(path: Path) -> RunLog:
         evaluations=evaluations,
         train_steps=first.steps,
         training_seed=first.seed,
+        checkpoints=path / CHECKPOINTS if (path / CHECKPOINTS).is_dir() else None,
     )

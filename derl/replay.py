@@ -1,0 +1,119 @@
+"""A trained body acting again: loaded from a folder (genome, checkpoint, task), its episodes
+played with the deterministic policy, the first one filmed if asked.
+
+Two kinds of folder hold a trained body: the output of `derl train` (the task in its
+``result.json``) and a run's ``best/NN-agent`` folder (the task in its ``training.json``, the
+run's training settings). Both carry ``genome.json`` and ``checkpoint.pt``.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
+from derl.unimal import Genome
+
+if TYPE_CHECKING:
+    from derl.rl import Policy
+
+GENOME, CHECKPOINT = "genome.json", "checkpoint.pt"
+RESULT, SETTINGS = "result.json", "training.json"
+TASK_FILES = (RESULT, SETTINGS)
+"""Where a folder names its task: `derl train`'s result, or a run's best/ folder's settings."""
+EPISODE_STEPS = EnvConfig().episode_steps
+
+
+class NotTrained(ValueError):
+    """A folder that does not hold what a replay needs."""
+
+
+@dataclass(frozen=True)
+class Trained:
+    """A body, the task it learnt, and its deterministic policy."""
+
+    genome: Genome
+    task: str
+    policy: Policy
+
+    @classmethod
+    def of(cls, genome: Genome, task: str, checkpoint: bytes) -> Trained:
+        """`NotTrained` when the checkpoint cannot be read."""
+        from derl.rl import Policy  # torch: only once a policy is wanted
+
+        try:
+            return cls(genome, task, Policy.from_checkpoint(checkpoint))
+        except (ValueError, RuntimeError, pickle.UnpicklingError) as error:
+            raise NotTrained(f"unreadable checkpoint: {error}") from None
+
+    @classmethod
+    def load(cls, folder: Path) -> Trained:
+        """The trained body of `folder`; `NotTrained` says what is missing or unreadable."""
+        missing = [name for name in (GENOME, CHECKPOINT) if not (folder / name).is_file()]
+        named = next((folder / n for n in TASK_FILES if (folder / n).is_file()), None)
+        if named is None:
+            missing.append(" or ".join(TASK_FILES))
+        if missing:
+            raise NotTrained(
+                f"{folder} holds no trained body: no {', no '.join(missing)} (a `derl train` "
+                "output folder or a run's best/NN-agent folder has them)"
+            )
+        try:
+            task = json.loads(named.read_text())["task"]
+            if task not in TASKS:
+                raise ValueError(f"unknown task {task!r} in {named.name}")
+            genome = Genome.model_validate_json((folder / GENOME).read_text())
+            return cls.of(genome, task, (folder / CHECKPOINT).read_bytes())
+        except (OSError, ValueError, KeyError) as error:
+            raise NotTrained(f"{folder}: cannot read its trained body: {error}") from None
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode: the sum of the task's fitness component, its length, how it ended, and its
+    frames (RGB, one per control step) if it was filmed."""
+
+    component: str
+    total: float
+    steps: int
+    fell: bool
+    frames: list[np.ndarray] = field(default_factory=list)
+
+
+def play(
+    trained: Trained,
+    episodes: int,
+    seed: int = 0,
+    episode_steps: int = EPISODE_STEPS,
+    film: tuple[int, int] | None = None,
+) -> Iterator[Episode]:
+    """`episodes` episodes of one copy, each at most `episode_steps` control steps; the first is
+    filmed at `film` = (width, height) pixels when given (offscreen OpenGL, `MUJOCO_GL`)."""
+    from derl.envs.video import FrameRecorder
+
+    task = make_task(trained.task)
+    env = UnimalEnv(trained.genome, task, EnvConfig(num_envs=1, episode_steps=episode_steps), seed)
+    component = task.fitness_component
+    recorder = None if film is None else FrameRecorder(env, *film)
+    try:
+        obs = env.reset(seed)
+        for episode in range(episodes):
+            total, steps, frames = 0.0, 0, []
+            while True:
+                if recorder is not None and episode == 0:
+                    frames.append(recorder.frame())
+                step = env.step(trained.policy(obs))
+                obs, steps = step.obs, steps + 1
+                total += float(step.components[component][0])
+                if step.terminated[0] or step.truncated[0]:
+                    break
+            yield Episode(component, total, steps, bool(step.terminated[0]), frames)
+    finally:
+        if recorder is not None:
+            recorder.close()
