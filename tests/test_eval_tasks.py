@@ -7,9 +7,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from derl.envs import EnvConfig, StepResult, UnimalEnv, make_task
-from derl.envs.arenas import place_boxes
+from derl.envs.arenas import Bowl, place_boxes
 from derl.envs.eval_tasks import BowlConfig, ObstacleConfig, PushBoxPlacement
 from derl.unimal import Genome
 
@@ -366,3 +367,21 @@ def test_obstacle_boxes_are_placed_as_the_released_code() -> None:
     assert apart.all()
     crowded = ObstacleConfig(size_x=30.0, size_y=12.0, count=200, end_buffer=6.0)
     assert len(place_boxes(crowded, np.random.default_rng(0))[0]) < 200  # some left out
+
+
+def test_bowl_is_the_released_codes_cubic_zoom() -> None:
+    """The bowl profile times ``ndimage.zoom`` (cubic spline) of size / 2 bump factors a side,
+    as the released code's Bowl module, to float32 rounding."""
+    config = BowlConfig(size=20.0)
+    bowl = Bowl(config)
+    heights = bowl.draw(np.random.default_rng(5))
+    bumps = np.random.default_rng(5).uniform(0.15, 1.0, (10, 10))
+    n = config.terrain.grid_shape[0]
+    unit = np.linspace(-1.0, 1.0, n)
+    radius = np.clip(np.hypot(unit[:, None], unit[None, :]), 0.04, 1.0)
+    zoomed = ndimage.zoom(bumps, n / 10)
+    assert zoomed.max() > 1.1  # the spline overshoots the factors
+    expected = zoomed * 1.3 * (0.5 - np.cos(2 * np.pi * radius) / 2)
+    assert heights.shape == (n, n)
+    np.testing.assert_allclose(heights, np.clip(expected, 0.0, None), atol=1e-5)
+    assert config.terrain.max_height == pytest.approx(1.3 * 1.3)

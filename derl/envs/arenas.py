@@ -10,6 +10,7 @@ from functools import cached_property
 import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from scipy import ndimage
 
 from derl.envs.heightmap import HeightmapGrid
 from derl.envs.task import Arena
@@ -196,14 +197,15 @@ def draw_obstacles(config: ObstacleConfig, rng: np.random.Generator) -> np.ndarr
 
 
 class BowlConfig(BaseModel):
-    """The escape bowl (the original's ``Bowl`` module); lengths in meters."""
+    """The escape bowl (the released code's ``Bowl`` module, derl/envs/modules/bowl.py); lengths
+    in meters."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     size: float = Field(100.0, gt=0)
     resolution: float = Field(0.1, gt=0)
     depth: float = Field(1.3, gt=0)  # height scale of the bowl
-    bump_spacing: float = Field(2.0, gt=0)  # random bump factors on this grid, interpolated
+    bump_spacing: float = Field(2.0, gt=0)  # size / bump_spacing random bump factors a side
     bumps: tuple[float, float] = (0.15, 1.0)
     rim: float = Field(0.84, gt=0, lt=1)  # escape radius / half size: 42 of 50 m
 
@@ -216,44 +218,69 @@ class BowlConfig(BaseModel):
 
     @property
     def terrain(self) -> TerrainConfig:
+        """The heightfield's geometry; its scale leaves room for the spline's overshoot."""
         return TerrainConfig.flat(
-            size_x=self.size, size_y=self.size, resolution=self.resolution, max_height=self.depth
+            size_x=self.size,
+            size_y=self.size,
+            resolution=self.resolution,
+            max_height=BOWL_HEADROOM * self.depth,
         )
+
+
+BOWL_HEADROOM = 1.3  # max_height / depth: a cubic spline through factors <= 1 stays below 1.3
 
 
 class Bowl:
     """Escape terrains: ``depth (1 - cos(2 pi r / R)) / 2`` (r from the centre, clipped to
     [0.04 R, R], R the half size: a ring of hills at R/2, low again at the edge) times bump
-    factors U[bumps] on a ``bump_spacing`` grid, interpolated bilinearly. The profile and the
-    interpolation indices are computed at the first draw; a draw is two gathers (no BLAS: its
-    threads fight the simulation's for the cores)."""
+    factors U[bumps] on a grid of ``size / bump_spacing`` knots a side spanning the bowl,
+    resampled to the heightfield by a cubic spline as the released code's ``ndimage.zoom``
+    (mirror-prefiltered coefficients, then four B-spline weights a vertex along each axis);
+    heights are clipped to [0, max_height]. The profile and the weights are computed at the
+    first draw; a draw is a small prefilter and, per run of vertices between two knots, a
+    product with 4 coefficients a side: products too small for OpenBLAS to start threads, which
+    would fight the simulation's for the cores."""
 
     def __init__(self, config: BowlConfig) -> None:
         self.config = config
-        self.knots = max(2, round(config.size / config.bump_spacing) + 1)
+        self.knots = max(4, int(config.size / config.bump_spacing))
 
     @cached_property
-    def _grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The profile, and for each vertex the knot before it and the weight of the next."""
-        config = self.config
+    def _grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The profile; the prefilter (knots, knots); the B-spline weights (n, 4) of each
+        vertex's four consecutive knots; the first vertex of each run sharing its first knot,
+        and that knot."""
+        config, k = self.config, self.knots
         n = config.terrain.grid_shape[0]
         unit = np.linspace(-1.0, 1.0, n)
         radius = np.clip(np.hypot(unit[:, None], unit[None, :]), 0.04, 1.0)
         profile = (config.depth * (0.5 - np.cos(2 * np.pi * radius) / 2)).astype(np.float32)
-        position = np.linspace(0.0, self.knots - 1, n)
-        left = np.minimum(position.astype(np.intp), self.knots - 2)
-        return profile, left, (position - left).astype(np.float32)
+        eye = np.eye(k)
+        prefilter = np.stack(
+            [ndimage.spline_filter1d(eye[j], order=3, mode="mirror") for j in range(k)], axis=1
+        )
+        zoomed = np.stack([ndimage.zoom(eye[j], n / k) for j in range(k)], axis=1)  # (n, k)
+        taps = zoomed @ np.linalg.inv(prefilter)  # at most 4 consecutive nonzeros a row
+        first = np.minimum(np.argmax(np.abs(taps) > 1e-9, axis=1), k - 4)
+        weights = np.take_along_axis(taps, first[:, None] + np.arange(4), axis=1)
+        runs = np.flatnonzero(np.r_[True, np.diff(first) != 0])
+        return profile, prefilter, weights.astype(np.float32), runs, first[runs]
 
     def draw(self, rng: np.random.Generator) -> np.ndarray:
-        profile, left, right = self._grid
-        bumps = rng.uniform(*self.config.bumps, (self.knots, self.knots)).astype(np.float32)
-        rows = bumps[left] + (bumps[left + 1] - bumps[left]) * right[:, None]  # (n, knots)
-        low, heights = rows[:, left], rows[:, left + 1]  # (n, n) each
-        heights -= low
-        heights *= right
-        heights += low
+        profile, prefilter, weights, runs, first = self._grid
+        n = len(weights)
+        bumps = rng.uniform(*self.config.bumps, (self.knots, self.knots))
+        coefficients = (prefilter @ bumps @ prefilter.T).astype(np.float32)
+        rows = np.empty((n, self.knots), np.float32)  # along y (rows), at the knots along x
+        heights = np.empty((n, n), np.float32)
+        ends = np.r_[runs[1:], n]
+        for start, end, knot in zip(runs, ends, first, strict=True):
+            np.matmul(weights[start:end], coefficients[knot : knot + 4], out=rows[start:end])
+        for start, end, knot in zip(runs, ends, first, strict=True):
+            np.matmul(rows[:, knot : knot + 4], weights[start:end].T, out=heights[:, start:end])
         heights *= profile
-        return np.minimum(heights, np.float32(self.config.depth), out=heights)  # float32 rounding
+        top = np.float32(self.config.terrain.max_height)
+        return np.clip(heights, np.float32(0.0), top, out=heights)
 
     def terrain(self, rng: np.random.Generator) -> Terrain:
         """One bowl as a terrain laid out like ``config.terrain``."""
