@@ -4,6 +4,7 @@ file of a report), and a real smoke run made by `derl run` (slow)."""
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import subprocess
 import sys
@@ -181,15 +182,75 @@ def test_beneficial_flag() -> None:
         _thresholds("ft=lots")
 
 
+def _table(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
 def _check_report(out: Path) -> dict:
+    """Every figure and table written and on the page, and the tables behind the figures (the
+    population's fitness over time, lineages, Muller abundances, test summaries) consistent with
+    the bodies and test results the report lists; the stats."""
     for name in FIGURES:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
         assert (out / name).stat().st_size > 5_000, name
-    for name in TABLES:
-        assert (out / name).stat().st_size > 50, name
     page = (out / "index.html").read_text()
     for name in FIGURES + TABLES:
         assert f'"{name}"' in page, name
-    return json.loads((out / "stats.json").read_text())
+    stats = json.loads((out / "stats.json").read_text())
+    (summary,) = stats["runs"]
+    bodies = _table(out / "bodies.csv")
+    assert len(bodies) == summary["bodies"]
+    assert [int(b["birth"]) for b in bodies] == list(range(len(bodies)))
+    by_id = {b["id"]: b for b in bodies}
+    for b in bodies:  # a child is one generation after its parent, in its parent's lineage
+        parent = by_id.get(b["parent"])
+        assert int(b["generation"]) == (int(parent["generation"]) + 1 if parent else 0), b
+        assert b["founder"] == (parent["founder"] if parent else b["id"]), b
+    fitness = [float(b["fitness"]) for b in bodies]
+    founders = [b["founder"] for b in bodies]
+    size, top = summary["population"], summary["top_of_population"]
+    final = set(founders[-size:])
+
+    def population(t: int) -> range:  # the P latest born after t births
+        return range(max(0, t - size), t)
+
+    times = sorted({int(float(r["x"])) for r in _table(out / "series.csv")
+                    if r["series"] == "fitness_top"})  # fmt: skip
+    assert times[0] == min(size, len(bodies)) and times[-1] == len(bodies), times
+    for row in _table(out / "series.csv"):
+        assert list(row) == ["series", "run", "x", "n", "mean", "low", "high"]
+        if row["low"]:
+            assert float(row["low"]) <= float(row["mean"]) <= float(row["high"]), row
+        if row["series"] == "fitness_top":  # the mean of the population's k fittest
+            fittest = sorted(fitness[i] for i in population(int(float(row["x"]))))[-top:]
+            assert float(row["mean"]) == pytest.approx(sum(fittest) / top), row
+            assert row["low"] == "" or float(row["low"]) >= min(fittest) - 1e-9, row
+    lineages = _table(out / "lineages.csv")
+    assert sorted(r["founder"] for r in lineages) == sorted(set(founders))
+    for row in lineages:
+        mine = [i for i, f in enumerate(founders) if f == row["founder"]]
+        members = sum(founders[i] == row["founder"] for i in population(len(bodies)))
+        assert int(row["bodies"]) == len(mine) and int(row["final_members"]) == members, row
+        assert (row["surviving"] == "True") == (row["founder"] in final), row
+        assert float(row["best_fitness"]) == max(fitness[i] for i in mine), row
+    muller = _table(out / "muller.csv")
+    assert {r["founder"] for r in muller} == final  # (at most muller_lineages of them)
+    assert {int(r["time"]) for r in muller} == set(times)
+    for row in muller:  # a lineage's share of the population, and its mean fitness in it
+        span = population(int(row["time"]))
+        mine = [fitness[i] for i in span if founders[i] == row["founder"]]
+        assert float(row["abundance"]) == pytest.approx(len(mine) / len(span)), row
+        if mine:
+            assert float(row["mean_fitness"]) == pytest.approx(sum(mine) / len(mine)), row
+    tests = _table(out / "tests.csv")
+    summaries = _table(out / "test_summary.csv")
+    assert {r["task"] for r in summaries} == {r["task"] for r in tests}
+    for row in summaries:
+        rewards = [float(r["reward"]) for r in tests if r["task"] == row["task"]]
+        assert int(row["reward_n"]) == len(rewards), row
+        assert float(row["reward_value"]) == pytest.approx(sum(rewards) / len(rewards)), row
+    return stats
 
 
 def test_report_of_a_journal(tmp_path: Path, quadruped: Genome) -> None:
