@@ -148,7 +148,9 @@ def test_the_box_is_reached_at_its_face_centres(quadruped: Genome) -> None:
     ]
     np.testing.assert_allclose(points, expected, atol=1e-12)
     reach = env.task.rewards[0]
-    nearest = np.linalg.norm(env.agent_points()[0][:, None] - points[None], axis=2).min()
+    agent = env.agent_points()[0]  # the head's bottom first (the released torso/btm_pos site)
+    np.testing.assert_allclose(agent[0], env.head_pos[0] - 0.1 * env.head_rot[0, :, 2])
+    nearest = np.linalg.norm(agent[:, None] - points[None], axis=2).min()
     assert reach.distance(env)[0] == pytest.approx(nearest)
 
 

@@ -27,6 +27,7 @@ from derl.envs.view import FreeJoint
 from derl.unimal import Genome, agent_spec
 from derl.unimal.geometry import layout
 from derl.unimal.mjcf import rest_height
+from derl.unimal.space import HEAD_RADIUS
 
 ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
 
@@ -163,8 +164,10 @@ class UnimalEnv:
         return np.arctan2(rot[:, 3], rot[:, 0])
 
     def agent_points(self) -> np.ndarray:
-        """(N, P, 3) the head centre and every limb's mid and end sites, in the world."""
-        return self.site_xpos[:, self.agent_sites]
+        """(N, P, 3) the head centre, the head's bottom (HEAD_RADIUS below its centre, along
+        its z axis), and every limb's mid and end sites, in the world."""
+        bottom = self.head_pos - HEAD_RADIUS * self.head_rot[:, :, 2]
+        return np.concatenate([bottom[:, None], self.site_xpos[:, self.agent_sites]], axis=1)
 
     def free_joint(self, name: str) -> FreeJoint:
         """Live (N, 7) qpos and (N, 6) qvel views of the free joint ``name``."""

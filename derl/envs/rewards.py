@@ -94,10 +94,10 @@ class ReachGoal(RewardTerm):
 
 
 class ReachObject(RewardTerm):
-    """``w_reach (d_prev - d)`` with d the distance from the nearest of the head and limb sites
-    to the nearest of the object's reach points (`CarriedObject.reach_points`), plus ``bonus``
-    the first time d <= margin in an episode, after which `reached` is set (the released code,
-    derl/envs/tasks/manipulation.py)."""
+    """``w_reach (d_prev - d)`` with d the distance from the nearest of the agent's points (head
+    centre and bottom, limb middles and ends) to the nearest of the object's reach points
+    (`CarriedObject.reach_points`), plus ``bonus`` the first time d <= margin in an episode,
+    after which `reached` is set (the released code, derl/envs/tasks/manipulation.py)."""
 
     name: ClassVar[str] = "reach"
 

@@ -78,7 +78,8 @@ class EnvView(Protocol):
         ...
 
     def agent_points(self) -> np.ndarray:
-        """(N, P, 3) the head centre and every limb's mid and end sites, in the world."""
+        """(N, P, 3) the head centre and bottom and every limb's mid and end sites, in the
+        world."""
         ...
 
     def free_joint(self, name: str) -> FreeJoint:
