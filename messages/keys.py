@@ -34,6 +34,24 @@ ARITY: Final[dict[str, int]] = {
 }
 """Key kinds and how many id segments follow each."""
 
+PUBLISHERS: Final[dict[str, tuple[str, ...]]] = {
+    "alive": ("trainer", "evaluator"),
+    "ready": ("trainer", "evaluator"),
+    "job": ("coordinator",),
+    "tournament": ("coordinator",),
+    "progress": ("trainer", "evaluator"),
+    "fitness": ("trainer",),
+    "failure": ("trainer", "evaluator"),
+    "ack": ("coordinator",),
+    "eval": ("evaluator",),
+    "births": ("coordinator",),
+    "lost": ("coordinator",),
+    "rejected": (),
+    "population": ("coordinator",),
+    "status": ("coordinator",),
+}
+"""Key kind -> the roles that publish on it (none: journaled, never published)."""
+
 ROUTES: Final[dict[str, tuple[str, tuple[str, ...]]]] = {
     "WorkerReady": ("ready", ("node",)),
     "TrainJob": ("job", ("node",)),

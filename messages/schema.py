@@ -40,22 +40,27 @@ LeaseSeconds = Annotated[float, Field(gt=0, le=86_400, allow_inf_nan=False)]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
 
 class MessageBase(_Model):
     """What every message carries."""
 
     schema_version: Literal[SCHEMA_VERSION] = SCHEMA_VERSION
+    """The wire format's version; a payload of another version is refused."""
     type: str
+    """The message type: the model's class name (the discriminator)."""
     run: Id
+    """The run the message belongs to (also the key's second segment)."""
 
 
 class Curve(_Model):
     """A learning curve: mean return after each number of env steps (steps never decrease)."""
 
     env_steps: Annotated[tuple[Count, ...], Field(max_length=MAX_ITEMS)] = ()
+    """Env steps (all copies) done at each point."""
     returns: Annotated[tuple[Finite, ...], Field(max_length=MAX_ITEMS)] = ()
+    """Mean return of the recent episodes at each point."""
 
     @model_validator(mode="after")
     def _aligned(self) -> Curve:
@@ -72,9 +77,13 @@ class Member(_Model):
     """One agent of the population."""
 
     agent: Id
+    """The agent's id."""
     fitness: Finite
+    """Its fitness."""
     parent: Id | None = None
+    """The body it was mutated from (None in the initial population)."""
     birth: Count
+    """Its birth index (0 first)."""
 
 
 class WorkerReady(MessageBase):
@@ -82,10 +91,15 @@ class WorkerReady(MessageBase):
 
     type: Literal["WorkerReady"] = "WorkerReady"
     node: Id
+    """The worker's node id."""
     role: Literal["trainer", "evaluator"]
+    """What work it takes."""
     host: Annotated[str, Field(min_length=1, max_length=253)]
+    """Its host name."""
     pid: Annotated[int, Field(ge=1, le=2**32)]
+    """Its process id."""
     nthread: Annotated[int, Field(ge=1, le=4096)] = 1
+    """Simulation threads it runs."""
 
 
 class TrainJob(MessageBase):
@@ -100,14 +114,23 @@ class TrainJob(MessageBase):
 
     type: Literal["TrainJob"] = "TrainJob"
     job: Id
+    """The assignment's id (a new one for every attempt)."""
     child: Id
+    """The body to train."""
     node: Id
+    """The trainer it is assigned to."""
     genome: Genome
+    """The child's body, or its parent's when `mutation_seed` is set."""
     task: Id
+    """The world to train in (ft, vt or mvt)."""
     ppo: PPOConfig
+    """The whole learning configuration: budget, seed, copies, hyperparameters."""
     parent: Id | None = None
+    """The body the child is mutated from (None in the initial population)."""
     mutation_seed: Seed | None = None
+    """Set: the trainer breeds the child from `genome` with this seed."""
     lease_s: LeaseSeconds
+    """Seconds without progress after which the job is taken back."""
 
     @property
     def steps(self) -> int:
@@ -130,12 +153,19 @@ class EvalJob(MessageBase):
 
     type: Literal["EvalJob"] = "EvalJob"
     job: Id
+    """The assignment's id."""
     agent: Id
+    """The evolved agent whose body is evaluated."""
     node: Id
+    """The evaluator it is assigned to."""
     genome: Genome
+    """The agent's body."""
     task: Id
+    """The test task."""
     ppo: PPOConfig
+    """The learning configuration of the evaluation (its budget and seed)."""
     lease_s: LeaseSeconds
+    """Seconds without progress after which the job is taken back."""
 
     @property
     def steps(self) -> int:
@@ -156,11 +186,17 @@ class Tournament(MessageBase):
 
     type: Literal["Tournament"] = "Tournament"
     child: Id
+    """The child the winner begets."""
     contestants: Annotated[tuple[Id, ...], Field(min_length=1, max_length=10_000)]
+    """The agents drawn, with replacement."""
     fitness: Annotated[tuple[Finite, ...], Field(min_length=1, max_length=10_000)]
+    """Each contestant's fitness, in the same order."""
     parent: Id
+    """The winner."""
     mutation_seed: Seed
+    """Seed of the child's mutation."""
     iteration: Count
+    """The tournament's index in the run (0 first)."""
 
     @model_validator(mode="after")
     def _one_fitness_each(self) -> Tournament:
@@ -176,12 +212,19 @@ class TrainProgress(MessageBase):
 
     type: Literal["TrainProgress"] = "TrainProgress"
     child: Id
+    """The body being trained (the agent, for an evaluation)."""
     job: Id
+    """The job in progress."""
     node: Id
+    """The worker doing it."""
     env_steps: Count
+    """Env steps done so far (all copies)."""
     total_steps: Steps
+    """The job's budget of env steps."""
     recent_return: Finite | None = None
+    """Mean return of the recent episodes (None before the first one ends)."""
     steps_per_s: NonNegative
+    """Env steps per second of this training."""
 
     @model_validator(mode="after")
     def _within_budget(self) -> TrainProgress:
@@ -197,22 +240,39 @@ class FitnessReport(MessageBase):
 
     type: Literal["FitnessReport"] = "FitnessReport"
     child: Id
+    """The body trained."""
     job: Id
+    """The job it answers."""
     node: Id
+    """The trainer that did it."""
     genome: Genome
+    """The body that was trained."""
     mutation: str | None = None
+    """The mutation operator that made it (None in the initial population)."""
     mutation_detail: Text = ""
+    """What the mutation changed, in words."""
     fitness: Finite
+    """Mean episode sum of the world's selection term (the fitness)."""
     fitness_source: FitnessSource
+    """Which episodes the fitness comes from."""
     fitness_episodes: Count
+    """Episodes the fitness averages."""
     curve: Curve
+    """The learning curve."""
     energy: Measure
+    """Mean sum of |joint torque| per episode of the last ones (NaN: none finished)."""
     cost_of_work: Measure
+    """Energy / (mass g reward) (NaN when the reward is not positive)."""
     mass: Positive
+    """The body's mass, kg."""
     episodes: Count
+    """Episodes finished in the training."""
     env_steps: Count
+    """Env steps done (all copies)."""
     wall_s: NonNegative
+    """Wall-clock seconds of the training."""
     steps_per_s: NonNegative
+    """Env steps per second of the training."""
     checkpoint: Annotated[bytes, Field(strict=True, max_length=MAX_CHECKPOINT_BYTES)]
     """`derl.rl.checkpoint.Checkpoint.to_bytes()` of the trained policy."""
 
@@ -229,9 +289,13 @@ class Ack(MessageBase):
 
     type: Literal["Ack"] = "Ack"
     of: Literal["FitnessReport", "EvalResult"]
+    """The type of the report acknowledged."""
     job: Id
+    """Its job."""
     child: Id
+    """Its subject (the child, or the agent of an EvalResult)."""
     node: Id
+    """The worker that sent it."""
 
 
 class EvalResult(MessageBase):
@@ -240,14 +304,23 @@ class EvalResult(MessageBase):
 
     type: Literal["EvalResult"] = "EvalResult"
     agent: Id
+    """The agent evaluated."""
     task: Id
+    """The test task."""
     seed: Seed
+    """The training seed."""
     steps: Steps
+    """The budget of env steps."""
     reward: Finite
+    """The task's fitness after training (as in FitnessReport)."""
     cost_of_work: Measure
+    """As in FitnessReport (NaN when undefined)."""
     curve: Curve
+    """The learning curve."""
     node: Id
+    """The evaluator that did it."""
     job: Id
+    """The job it answers."""
 
 
 class Reject(MessageBase):
@@ -256,10 +329,15 @@ class Reject(MessageBase):
 
     type: Literal["Reject"] = "Reject"
     of: Literal["FitnessReport", "EvalResult"]
+    """The type of the report refused."""
     job: Id
+    """Its job."""
     child: Id
+    """Its subject (the child, or the agent of an EvalResult)."""
     node: Id
+    """The worker that sent it."""
     reason: Text
+    """Why it is refused."""
 
 
 class Cancel(MessageBase):
@@ -268,8 +346,11 @@ class Cancel(MessageBase):
 
     type: Literal["Cancel"] = "Cancel"
     job: Id
+    """The job to stop."""
     node: Id
+    """The worker doing it."""
     reason: Text
+    """Why."""
 
 
 class JobLost(MessageBase):
@@ -279,8 +360,11 @@ class JobLost(MessageBase):
 
     type: Literal["JobLost"] = "JobLost"
     job: Id
+    """The job taken back."""
     node: Id
+    """The worker it was assigned to."""
     reason: Text
+    """Why."""
 
 
 class JobFailed(MessageBase):
@@ -289,9 +373,13 @@ class JobFailed(MessageBase):
 
     type: Literal["JobFailed"] = "JobFailed"
     job: Id
+    """The job that failed."""
     node: Id
+    """The worker that ran it."""
     subject: Id
+    """The child trained or the agent evaluated."""
     error: Text
+    """The exception's type and text."""
 
 
 class Birth(MessageBase):
@@ -302,19 +390,33 @@ class Birth(MessageBase):
 
     type: Literal["Birth"] = "Birth"
     child: Id
+    """The child born."""
     parent: Id | None = None
+    """The body it was mutated from (None in the initial population)."""
     job: Id
+    """The job whose report was accepted."""
     node: Id
+    """The trainer that trained it (for a repeat: the one that trained the earlier body)."""
     birth: Count
+    """The birth index (0 first)."""
     generation: Count
+    """The parent's generation plus one (0 in the initial population)."""
     fitness: Finite
+    """Its fitness."""
     cost_of_work: Measure
+    """As in FitnessReport."""
     energy: Measure
+    """As in FitnessReport."""
     mass: Positive
+    """The body's mass, kg."""
     mutation: str | None = None
+    """The mutation operator that made it (None in the initial population)."""
     mutation_detail: Text = ""
+    """What the mutation changed, in words."""
     genome: Genome
+    """The child's body."""
     repeat_of: Id | None = None
+    """The earlier agent with the same body whose result it takes (None: trained)."""
 
 
 class ChildFailed(MessageBase):
@@ -323,9 +425,13 @@ class ChildFailed(MessageBase):
 
     type: Literal["ChildFailed"] = "ChildFailed"
     child: Id
+    """The child given up."""
     parent: Id | None = None
+    """The body it was to be mutated from."""
     attempts: Count
+    """Trainings that failed."""
     error: Text
+    """The last error."""
 
 
 class Rejection(MessageBase):
@@ -333,10 +439,15 @@ class Rejection(MessageBase):
 
     type: Literal["Rejection"] = "Rejection"
     reason: Text
+    """Why it was refused."""
     key: Text
+    """The key it came on."""
     sender: Id | None = None
+    """The `node` it names, if any."""
     of: Text = ""
+    """Its type."""
     job: Id | None = None
+    """The `job` it names, if any."""
 
 
 class PopulationSnapshot(MessageBase):
@@ -344,7 +455,9 @@ class PopulationSnapshot(MessageBase):
 
     type: Literal["PopulationSnapshot"] = "PopulationSnapshot"
     birth_counter: Count
+    """Births so far."""
     members: Annotated[tuple[Member, ...], Field(max_length=MAX_ITEMS)] = ()
+    """The population: the most recent births."""
 
     @model_validator(mode="after")
     def _consistent(self) -> PopulationSnapshot:
@@ -364,18 +477,31 @@ class RunStatus(MessageBase):
 
     type: Literal["RunStatus"] = "RunStatus"
     born: Count
+    """Children born."""
     target: Steps
+    """Children to be born in all."""
     best_fitness: Finite | None = None
+    """The best fitness so far."""
     best_agent: Id | None = None
+    """The agent that has it."""
     in_flight: Count
+    """Jobs assigned and not yet done."""
     workers_alive: Count
+    """Trainers and evaluators alive."""
     evaluated: Count = 0
+    """Evaluations done."""
     eval_target: Count = 0
+    """Evaluations to do in all."""
     failed: Count = 0
+    """Children given up."""
     repeats: Count = 0
+    """Children born as repeats of an earlier body."""
     rejected: Count = 0
+    """Messages rejected."""
     steps_per_s: NonNegative = 0.0
+    """Env steps per second: the sum of each worker's latest report."""
     done: bool = False
+    """The run is finished."""
 
     @model_validator(mode="after")
     def _best_complete(self) -> RunStatus:

@@ -34,13 +34,13 @@ class EvolutionConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    name: str = "custom"
-    world: Literal["ft", "vt", "mvt"] = "ft"
+    name: str = Field("custom", description="the profile's name (a file's: its stem)")
+    world: Literal["ft", "vt", "mvt"] = Field("ft", description="the world evolution trains in")
     population: int = Field(576, ge=1, description="P: the aging window (most recent births)")
     tournament: int = Field(4, ge=1, description="T: contestants drawn with replacement")
     total: int = Field(4000, ge=1, description="N: bodies trained in all, initial ones included")
     train_steps: int = Field(5_000_000, ge=1, description="PPO env steps per body")
-    num_envs: int = Field(32, ge=1)
+    num_envs: int = Field(32, ge=1, description="environment copies of every training")
     training_seed: int = Field(
         1409, ge=0, lt=SEED_LIMIT, description="the same for every lifetime (the paper's)"
     )
@@ -54,9 +54,9 @@ class EvolutionConfig(BaseModel):
         3, ge=1, le=100, description="trainings of a child that may fail before it is given up"
     )
     eval_top: int = Field(0, ge=0, description="best bodies evaluated on the test tasks at the end")
-    eval_tasks: tuple[str, ...] = ()
-    eval_seeds: int = Field(1, ge=1)
-    eval_steps: int = Field(1_000_000, ge=1)
+    eval_tasks: tuple[str, ...] = Field((), description="test tasks of the final evaluations")
+    eval_seeds: int = Field(1, ge=1, description="evaluations of each body per test task (seeds)")
+    eval_steps: int = Field(1_000_000, ge=1, description="PPO env steps per evaluation")
     ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters")
 
     def training_ppo(self) -> PPOConfig:

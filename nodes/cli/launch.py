@@ -7,9 +7,11 @@ import logging
 import signal
 from pathlib import Path
 
-from nodes.cli.options import profile_from
+from pydantic import ValidationError
+
+from nodes.cli.options import fail_invalid, profile_from
 from nodes.launch.commands import dry_run_text, plan
-from nodes.launch.model import load
+from nodes.launch.model import LaunchFile, load
 from nodes.launch.supervisor import Supervisor
 
 log = logging.getLogger("derl.launch")
@@ -42,6 +44,8 @@ def _launch(args: argparse.Namespace) -> int:
     try:
         launch = load(args.file)
         commands = plan(launch, args.file, args.host, ssh=not args.no_ssh)
+    except ValidationError as error:
+        fail_invalid(f"{args.file} is not a valid launch file", error, LaunchFile)
     except ValueError as error:
         raise SystemExit(f"derl launch: {error}") from None
     except KeyError as error:
@@ -52,7 +56,7 @@ def _launch(args: argparse.Namespace) -> int:
         print(dry_run_text(commands))
         return 0
     if any(c.role == "coordinator" and c.remote is None for c in commands):
-        profile_from(argparse.Namespace(profile=launch.profile, env=launch.env))  # fail early
+        profile_from(argparse.Namespace(profile=launch.profile, env=launch.env, seed=launch.seed))
     supervisor = Supervisor(commands, args.log_dir or launch.run_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):  # SIGHUP: our ssh session ended
         signal.signal(sig, lambda *_: supervisor.stop.set())

@@ -7,7 +7,7 @@ import argparse
 import re
 import sys
 from pathlib import Path
-from typing import NoReturn
+from typing import NoReturn, TypeGuard, get_args
 
 import yaml
 import zenoh
@@ -103,12 +103,7 @@ def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
     try:
         return load_profile(args.profile, world=args.env, seed=args.seed)
     except ValidationError as error:
-        unknown = [e["loc"] for e in error.errors() if e["type"] == "extra_forbidden"]
-        if unknown:
-            key, valid = unknown[0], _keys(EvolutionConfig, unknown[0][:-1])
-            fail(f"profile {args.profile}: unknown key {'.'.join(map(str, key))!r}; "
-                 f"valid keys: {', '.join(valid)}")  # fmt: skip
-        fail(f"profile {args.profile}: {problems(error)}")
+        fail_invalid(f"profile {args.profile}", error, EvolutionConfig, top=(PROFILE_KEY,))
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -117,15 +112,45 @@ def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
         fail(f"profile {args.profile}: {error}")
 
 
-def _keys(model: type[BaseModel], path: tuple[object, ...]) -> list[str]:
-    """The keys valid at `path` inside `model` (at the top, also `profile`)."""
+def fail_invalid(
+    what: str, error: ValidationError, model: type[BaseModel], top: tuple[str, ...] = ()
+) -> NoReturn:
+    """Exit saying why a file does not fit `model`: its first unknown key with the keys valid
+    there (at the top, also `top`), else every problem, in one line."""
+    unknown = [e["loc"] for e in error.errors() if e["type"] == "extra_forbidden"]
+    if unknown:
+        key = unknown[0]
+        valid = [*valid_keys(model, key[:-1]), *(top if len(key) == 1 else ())]
+        fail(f"{what}: unknown key {'.'.join(map(str, key))!r}; valid keys: {', '.join(valid)}")
+    fail(f"{what}: {problems(error)}")
+
+
+def valid_keys(model: type[BaseModel], path: tuple[object, ...]) -> list[str]:
+    """The keys valid at `path` (an error's location: fields, list indices, union tags) inside
+    `model`; none where `path` does not lead to a model."""
+    inner: object = model
     for part in path:
-        field = model.model_fields.get(str(part))
-        inner = field.annotation if field else None
-        if not (isinstance(inner, type) and issubclass(inner, BaseModel)):
-            return []
-        model = inner
-    return [*model.model_fields, *([] if path else [PROFILE_KEY])]
+        inner = _inside(inner, part)
+    return list(inner.model_fields) if _is_model(inner) else []
+
+
+def _inside(annotation: object, part: object) -> object:
+    """The annotation at one step of an error's location inside `annotation`."""
+    if _is_model(annotation):
+        field = annotation.model_fields.get(str(part))
+        return None if field is None else field.annotation
+    args = get_args(annotation)
+    if isinstance(part, int):  # an item of a list or tuple
+        return args[0] if args else None
+    models = [a for a in args if _is_model(a)]
+    for member in models:  # a tagged union's location names the member by its tag
+        if any(part in get_args(f.annotation) for f in member.model_fields.values()):
+            return member
+    return _inside(models[0], part) if models else None  # an optional model
+
+
+def _is_model(annotation: object) -> TypeGuard[type[BaseModel]]:
+    return isinstance(annotation, type) and issubclass(annotation, BaseModel)
 
 
 def run_directory(path: Path) -> Path:
