@@ -17,7 +17,8 @@ arena edge, time limit); distances are of the head centre in the ground plane (x
 - exploration: 100 x 100 m floor cut into 1 m cells, spawn at the centre; "explore" = +1 for
   each cell the head is in for the first time in the episode (the spawn cell at the first step).
 - escape: 100 x 100 m bowl of random bumps, new each episode; "escape" = the per-step increase in
-  distance from the centre, +100 and success on reaching 42 m (the half size less 8 m).
+  distance from the centre, +100 and success on reaching 42 m (0.84 of the half size; the
+  released code's half size less 8 m); the bowl is the released code's cubic-spline bumps.
 - incline: 150 x 40 m plane tilted 10 degrees, +x uphill, spawn 2 m (along the slope) from the
   low end; "forward" = x velocity / cos 10 deg, the speed along the slope; a fall is the head
   below 20% of its resting height.
@@ -25,9 +26,10 @@ arena edge, time limit); distances are of the head centre in the ground plane (x
   at x = +35 (y = 0), spawn as incline; MVT's "reach" and "push" rewards (margin 0.5 m) and
   "object" observation; falls as incline.
 - manipulate_ball: 30 x 30 m floor, spawn 2 m from the back edge, a ball (r = 0.2 m, density
-  600, rolling friction) placed like MVT's box (15-24 m ahead, within 4.8 m of the centre line)
-  and its goal beyond it (at most 6.5 m before the far edge); MVT's rewards (margin 0.5 m, reached
-  at the ball's centre) and observation.
+  600, rolling friction) placed like MVT's box (15-24 m ahead but no closer than 6.2 m to the
+  far edge, within 4.8 m of the centre line) and its goal beyond it (no closer than 6.5 m to the
+  far edge: nearly always that); MVT's rewards (margin 0.5 m, the ball reached at its centre)
+  and observation.
 """
 
 from __future__ import annotations
