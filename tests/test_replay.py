@@ -1,5 +1,6 @@
-"""A run's results watched: `derl rollout` of a real run's best/ folder with a video, the gaits
-`derl report` films from the run's checkpoints, and the one line for a folder without a body."""
+"""A run's results watched: `derl rollout` of a real run's best/ folder with a video, its best
+bodies drawn, the gaits `derl report` films from the run's checkpoints, and the one line for a
+folder without a body."""
 
 from __future__ import annotations
 
@@ -47,6 +48,18 @@ def test_rollout_of_a_runs_best_body(tiny_run: Path, tmp_path: Path) -> None:
     assert shown.stdout.count("episode ") == 2
     filmed = frames(video)
     assert 1 < filmed <= 40 and f"wrote {video} ({filmed} frames)" in " ".join(shown.stdout.split())
+
+
+def test_the_best_bodies_are_drawn(tiny_run: Path, tmp_path: Path) -> None:
+    """`make run`'s picture: the best/ folders hold settings beside the genomes."""
+    picture = tmp_path / "best.png"
+    drawn = subprocess.run(
+        derl_argv("unimal", "render", str(tiny_run / "best"), "--out", str(picture)),
+        capture_output=True, text=True, timeout=120, cwd=REPO,
+    )  # fmt: skip
+    assert drawn.returncode == 0, drawn.stderr
+    with Image.open(picture) as image:
+        assert image.size[0] > 320  # a grid of the 3 bodies
 
 
 def test_report_films_the_best_gaits(tiny_run: Path, tmp_path: Path) -> None:

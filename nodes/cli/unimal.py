@@ -29,7 +29,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     show.set_defaults(handler=_show)
 
     render = sub.add_parser("render", help="draw a body, or a directory of bodies as a grid")
-    render.add_argument("path", type=Path, help="genome JSON file, or a directory of them")
+    render.add_argument(
+        "path",
+        type=Path,
+        help="genome JSON file, or a directory of them (e.g. a run's best/ folder)",
+    )
     render.add_argument("--out", type=Path, required=True, help="PNG file to write")
     render.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
     render.set_defaults(handler=_render)
@@ -89,11 +93,12 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
+    from derl.replay import TASK_FILES
     from derl.unimal.render import render_body, render_grid, save_png
 
     width, height = args.size
-    if args.path.is_dir():
-        files = sorted(args.path.rglob("*.json"))
+    if args.path.is_dir():  # a trained body's folder also holds its task and settings: not bodies
+        files = sorted(f for f in args.path.rglob("*.json") if f.name not in TASK_FILES)
         if not files:
             raise SystemExit(f"derl: no genome JSON files in {args.path}")
         image = render_grid([load_genome(f) for f in files], width, height)
