@@ -24,7 +24,7 @@ from typing import Literal
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from messages import DecodeError, KeySpace, MessageBase, decode, encode
+from messages import DecodeError, InvalidKey, KeySpace, MessageBase, decode, encode, parse
 
 log = logging.getLogger("derl.bus")
 
@@ -161,9 +161,12 @@ class Bus:
         """Call `handler(role, node, alive)` for every token of this run, existing ones too."""
 
         def on_sample(sample: zenoh.Sample) -> None:
-            parts = str(sample.key_expr).split("/")
-            if len(parts) == 5:
-                handler(parts[3], parts[4], sample.kind == zenoh.SampleKind.PUT)
+            try:
+                role, node = parse(str(sample.key_expr)).parts
+            except InvalidKey as error:
+                log.warning("ignored liveliness token %s: %s", sample.key_expr, error)
+                return
+            handler(role, node, sample.kind == zenoh.SampleKind.PUT)
 
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
