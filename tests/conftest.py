@@ -1,8 +1,12 @@
-"""Shared fixtures: small hand-made bodies with known geometry."""
+"""Shared fixtures: small hand-made bodies with known geometry, and a test's node processes."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from pathlib import Path
+
 import pytest
+from nodes_fixtures import Processes
 
 from derl.unimal import Genome, Joint, Limb
 
@@ -21,3 +25,13 @@ def quadruped() -> Genome:
             Limb(id=2, parent=0, site="end", paired=True, length=0.2, theta=0, phi=180, joints=XY),
         ),
     )
+
+
+@pytest.fixture
+def procs(tmp_path: Path) -> Iterator[Processes]:
+    """The test's child processes (logs in tmp_path/logs), all stopped when it ends."""
+    processes = Processes(tmp_path / "logs")
+    try:
+        yield processes
+    finally:
+        processes.close()

@@ -3,7 +3,6 @@ children in their own process groups that die with the test, and what the journa
 
 from __future__ import annotations
 
-import ctypes
 import os
 import signal
 import socket
@@ -12,14 +11,20 @@ import sys
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import yaml
 
-from messages import Birth, TrainJob
+from messages import Birth, MessageBase, RunStatus, TrainJob, TrainProgress
 from nodes.journal.segments import replay, segments
-from nodes.runtime.processes import stop_all
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.runtime.processes import child_setup, stop_all
+
+M = TypeVar("M", bound=MessageBase)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -73,22 +78,19 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> obje
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
-def _child_setup() -> None:  # own process group, and die with the test process
-    os.setsid()
-    ctypes.CDLL("libc.so.6").prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 def derl_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "nodes.cli", *args]
 
 
 class Processes:
-    """Child processes of one test, each in its own process group, all killed by `close`."""
+    """Child processes of one test, each in its own process group (dying with the test
+    process), output in `logs`/NAME.log, all stopped by `close`."""
 
     def __init__(self, logs: Path) -> None:
         self.logs = logs
         self.logs.mkdir(parents=True, exist_ok=True)
-        self.started: dict[str, subprocess.Popen] = {}
+        self.started: dict[str, subprocess.Popen] = {}  # the latest process of each name
+        self.every: list[subprocess.Popen] = []
 
     def start(
         self, name: str, argv: list[str], env: dict[str, str] | None = None
@@ -97,9 +99,10 @@ class Processes:
         with (self.logs / f"{name}.log").open("ab") as out:
             process = subprocess.Popen(
                 argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                env=environment, cwd=REPO, preexec_fn=_child_setup,
+                env=environment, cwd=REPO, preexec_fn=child_setup,
             )  # fmt: skip
         self.started[name] = process
+        self.every.append(process)
         return process
 
     def log(self, name: str) -> str:
@@ -112,21 +115,77 @@ class Processes:
             os.killpg(process.pid, sig)
         process.wait(timeout=10)
 
+    def finish(self, process: subprocess.Popen, timeout: float = 30) -> int:
+        """`process`'s exit status once it ends by itself; stopped, and a failure, after
+        `timeout`."""
+        try:
+            return process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            stop_all([process], timeout=2)
+            raise
+
     def close(self) -> None:
         """SIGTERM every process group, SIGKILL what is left after 5 s."""
-        stop_all(list(self.started.values()), timeout=5)
+        stop_all(self.every, timeout=5)
+
+
+@dataclass
+class LocalRun:
+    """A run on a loopback endpoint: its directory, profile, and its nodes' command lines."""
+
+    dir: Path
+    profile: Path
+    run: str = field(default_factory=run_id)
+    endpoint: str = field(default_factory=lambda: f"tcp/127.0.0.1:{free_port()}")
+
+    @classmethod
+    def at(cls, folder: Path, **profile: object) -> LocalRun:
+        """A run in `folder`/run with TINY_PROFILE changed by `profile`."""
+        return cls(folder / "run", write_profile(folder / "profile.yaml", **profile))
+
+    @property
+    def lease_s(self) -> float:
+        return float(yaml.safe_load(self.profile.read_text())["lease_s"])
+
+    def coordinator(self) -> list[str]:
+        return derl_argv("coordinator", "--profile", str(self.profile), "--run-dir",
+                         str(self.dir), "--run", self.run, "--listen", self.endpoint)  # fmt: skip
+
+    def trainer(self, name: str) -> list[str]:
+        return derl_argv("trainer", "--run", self.run, "--connect", self.endpoint, "--name", name)
+
+
+class Observer:
+    """The test's own view of a run on the bus: its status and training progress as heard."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self.statuses: list[RunStatus] = []
+        self.progress: list[TrainProgress] = []
+        bus.subscribe(bus.keys.status(), self.statuses.append, (RunStatus,))
+        bus.subscribe(bus.keys.all("progress"), self.progress.append, (TrainProgress,))
+
+
+@contextmanager
+def observe(run: LocalRun) -> Iterator[Observer]:
+    """An `Observer` of `run`, a Zenoh peer connected to its endpoint, while in the block."""
+    with open_session(ZenohOptions(connect=(run.endpoint,))) as session:
+        yield Observer(Bus(session, run.run))
+
+
+def journaled(run_dir: Path, kind: type[M]) -> list[M]:
+    """The messages of type `kind` in a run's journal so far, in order."""
+    if not segments(run_dir):
+        return []
+    return [m for m in replay(run_dir) if isinstance(m, kind)]
 
 
 def births(run_dir: Path) -> list[str]:
-    if not segments(run_dir):
-        return []
-    return [m.child for m in replay(run_dir) if isinstance(m, Birth)]
+    return [m.child for m in journaled(run_dir, Birth)]
 
 
 def jobs(run_dir: Path) -> list[TrainJob]:
-    if not segments(run_dir):
-        return []
-    return [m for m in replay(run_dir) if isinstance(m, TrainJob)]
+    return journaled(run_dir, TrainJob)
 
 
 def assert_born_once(run_dir: Path, total: int) -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import json
 import re
-import subprocess
 import sys
 import threading
 import time
@@ -16,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import free_port, wait_for
+from nodes_fixtures import Processes, derl_argv, free_port, wait_for
 
 from messages import (
     Birth,
@@ -31,62 +30,13 @@ from messages import (
 from messages.examples import examples
 from nodes.journal.segments import JournalWriter
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.runtime.processes import spawn_derl, stop_all
+from nodes.runtime.processes import stop_all
 from nodes.tools.logs import read_log
 from nodes.tools.monitor import RunView, sparkline
 from nodes.tools.topic import key_expression, rate_line
 
-ROOT = Path(__file__).resolve().parents[1]
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
 STEPS, GAP_S = 6, 0.4
-
-
-class Processes:
-    """Processes of one test, each in its own process group, output in a file, all stopped."""
-
-    def __init__(self, folder: Path) -> None:
-        self.folder = folder
-        self.started: list[subprocess.Popen] = []
-
-    def derl(self, name: str, args: list[str]) -> subprocess.Popen:
-        process = spawn_derl(args, self.folder / f"{name}.log")
-        self.started.append(process)
-        return process
-
-    def script(self, name: str, argv: list[str]) -> subprocess.Popen:
-        with (self.folder / f"{name}.log").open("wb") as out:
-            process = subprocess.Popen(
-                [sys.executable, *argv],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-                cwd=ROOT,
-            )
-        self.started.append(process)
-        return process
-
-    def output(self, name: str) -> str:
-        return (self.folder / f"{name}.log").read_text()
-
-    def finish(self, process: subprocess.Popen, timeout: float = 30) -> int:
-        try:
-            return process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            stop_all([process], timeout=2)
-            raise
-
-    def close(self) -> None:
-        stop_all(self.started, timeout=5)
-
-
-@pytest.fixture
-def procs(tmp_path: Path) -> Iterator[Processes]:
-    started = Processes(tmp_path)
-    try:
-        yield started
-    finally:
-        started.close()
 
 
 @pytest.fixture
@@ -170,7 +120,9 @@ def test_record_keeps_every_valid_message_and_counts_garbage(
     tmp_path: Path, procs: Processes, bus: Bus, endpoint: str
 ) -> None:
     out = tmp_path / "recorded.mcap"
-    recorder = procs.derl("record", ["record", str(out), "--connect", endpoint, "--duration", "60"])
+    recorder = procs.start(
+        "record", derl_argv("record", str(out), "--connect", endpoint, "--duration", "60")
+    )
     probe = bus.session.declare_publisher(bus.keys.status())
     wait_for(lambda: probe.matching_status.matching, 30, "the recorder's subscription")
     sent = [m for i in range(3) for m in examples(bus.run, i)]
@@ -180,19 +132,21 @@ def test_record_keeps_every_valid_message_and_counts_garbage(
     bus.session.put(bus.keys.population(), encode(sent[-1]))  # a RunStatus on the wrong key
     wait_for(lambda: out.exists() and len(list(read_log(out))) == len(sent), 20, "the recording")
     stop_all([recorder])
-    assert recorder.returncode == 0, procs.output("record")
+    assert recorder.returncode == 0, procs.log("record")
     assert [logged.message for logged in read_log(out)] == sent
-    assert f"recorded {len(sent)} messages" in procs.output("record")
-    assert re.search(r"rejected: .*malformed 1", procs.output("record"))
-    assert "wrong key 1" in procs.output("record")
+    assert f"recorded {len(sent)} messages" in procs.log("record")
+    assert re.search(r"rejected: .*malformed 1", procs.log("record"))
+    assert "wrong key 1" in procs.log("record")
 
 
 def test_replay_keeps_order_and_scales_timing(
     run_log: Path, procs: Processes, bus: Bus, endpoint: str
 ) -> None:
     got = _collector(bus, "recorded")
-    replay = procs.derl("replay", ["replay", str(run_log), "--rate", "10", "--connect", endpoint])
-    assert procs.finish(replay) == 0, procs.output("replay")
+    replay = procs.start(
+        "replay", derl_argv("replay", str(run_log), "--rate", "10", "--connect", endpoint)
+    )
+    assert procs.finish(replay) == 0, procs.log("replay")
     expected = [logged.message for logged in read_log(run_log)]
     wait_for(lambda: len(got) >= len(expected), 10, "every replayed message")
     assert [m for _, m in got] == expected
@@ -206,7 +160,7 @@ def test_replay_filters_kinds_skips_the_start_and_renames_the_run(
     got = _collector(bus, "renamed")
     args = ["replay", str(run_log), "--rate", "0", "--topics", "fitness,status", "--start-offset",
             "1.0", "--as-run", "renamed", "--force", "--connect", endpoint]  # fmt: skip
-    assert procs.finish(procs.derl("replay", args)) == 0, procs.output("replay")
+    assert procs.finish(procs.start("replay", derl_argv(*args))) == 0, procs.log("replay")
     logged = list(read_log(run_log))
     expected = [
         entry.message.model_copy(update={"run": "renamed"})
@@ -226,10 +180,10 @@ def test_replay_loops_until_stopped(
     got = _collector(bus, "looped")
     args = ["replay", str(run_log), "--rate", "20", "--topics", "status", "--loop",
             "--as-run", "looped", "--force", "--connect", endpoint]  # fmt: skip
-    replay = procs.derl("replay", args)
+    replay = procs.start("replay", derl_argv(*args))
     wait_for(lambda: len(got) >= 3 * STEPS, 20, "three passes")
     stop_all([replay])
-    assert replay.returncode == 0 and "passes" in procs.output("replay")
+    assert replay.returncode == 0 and "passes" in procs.log("replay")
     one_pass = list(range(2, STEPS + 2))  # the RunStatus of examples(run, i) has born = i + 2
     assert [m.born for _, m in got][: 2 * STEPS] == one_pass * 2
 
@@ -240,12 +194,27 @@ def test_replay_refuses_a_run_with_live_nodes(
     live = Bus(bus.session, "recorded")
     got = _collector(bus, "recorded")
     token = live.token("trainer", "t0")
-    replay = procs.derl("replay", ["replay", str(run_log), "--rate", "0", "--connect", endpoint])
+    replay = procs.start(
+        "replay", derl_argv("replay", str(run_log), "--rate", "0", "--connect", endpoint)
+    )
     assert procs.finish(replay) == 1
     token.undeclare()
-    assert "run recorded is live" in procs.output("replay")
-    assert "Traceback" not in procs.output("replay")
+    assert "run recorded is live" in procs.log("replay")
+    assert "Traceback" not in procs.log("replay")
     assert got == []
+
+
+def test_watch_alive_takes_only_tokens_of_the_key_space(bus: Bus) -> None:
+    seen: list[tuple[str, str, bool]] = []
+    token = bus.token("trainer", "t0")
+    stray = bus.session.liveliness().declare_token(f"derl/{bus.run}/alive/trainer/b@d")
+    bus.watch_alive(lambda role, node, up: seen.append((role, node, up)))
+    wait_for(lambda: seen, 10, "the token")
+    token.undeclare()
+    wait_for(lambda: len(seen) >= 2, 10, "the token gone")
+    stray.undeclare()
+    time.sleep(0.5)
+    assert seen == [("trainer", "t0", True), ("trainer", "t0", False)]
 
 
 # --- topic -----------------------------------------------------------------------------------
@@ -253,7 +222,7 @@ def test_replay_refuses_a_run_with_live_nodes(
 
 def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None:
     router = f"tcp/127.0.0.1:{free_port()}"
-    procs.derl("router", ["router", "--listen", router])
+    procs.start("router", derl_argv("router", "--listen", router))
     run = f"w{uuid.uuid4().hex[:10]}"
     with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
         publisher = Repeater(Bus(session, run))
@@ -262,31 +231,31 @@ def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None
         try:
             args = ["topic", "echo", "fitness", "--run", run, "--count", "3",
                     "--mode", "client", "--connect", router]  # fmt: skip
-            echo = procs.derl("echo", args)
-            assert procs.finish(echo) == 0, procs.output("echo")
+            echo = procs.start("echo", derl_argv(*args))
+            assert procs.finish(echo) == 0, procs.log("echo")
         finally:
             publisher.stop()
-    lines = [json.loads(line) for line in procs.output("echo").splitlines() if line[:1] == "{"]
+    lines = [json.loads(line) for line in procs.log("echo").splitlines() if line[:1] == "{"]
     assert len(lines) == 3
     assert lines[0]["checkpoint"] == {"bytes": 300}
     assert lines[0] == {
         **report.model_dump(mode="json", exclude={"checkpoint"}),
         "checkpoint": {"bytes": 300},
     }
-    assert "rejected (malformed)" in procs.output("echo")
+    assert "rejected (malformed)" in procs.log("echo")
 
 
 def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpoint: str) -> None:
     status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
     repeater.start([status], 0.05, raw=((bus.keys.fitness("n", "x"), b"\xffjunk"),))
     flags = ["--run", bus.run, "--connect", endpoint]
-    rate = procs.derl("hz", ["topic", "hz", "status", "--duration", "3", *flags])
-    listing = procs.derl("list", ["topic", "list", "--duration", "2", *flags])
+    rate = procs.start("hz", derl_argv("topic", "hz", "status", "--duration", "3", *flags))
+    listing = procs.start("list", derl_argv("topic", "list", "--duration", "2", *flags))
     assert procs.finish(rate) == 0 and procs.finish(listing) == 0
-    measured = re.findall(r"average rate: ([\d.]+) Hz", procs.output("hz"))
-    assert measured and 10 < float(measured[-1]) < 30, procs.output("hz")
-    assert re.search(rf"derl/{bus.run}/status\s+RunStatus\s+\d+", procs.output("list"))
-    assert re.search(rf"derl/{bus.run}/fitness/n/x\s+rejected\s+\d+", procs.output("list"))
+    measured = re.findall(r"average rate: ([\d.]+) Hz", procs.log("hz"))
+    assert measured and 10 < float(measured[-1]) < 30, procs.log("hz")
+    assert re.search(rf"derl/{bus.run}/status\s+RunStatus\s+\d+", procs.log("list"))
+    assert re.search(rf"derl/{bus.run}/fitness/n/x\s+rejected\s+\d+", procs.log("list"))
 
 
 # --- monitor and the example -----------------------------------------------------------------
@@ -309,9 +278,9 @@ def test_monitor_once_shows_the_run(
     procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
 ) -> None:
     repeater.start(_a_run(bus.run), 0.2)
-    monitor = procs.derl("monitor", ["monitor", "--once", "2", "--connect", endpoint])
-    assert procs.finish(monitor) == 0, procs.output("monitor")
-    text = procs.output("monitor")
+    monitor = procs.start("monitor", derl_argv("monitor", "--once", "2", "--connect", endpoint))
+    assert procs.finish(monitor) == 0, procs.log("monitor")
+    text = procs.log("monitor")
     for shown in (f"derl run {bus.run}", "born 7/40", "best 12.50 (a3)", "2,345 steps/s",
                   "evaluated 1/4", "trainer-1", "4,096/8,192 (50%)", "1.50", "grow_limb",
                   "9.75", "fitness over 1 births"):  # fmt: skip
@@ -323,10 +292,10 @@ def test_example_monitor_prints_fitness(
 ) -> None:
     reports = [m for i in range(3) for m in examples(bus.run, i) if isinstance(m, Birth)]
     repeater.start(reports, 0.2, raw=((bus.keys.births("x"), b"\xffjunk"),))
-    procs.script("example", ["examples/fitness_monitor.py", bus.run, endpoint])
+    procs.start("example", [sys.executable, "examples/fitness_monitor.py", bus.run, endpoint])
     wanted = {f"{r.child} fitness {r.fitness:.2f} ({r.node})" for r in reports}
-    wait_for(lambda: wanted <= set(procs.output("example").splitlines()), 30, "fitness lines")
-    lines = procs.output("example").splitlines()
+    wait_for(lambda: wanted <= set(procs.log("example").splitlines()), 30, "fitness lines")
+    lines = procs.log("example").splitlines()
     assert sum(line in wanted for line in lines) == 3  # each child once
     assert any(line.startswith("skipped derl/") for line in lines)
 
