@@ -378,7 +378,7 @@ class _NoBus:
     def __init__(self) -> None:
         self.rejected: Counter[str] = Counter()
 
-    def publish(self, msg: object, reliable: bool = True, data: bytes | None = None) -> None:
+    def publish(self, msg: object, data: bytes | None = None) -> None:
         pass
 
 
@@ -612,7 +612,7 @@ def hub(endpoint: str, run: str, seconds: float) -> None:
         status = RunStatus(run=run, born=10, target=4000, in_flight=288, workers_alive=288)
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline and not received["Ack"]:  # an Ack says: stop
-            bus.publish(status, reliable=False)
+            bus.publish(status)
             time.sleep(1.0)
         print(json.dumps(dict(received)), flush=True)
 
@@ -646,9 +646,9 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             costs: dict[str, list[float]] = {"WorkerReady": [], "TrainProgress": [],
                                              "FitnessReport": []}  # fmt: skip
 
-            def timed(msg, reliable: bool = True) -> None:
+            def timed(msg) -> None:
                 start = time.perf_counter()
-                bus.publish(msg, reliable)
+                bus.publish(msg)
                 costs[msg.type].append(time.perf_counter() - start)
 
             # (2) a real training with the worker's publishing cadence
@@ -665,7 +665,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
                         env_steps=p.env_steps, total_steps=steps, recent_return=p.recent_return,
                         steps_per_s=p.steps_per_second,
                     )  # fmt: skip
-                    timed(message, reliable=False)
+                    timed(message)
 
             config = ppo_config("ft", steps, 1409)
             wall0 = time.perf_counter()
@@ -685,7 +685,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
                     total_steps=steps, recent_return=1.0, steps_per_s=1.0), samples)):  # fmt: skip
                 for _ in range(count):
                     start = time.perf_counter()
-                    bus.publish(msg, msg.type != "TrainProgress")
+                    bus.publish(msg)
                     quiet.setdefault(msg.type, []).append(time.perf_counter() - start)
                     time.sleep(0.005)
             bus.publish(Ack(run=run, of="FitnessReport", job=job.job, child=job.child, node=node))

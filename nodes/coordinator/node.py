@@ -210,7 +210,7 @@ class Coordinator:
                     self._log_births()
                     self._check_leases(now)
                     self._flush()
-                    bus.publish(self._status(), reliable=False)
+                    bus.publish(self._status())
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:
                         announced += 1
@@ -220,7 +220,7 @@ class Coordinator:
                             finished = True
                             break
                 if now >= next_snapshot:
-                    bus.publish(self._snapshot(), reliable=False)
+                    bus.publish(self._snapshot())
                     next_snapshot = now + SNAPSHOT_PERIOD_S
             for queryable in queryables:
                 queryable.undeclare()

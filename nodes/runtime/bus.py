@@ -19,7 +19,7 @@ import socket
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
+from typing import Final, Literal
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
@@ -33,6 +33,18 @@ LEASE_MS = 2500
 # default an ephemeral loopback port; across hosts, give --listen with a routable address.
 LOOPBACK_ANY_PORT = ("tcp/127.0.0.1:0",)
 MSGPACK = zenoh.Encoding("application/msgpack")
+
+
+DROPPABLE: Final = frozenset({"TrainProgress", "PopulationSnapshot", "RunStatus"})
+"""Periodic message types, each replaced by the next: dropped rather than waited for when the
+link is congested. Every other type is control plane and never dropped."""
+
+
+def congestion_control(message_type: str) -> zenoh.CongestionControl:
+    """DROP for a `DROPPABLE` type, else BLOCK."""
+    if message_type in DROPPABLE:
+        return zenoh.CongestionControl.DROP
+    return zenoh.CongestionControl.BLOCK
 
 
 class ZenohOptions(BaseModel):
@@ -93,16 +105,14 @@ class Bus:
         self.rejected: Counter[str] = Counter()
         self._subscribers: list[zenoh.Subscriber] = []
 
-    def publish(self, msg: MessageBase, reliable: bool = True, data: bytes | None = None) -> None:
-        """Publish on the message's own key; BLOCK when `reliable` (control plane), else DROP.
-        `data` is the message's encoding, if the caller has it already."""
+    def publish(self, msg: MessageBase, data: bytes | None = None) -> None:
+        """Publish on the message's own key with its type's `congestion_control`. `data` is the
+        message's encoding, if the caller has it already."""
         self.session.put(
             self.keys.key_for(msg),
             encode(msg) if data is None else data,
             encoding=MSGPACK.with_schema(msg.type),
-            congestion_control=(
-                zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-            ),
+            congestion_control=congestion_control(msg.type),
         )
 
     def subscribe(

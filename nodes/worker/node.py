@@ -166,8 +166,7 @@ class Worker:
                         total_steps=job.steps,
                         recent_return=p.recent_return,
                         steps_per_s=p.steps_per_second,
-                    ),
-                    reliable=False,
+                    )
                 )
 
         genome, mutation = job.genome, None
