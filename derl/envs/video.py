@@ -57,9 +57,9 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int = FPS) -> None:
 
     try:
         if path.suffix == ".gif":
-            iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
+            iio.imwrite(path, frames, duration=1000 / fps, loop=0)
         else:
-            iio.imwrite(path, np.stack(frames), fps=fps)
+            iio.imwrite(path, frames, fps=fps)
     except (ImportError, ValueError, OSError) as error:
         raise OSError(
             f"cannot write {path}: {error}. For .mp4 install imageio-ffmpeg "
