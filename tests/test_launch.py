@@ -143,16 +143,16 @@ def test_a_host_started_by_name_runs_its_nodes_here() -> None:
 
 def test_peer_mesh_ports_seed_and_zenoh_config(tmp_path: Path) -> None:
     data = _mesh(tmp_path, zenoh_config="certs-a/zenoh.json5")
-    data["zenoh_config"] = "launch/zenoh/tls-node.json5"
+    data["zenoh_config"] = "conf/zenoh.json5"
     launch = LaunchFile.model_validate(data)
     by_name = {c.name: c.derl_args() for c in build_commands(launch)}
     head = by_name["head-coordinator-0"]
     assert "--connect" not in head  # the coordinator is the seed
     assert head[head.index("--listen") + 1] == "tcp/10.1.0.1:7447"
-    assert head[head.index("--zenoh-config") + 1] == "launch/zenoh/tls-node.json5"
+    assert head[head.index("--zenoh-config") + 1] == "conf/zenoh.json5"
     assert by_name["head-trainer-1"][-6:] == [
         "--listen", "tcp/10.1.0.1:7449", "--connect", "tcp/10.1.0.1:7447",
-        "--zenoh-config", "launch/zenoh/tls-node.json5",
+        "--zenoh-config", "conf/zenoh.json5",
     ]  # fmt: skip
     a2 = by_name["a-trainer-2"]
     assert a2[a2.index("--listen") + 1] == "tcp/10.1.0.2:7502"
@@ -291,15 +291,18 @@ def test_slurm_script_starts_one_trainer_per_task(tmp_path: Path) -> None:
         stub.chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "SLURM_JOB_ID": "77",
            "DERL_RUN": "r9", "DERL_SEED": "tls/10.0.0.5:7447", "DERL_ADDRESS": "10.0.0.31",
-           "DERL_ZENOH_CONFIG": "launch/zenoh/tls-node.json5"}  # fmt: skip
+           "DERL_CERTS": "/srv/certs", "DERL_HOST": "hpc"}  # fmt: skip
     result = subprocess.run(["bash", str(SBATCH)], capture_output=True, text=True, env=env,
                             timeout=60)  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert yaml.safe_load(result.stdout.strip().splitlines()[-1]) == [
-        "trainer", "--run", "r9", "--connect", "tls/10.0.0.5:7447", "--name", "slurm77-3",
+        "trainer", "--run", "r9", "--connect", "tls/10.0.0.5:7447", "--name", "hpc-trainer-3",
         "--threads", "2", "--listen", "tls/10.0.0.31:7448",
-        "--zenoh-config", "launch/zenoh/tls-node.json5",
+        "--zenoh-config", "/srv/certs/hpc-trainer-3/zenoh.json5",
     ]  # fmt: skip
+    plain = subprocess.run(["bash", str(SBATCH)], capture_output=True, text=True,
+                           env={**env, "DERL_CERTS": ""}, timeout=60)  # fmt: skip
+    assert "--zenoh-config" not in plain.stdout and '"slurm77-3"' in plain.stdout
     missing = subprocess.run(["bash", str(SBATCH)], capture_output=True, text=True,
                              env={**env, "DERL_RUN": ""}, timeout=60)  # fmt: skip
     assert missing.returncode != 0 and "DERL_RUN" in missing.stderr

@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from nodes.cli import evaluate, launch, nodes, report, run, train, unimal, watch
+from nodes.cli import certs, evaluate, launch, nodes, report, run, train, unimal, watch
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.register(commands)
     nodes.register(commands)
     launch.register(commands)
+    certs.register(commands)
     report.register(commands)
     evaluate.register(commands)
     watch.register(commands)

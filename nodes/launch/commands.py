@@ -35,6 +35,9 @@ from nodes.launch.model import (
 SSH = ("ssh", "-tt", "-o", "BatchMode=yes")  # a tty: the remote node gets SIGHUP when ssh ends
 
 
+NODE_CONFIG = "zenoh.json5"  # a node's Zenoh config in its `derl certs` folder
+
+
 @dataclass(frozen=True)
 class NodeCommand:
     """One process the launcher starts: a node (`derl ROLE ...`) or, for an ssh host, the
@@ -86,7 +89,11 @@ def _host_commands(launch: LaunchFile, host: HostSpec) -> list[NodeCommand]:
     for spec in host.nodes:
         for k in range(spec.count):
             name = f"{host.name}-{spec.role}-{k}"
-            args = [spec.role, *_role_args(launch, spec, name), *_bus_args(launch, host, process)]
+            args = [
+                spec.role,
+                *_role_args(launch, spec, name),
+                *_bus_args(launch, host, process, name),
+            ]
             commands.append(
                 NodeCommand(
                     host=host.name,
@@ -132,8 +139,10 @@ def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     return ["--run", launch.run, "--name", name, "--threads", str(spec.threads)]
 
 
-def _bus_args(launch: LaunchFile, host: HostSpec, process: int) -> list[str]:
+def _bus_args(launch: LaunchFile, host: HostSpec, process: int, name: str) -> list[str]:
     config = host.zenoh_config or launch.zenoh_config
+    if launch.certs is not None:
+        config = launch.certs / name / NODE_CONFIG  # its own identity (`derl certs`)
     args = ["--zenoh-config", str(config)] if config else []
     topology = launch.topology
     if isinstance(topology, RouterTopology):

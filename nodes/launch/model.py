@@ -9,7 +9,7 @@ policy::
     profile: demo                  # a built-in profile or a profile YAML file
     seed: 1                        # optional: the evolution seed (one per replicate)
     topology: {kind: peer_mesh, seed: "tcp/10.0.0.5:7447"}     # or {kind: router, endpoint, host}
-    zenoh_config: launch/zenoh/tls-acl.json5                   # optional (TLS, access control)
+    certs: certs                   # optional: per-node TLS identities (`derl certs FILE`)
     hosts:
       - name: head
         listen: "tcp/10.0.0.5:7447"
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from messages.types import Id
 
@@ -78,10 +78,14 @@ class _Strict(BaseModel):
 class NodeSpec(_Strict):
     """`count` processes of one role on a host."""
 
-    role: Literal["coordinator", "trainer", "evaluator", "router"]
-    count: int = Field(1, ge=1, le=4096)
+    role: Literal["coordinator", "trainer", "evaluator", "router"] = Field(
+        description="the node each process runs"
+    )
+    count: int = Field(1, ge=1, le=4096, description="processes of this role")
     threads: int = Field(1, ge=1, le=4096, description="simulation threads of each worker")
-    restart: Literal["never", "on-failure", "always"] = "on-failure"
+    restart: Literal["never", "on-failure", "always"] = Field(
+        "on-failure", description="when a process that ended is started again"
+    )
     max_restarts: int = Field(3, ge=0, description="restarts of each process, at most")
 
 
@@ -89,26 +93,28 @@ class PeerMesh(_Strict):
     """Every node is a Zenoh peer: it listens on its host's endpoint and connects to `seed`."""
 
     kind: Literal["peer_mesh"]
-    seed: Endpoint
+    seed: Endpoint = Field(description="the endpoint every node connects to")
 
 
 class RouterTopology(_Strict):
     """`derl router` on host `host` at `endpoint`; every node is a Zenoh client of it."""
 
     kind: Literal["router"]
-    endpoint: Endpoint
-    host: Id
+    endpoint: Endpoint = Field(description="where the router listens")
+    host: Id = Field(description="the host it runs on")
 
 
 class HostSpec(_Strict):
-    name: Id
+    """One machine and the nodes it starts."""
+
+    name: Id = Field(description="the host's name (`derl launch --host NAME`)")
     address: str = Field("localhost", min_length=1, description="for ssh; localhost = this host")
     ssh: bool | str = Field(False, description="start its nodes over ssh (true, or user@host)")
     listen: Endpoint | None = Field(None, description="where this host's nodes listen (mesh)")
     workdir: str | None = Field(None, description="directory the nodes start in (ssh hosts)")
     derl: str = Field("derl", min_length=1, description="the derl command on this host")
     zenoh_config: Path | None = Field(None, description="this host's Zenoh config (certificates)")
-    nodes: list[NodeSpec] = Field(default_factory=list)
+    nodes: list[NodeSpec] = Field(default_factory=list, description="the nodes it starts")
 
     @property
     def local_address(self) -> bool:
@@ -123,14 +129,21 @@ class HostSpec(_Strict):
 
 
 class LaunchFile(_Strict):
-    run: Id
-    run_dir: Path
+    run: Id = Field(description="the run id (keys live under derl/<run>/)")
+    run_dir: Path = Field(description="the coordinator's run directory")
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
     env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
     seed: int | None = Field(None, ge=0, description="evolution seed (overrides profile)")
-    topology: Annotated[PeerMesh | RouterTopology, Field(discriminator="kind")]
+    topology: Annotated[
+        PeerMesh | RouterTopology, Field(discriminator="kind", description="how the nodes connect")
+    ]
     zenoh_config: Path | None = Field(None, description="Zenoh JSON5 config of every node")
-    hosts: list[HostSpec] = Field(min_length=1)
+    certs: Path | None = Field(
+        None,
+        description="folder written by `derl certs`: each node takes its own certificate and "
+        "config (CERTS/<node>/zenoh.json5; wins over zenoh_config)",
+    )
+    hosts: list[HostSpec] = Field(min_length=1, description="the hosts and their nodes")
 
     @model_validator(mode="after")
     def _consistent(self) -> LaunchFile:
@@ -182,14 +195,12 @@ class LaunchFile(_Strict):
 
 
 def load(path: Path) -> LaunchFile:
-    """The launch file at `path`, or ValueError saying what is wrong with it."""
+    """The launch file at `path`, or ValueError saying what is wrong with it (a pydantic
+    ValidationError when it does not fit `LaunchFile`)."""
     try:
         data = yaml.safe_load(Path(path).read_text())
     except (OSError, yaml.YAMLError) as error:
         raise ValueError(f"{path}: {error}") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: a launch file is a mapping (run, run_dir, topology, hosts ...)")
-    try:
-        return LaunchFile.model_validate(data)
-    except ValidationError as error:
-        raise ValueError(f"{path} is not a valid launch file:\n{error}") from None
+    return LaunchFile.model_validate(data)
