@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from nodes.cli import certs, evaluate, launch, nodes, report, run, train, unimal, watch
+from nodes.cli import certs, evaluate, launch, nodes, report, run, schema, train, unimal, watch
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     report.register(commands)
     evaluate.register(commands)
     watch.register(commands)
+    schema.register(commands)
     return parser
 
 

@@ -1,0 +1,297 @@
+"""The protocol and configuration references (docs/protocol.md, docs/configuration.md), written
+from the code: the models' JSON schemas, the key space, who publishes what and how.
+
+`DOCUMENTS` maps a document's name to the function that writes it; `derl schema --markdown NAME`
+prints one, and tests/test_reference.py checks that the committed files are current.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import math
+from collections.abc import Callable
+from typing import Final
+
+from pydantic import BaseModel
+from pydantic_core import to_jsonable_python
+
+import derl.evolution.config
+import messages.codec
+import messages.keys
+import messages.schema
+import messages.types
+from derl.evolution.config import PROFILES, EvolutionConfig
+from derl.rl.config import PPOConfig
+from derl.unimal.genome import Genome, Joint, Limb
+from messages import MESSAGE_TYPES, SCHEMA_VERSION, Curve, KeySpace, Member, MessageBase
+from messages.examples import examples
+from messages.keys import ARITY, PUBLISHERS, ROOT, ROUTES
+from messages.types import ID_PATTERN
+from nodes.launch.model import HostSpec, LaunchFile, NodeSpec, PeerMesh, RouterTopology
+from nodes.runtime.bus import congestion_control
+from nodes.tools.logs import base64_text, json_form
+
+PPO_ANCHOR: Final = "#ppo-ppoconfig"
+NESTED: Final = (Curve, Member, Genome, Limb, Joint)
+LAUNCH_MODELS: Final = (LaunchFile, HostSpec, NodeSpec, PeerMesh, RouterTopology)
+
+Links = dict[str, str]
+"""Model name -> where it is documented."""
+
+
+def command(name: str) -> str:
+    """The shell command that rewrites document `name`."""
+    return f"derl schema --markdown {name} > docs/{name}.md"
+
+
+def _header(title: str, name: str) -> list[str]:
+    return [
+        f"# {title}",
+        "",
+        f"Generated from the code by `{command(name)}`; do not edit it by hand",
+        "(tests/test_reference.py fails when it is out of date).",
+        "",
+    ]
+
+
+# --- the protocol ----------------------------------------------------------------------------
+
+
+def protocol() -> str:
+    """docs/protocol.md: keys, publishers, congestion control, every message with an example."""
+    links = {name: f"#{name.lower()}" for name in [*MESSAGE_TYPES, *(m.__name__ for m in NESTED)]}
+    links[PPOConfig.__name__] = f"configuration.md{PPO_ANCHOR}"
+    lines = _header("The wire protocol", "protocol")
+    lines += [
+        f"Schema version: **{SCHEMA_VERSION}**. Every payload is a msgpack map with "
+        "`schema_version`, `type` (the message type) and `run`; a node refuses any other version.",
+        "",
+        _markdown(inspect.getdoc(messages.codec)),
+        "",
+        _markdown(inspect.getdoc(messages.types)) + f" An id matches `{ID_PATTERN}`.",
+        "",
+        "## Keys",
+        "",
+        _markdown(inspect.getdoc(messages.keys)),
+        "",
+        "| key | messages | published by | congestion control |",
+        "| --- | --- | --- | --- |",
+        *(_key_row(kind, links) for kind in ARITY),
+        "",
+        "BLOCK: a put waits while the link is congested, nothing is lost; DROP: it is dropped, "
+        "and the next periodic one replaces it.",
+        "",
+        "## Messages",
+        "",
+        _markdown(inspect.getdoc(messages.schema)),
+        "",
+        "Bytes travel as msgpack bin; the examples show them in base64.",
+        "",
+    ]
+    for message in examples(run="run1", checkpoint_bytes=16):
+        lines += _message_section(message, links)
+    lines += ["## Nested types", ""]
+    for model in NESTED:
+        lines += [f"### {model.__name__}", "", _markdown(inspect.getdoc(model)), ""]
+        lines += _fields_table(model, links, "field")
+    lines.append(f"PPOConfig: see [configuration.md]({links[PPOConfig.__name__]}).")
+    return "\n".join(lines) + "\n"
+
+
+def _key_row(kind: str, links: Links) -> str:
+    types = [name for name, (k, _) in ROUTES.items() if k == kind]
+    roles = ", ".join(PUBLISHERS[kind]) or "nobody: journaled only"
+    if not types:
+        return f"| `{_key_pattern(kind)}` | liveliness token (no payload) | {roles} | |"
+    congestion = sorted({str(congestion_control(name)).rsplit(".", 1)[-1] for name in types})
+    published = " or ".join(congestion) if PUBLISHERS[kind] else ""
+    names = ", ".join(f"[{name}]({links[name]})" for name in types)
+    return f"| `{_key_pattern(kind)}` | {names} | {roles} | {published} |"
+
+
+def _key_pattern(kind: str) -> str:
+    """``derl/<run>/<kind>/<id>...``, the ids named after the fields that fill them (or after
+    the parameters of the `KeySpace` method of a kind without messages)."""
+    ids = next((fields for k, fields in ROUTES.values() if k == kind), None)
+    if ids is None:
+        ids = tuple(inspect.signature(getattr(KeySpace, kind)).parameters)[1:]
+    return "/".join((ROOT, "<run>", kind, *(f"<{name}>" for name in ids)))
+
+
+def _message_section(message: MessageBase, links: Links) -> list[str]:
+    model = type(message)
+    data = json_form(message, base64_text)
+    fields = [f"  {json.dumps(key)}: {json.dumps(value)}" for key, value in data.items()]
+    return [
+        f"### {message.type}",
+        "",
+        _markdown(inspect.getdoc(model)),
+        "",
+        f"Key: `{_key_pattern(ROUTES[message.type][0])}`.",
+        "",
+        *_fields_table(model, links, "field"),
+        "```json",
+        "{\n" + ",\n".join(fields) + "\n}",
+        "```",
+        "",
+    ]
+
+
+# --- the configuration -----------------------------------------------------------------------
+
+
+def configuration() -> str:
+    """docs/configuration.md: the profile model with the built-in profiles, the launch file."""
+    links = {m.__name__: f"#{m.__name__.lower()}" for m in LAUNCH_MODELS}
+    links[PPOConfig.__name__] = PPO_ANCHOR
+    lines = _header("Configuration", "configuration")
+    lines += [
+        "## Profiles: EvolutionConfig",
+        "",
+        _markdown(inspect.getdoc(derl.evolution.config)),
+        "",
+        _markdown(inspect.getdoc(EvolutionConfig)),
+        "",
+        "`derl run --profile NAME|FILE.yaml` (and a launch file's `profile`) choose one; an "
+        "unknown key is an error that names the valid ones. The built-in profiles:",
+        "",
+        *_fields_table(EvolutionConfig, links, "key", _profile_values(lambda p: p)),
+        "## ppo: PPOConfig",
+        "",
+        _markdown(inspect.getdoc(PPOConfig)),
+        "",
+        *_fields_table(PPOConfig, links, "key", _profile_values(lambda p: p.ppo)),
+        "## Launch files: LaunchFile",
+        "",
+        "`derl launch FILE` starts the nodes a launch file (YAML) places on each host; "
+        "[launch/local.yaml](../launch/local.yaml) and "
+        "[launch/cluster.example.yaml](../launch/cluster.example.yaml) are examples. An unknown "
+        "key is an error that names the valid ones.",
+        "",
+    ]
+    for model in LAUNCH_MODELS:
+        doc = _markdown(inspect.getdoc(model)) if model.__doc__ else ""
+        lines += [f"### {model.__name__}", "", *([doc, ""] if doc else [])]
+        lines += _fields_table(model, links, "key")
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _profile_values(pick: Callable[[EvolutionConfig], BaseModel]) -> dict[str, BaseModel]:
+    """Column name -> the model whose values fill it, one per built-in profile."""
+    return {name: pick(profile) for name, profile in PROFILES.items()}
+
+
+# --- tables ----------------------------------------------------------------------------------
+
+
+def _fields_table(
+    model: type[BaseModel],
+    links: Links,
+    what: str,
+    columns: dict[str, BaseModel] | None = None,
+) -> list[str]:
+    """One row per field: its name, type, default, its value in each of `columns`, description.
+    A message's fields without a description of their own take MessageBase's."""
+    columns = columns or {}
+    properties = model.model_json_schema()["properties"]
+    inherited = MessageBase.model_fields if issubclass(model, MessageBase) else {}
+    head = [what, "type", "default", *columns, "description"]
+    rows = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for name, field in model.model_fields.items():
+        prop = properties[name]
+        about = field.description or getattr(inherited.get(name), "description", None) or ""
+        cells = [
+            f"`{name}`",
+            _type(prop, links),
+            _default(field.get_default(call_default_factory=True), field.is_required()),
+            *(_value(getattr(values, name)) for values in columns.values()),
+            _cell(about),
+        ]
+        rows.append("| " + " | ".join(cells) + " |")
+    return [*rows, ""]
+
+
+def _default(value: object, required: bool) -> str:
+    return "required" if required else _value(value)
+
+
+def _value(value: object) -> str:
+    if isinstance(value, BaseModel):
+        return "its defaults" if value == type(value)() else "see below"
+    return _cell(f"`{json.dumps(to_jsonable_python(value))}`")
+
+
+def _type(node: dict, links: Links) -> str:
+    """A JSON schema node in a few words: a type, its bounds, links to nested models."""
+    if "$ref" in node:
+        name = node["$ref"].rsplit("/", 1)[1]
+        return f"[{name}]({links[name]})" if name in links else name
+    for union in ("anyOf", "oneOf"):
+        if union in node:
+            return " or ".join(_type(member, links) for member in node[union])
+    if "const" in node:
+        return f"`{json.dumps(node['const'])}`"
+    if "enum" in node:
+        return " or ".join(f"`{json.dumps(value)}`" for value in node["enum"])
+    kind = node.get("type", "any")
+    if kind == "array":
+        if "prefixItems" in node:
+            text = "[" + ", ".join(_type(item, links) for item in node["prefixItems"]) + "]"
+            return text  # a fixed-size tuple: its length is in the brackets
+        return f"list of {_type(node.get('items', {}), links)}" + _bounds(
+            node, "minItems", "maxItems", " items"
+        )
+    if kind == "string":
+        if node.get("pattern") == ID_PATTERN:
+            return "id"
+        text = {"binary": "bytes", "path": "path"}.get(node.get("format", ""), "text")
+        unit = " bytes" if text == "bytes" else " characters"
+        return text + _bounds(node, "minLength", "maxLength", unit)
+    text = {"integer": "int", "number": "float", "boolean": "bool"}.get(kind, kind)
+    return text + _bounds(node, "minimum", "maximum")
+
+
+def _bounds(node: dict, low: str, high: str, unit: str = "") -> str:
+    """`` (≥ a, ≤ b)`` from the node's bounds (and its exclusive bounds, > and <)."""
+    marks = {low: "≥", "exclusiveMinimum": ">", high: "≤", "exclusiveMaximum": "<"}
+    parts = [f"{mark} {_number(node[key])}" for key, mark in marks.items() if key in node]
+    if node.get(low) is not None and node.get(low) == node.get(high):
+        parts = [_number(node[low])]
+    return f" ({', '.join(parts)}{unit})" if parts else ""
+
+
+def _number(value: float) -> str:
+    """Large round numbers as powers (10^13, 2^64 − 1), the rest as they are."""
+    if isinstance(value, int) and value >= 2**20:
+        for base in (10, 2):
+            for offset, suffix in ((0, ""), (1, " − 1")):
+                exponent = round(math.log(value + offset, base))
+                if base**exponent == value + offset:
+                    return f"{base}^{exponent}{suffix}"
+    return f"{value:,}" if isinstance(value, int) else repr(value)
+
+
+# --- text ------------------------------------------------------------------------------------
+
+
+def _markdown(docstring: str | None) -> str:
+    """A docstring as Markdown: paragraphs kept, lines joined, ``code`` as `code`."""
+    paragraphs = (docstring or "").replace("``", "`").split("\n\n")
+    return "\n\n".join(" ".join(p.split()) for p in paragraphs)
+
+
+def summary(model: type) -> str:
+    """The first paragraph of a model's docstring, in one line of Markdown."""
+    return _markdown(inspect.getdoc(model)).split("\n\n")[0]
+
+
+def _cell(text: str) -> str:
+    return " ".join(text.split()).replace("|", "\\|")
+
+
+DOCUMENTS: Final[dict[str, Callable[[], str]]] = {
+    "protocol": protocol,
+    "configuration": configuration,
+}
+"""Document name (docs/NAME.md) -> the function that writes it."""
