@@ -30,11 +30,14 @@ from derl.unimal.space import (
 class Joint(BaseModel):
     """A motor-actuated hinge between a limb and its parent, about the limb frame's x or y axis."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     axis: Axis
+    """The limb-frame axis the hinge turns about."""
     range: tuple[int, int]
+    """Joint limits in degrees: one of the design space's 13 pairs."""
     gear: Gear
+    """The motor's gear (torque per unit of control)."""
 
     @field_validator("range")
     @classmethod
@@ -47,16 +50,24 @@ class Joint(BaseModel):
 class Limb(BaseModel):
     """One sagittal limb, or a mirror pair of limbs, attached to the head or to a limb's mid/end."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     id: Annotated[int, Field(ge=0)]
+    """The entry's id."""
     parent: Annotated[int, Field(ge=0)] | None = None
+    """The limb it hangs from (None: the head)."""
     site: Site = "head"
+    """Where on its parent: the head's centre, or a limb's mid or end."""
     paired: bool = False
+    """A mirror pair (y -> -y) rather than one limb on the sagittal plane."""
     length: LimbLength
+    """Capsule length, m."""
     theta: Theta
+    """Direction: degrees from +x towards +y."""
     phi: Phi
+    """Direction: degrees from +z (180: straight down)."""
     joints: tuple[Joint, ...]
+    """Its hinges: about x, y, or x then y."""
 
     @model_validator(mode="after")
     def _consistent(self) -> Limb:
@@ -86,11 +97,14 @@ class Limb(BaseModel):
 class Genome(BaseModel):
     """A whole body: head density, the shared limb density and the limbs."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     head_density: Density
+    """Density of the head sphere, kg/m³."""
     limb_density: Density
+    """Density of every limb, kg/m³."""
     limbs: tuple[Limb, ...] = ()
+    """The limb entries (at most 10 limbs in all, a pair counting 2)."""
 
     @model_validator(mode="after")
     def _valid_tree(self) -> Genome:
