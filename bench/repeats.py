@@ -5,7 +5,8 @@ Per profile, worker count and fitness model, over seeds: W trainers each train o
 time (a training takes a uniform 0.5-1.5 time units), the P initial bodies first; a free trainer
 gets the next tournament's child, bred as the coordinator breeds it, and a child whose body
 (`body_hash`) is born already is born at once with that body's fitness (a repeat, no training),
-as the coordinator does. A body equal to one still in training is trained again (`in_training`),
+as the coordinator does (`Evolution.repeat`; `missed`: born bodies it did not see, their first
+draft being invalid). A body equal to one still in training is trained again (`in_training`),
 with the same fitness (training is deterministic within a run). Fitness models: ``random`` (every
 distinct body an independent N(0, 1)) and ``inherited`` (the parent's plus N(0, 0.5)). The
 initial population is drawn once per profile (its sampling dominates the cost); the seeds vary
@@ -31,7 +32,7 @@ MODELS = ("random", "inherited")
 
 def simulate(
     config: EvolutionConfig, initial: list[Genome], workers: int, model: str, seed: int
-) -> dict[str, int]:
+) -> dict[str, float]:
     """One run: tournament children, repeats born untrained, and equal bodies trained twice."""
     config = config.model_copy(update={"seed": seed})
     evolution = Evolution(config, initial)
@@ -45,21 +46,25 @@ def simulate(
         evolution.birth(str(name), fitness[body_hash(genome)], genome)
     running: list[tuple[float, str, Genome, str]] = []  # (finish, child, body, hash)
     training: dict[str, int] = {}  # hash -> trainings of it under way
-    repeats = in_training = 0
+    repeats = missed = in_training = 0
+    lookups: list[float] = []  # s per `Evolution.repeat` (the coordinator's cost per child)
     now = 0.0
 
     def assign() -> bool:
-        nonlocal repeats, in_training
+        nonlocal repeats, missed, in_training
         while evolution.settled + len(running) < config.total:
             decided = evolution.tournament()
             evolution.record(decided)
-            parent_body, mutation_seed = evolution.to_train(decided.name)
-            body = breed(parent_body, mutation_seed)[0]
-            earlier = evolution.repeat_of(body)
-            if earlier is not None:
+            start = time.perf_counter()
+            repeat = evolution.repeat(decided.name)  # as the coordinator looks it up
+            lookups.append(time.perf_counter() - start)
+            if repeat is not None:
+                earlier, body, _ = repeat
                 evolution.birth(decided.name, evolution.fitness[earlier], body, earlier)
                 repeats += 1
                 continue
+            body = breed(*evolution.to_train(decided.name))[0]
+            missed += evolution.repeat_of(body) is not None  # its first draft was invalid
             key = body_hash(body)
             in_training += training.get(key, 0) > 0
             training[key] = training.get(key, 0) + 1
@@ -79,7 +84,13 @@ def simulate(
         evolution.birth(name, fitness[key], body)
         assign()
     children = config.total - config.population
-    return {"children": children, "repeats": repeats, "in_training": in_training}
+    return {
+        "children": children,
+        "repeats": repeats,
+        "missed": missed,
+        "in_training": in_training,
+        "lookup_ms": statistics.median(lookups) * 1e3,
+    }
 
 
 def bench(profiles: list[str], seeds: int, workers: list[int]) -> list[dict[str, object]]:
@@ -105,8 +116,12 @@ def bench(profiles: list[str], seeds: int, workers: list[int]) -> list[dict[str,
                         "repeats_median": statistics.median(r["repeats"] for r in runs),
                         "saved_median": round(statistics.median(saved), 4),
                         "saved_range": [round(min(saved), 4), round(max(saved), 4)],
+                        "missed_median": statistics.median(r["missed"] for r in runs),
                         "trained_twice_median": statistics.median(r["in_training"] for r in runs),
                         "repeats": [r["repeats"] for r in runs],
+                        "lookup_ms_median": round(
+                            statistics.median(r["lookup_ms"] for r in runs), 3
+                        ),
                         "initial_sampling_s": round(sampled_s, 1),
                     }
                 )

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from derl.evolution import Child, Evolution, breed, load_profile
-from derl.unimal import Genome, check_body, sample_population
+from derl.evolution.population import first_draft
+from derl.unimal import Genome, check_body, is_valid, sample_population
 from derl.unimal.mutations import OPERATORS
 
 
@@ -30,6 +33,34 @@ def test_breeding_is_one_valid_mutation_and_the_same_for_a_seed(initial: list[Ge
         assert breed(parent, seed) == (child, mutation)  # wherever it runs
         children[seed] = child
     assert len({c.model_dump_json() for c in children.values()}) > 6
+
+
+def test_a_childs_first_draft_is_the_child_when_valid(initial: list[Genome]) -> None:
+    """What `Evolution.repeat` rests on: a born body is valid, so a draft equal to one is the
+    child itself."""
+    parent, same = initial[1], 0
+    for seed in range(30):
+        draft, (child, _) = first_draft(parent, seed), breed(parent, seed)
+        if is_valid(draft):
+            assert draft == child
+            same += 1
+    assert same > 20
+
+
+def test_a_child_whose_body_is_born_is_known_as_a_repeat(initial: list[Genome]) -> None:
+    evolution = _evolution(initial)
+    for k, child in enumerate(evolution.initial):
+        evolution.birth(child.name, float(k), initial[k])
+    decided = evolution.tournament()
+    evolution.record(decided)
+    assert evolution.repeat(decided.name) is None  # its body is new
+    body, mutation = breed(*evolution.to_train(decided.name))
+    shuffled = body.model_copy(update={"limbs": body.limbs[::-1]})  # same body, other order
+    evolution.birth(decided.name, 7.0, shuffled)
+    again = evolution.tournament()
+    evolution.record(replace(again, parent=decided.parent, mutation_seed=decided.mutation_seed))
+    assert evolution.repeat(again.name) == (decided.name, body, mutation)
+    assert evolution.repeat("i0000") is None  # an initial body is trained
 
 
 def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body(

@@ -9,20 +9,31 @@ decision is the one the crashed run would have made.
 
 A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child.
 Breeding (a mutation and its validity check, a few ms) is deterministic, so it runs wherever the
-child is trained, as in the original DERL where every worker mutated its own child, and also
-where it is decided: training is deterministic within a run, so a child whose body equals one
-already born (`repeat_of`, by `body_hash`: the same body whatever its limb numbering) is born as
-a repeat with that body's result instead of being trained again.
+child is trained, as in the original DERL where every worker mutated its own child. Training is
+deterministic within a run, so a child whose body equals one already born (`repeat`, by
+`body_hash`: the same body whatever its limb numbering) is born as a repeat with that body's
+result instead of being trained again; where it is decided, only the child's first draft (the
+first body breeding tries, before the validity check that is most of its cost) is looked up,
+and the child is bred only if that draft is a born body.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from derl.evolution.config import EvolutionConfig
-from derl.unimal import Genome, Mutation, MutationFailed, body_hash, mutate, sample_population
+from derl.unimal import (
+    Genome,
+    Mutation,
+    MutationFailed,
+    body_hash,
+    check_body,
+    mutate,
+    sample_population,
+)
 
 MAX_DRAWS = 100
 
@@ -52,16 +63,37 @@ class Child:
     iteration: int = -1
 
 
-def breed(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
+def breed(
+    parent: Genome, seed: int, check: Callable[[Genome], None] = check_body
+) -> tuple[Genome, Mutation]:
     """The child of a tournament: one valid mutation of `parent`, the same for the same seed."""
     rng = np.random.default_rng(seed)
     reason = ""
     for _ in range(MAX_DRAWS):
         try:
-            return mutate(parent, rng)
+            return mutate(parent, rng, check=check)
         except MutationFailed as failure:
             reason = str(failure)
     raise MutationFailed("every drawn operator", MAX_DRAWS, reason)
+
+
+class _Drafted(Exception):
+    def __init__(self, genome: Genome) -> None:
+        self.genome = genome
+
+
+def _stop_at(genome: Genome) -> None:
+    raise _Drafted(genome)
+
+
+def first_draft(parent: Genome, seed: int) -> Genome:
+    """The first body `breed(parent, seed)` tries, before its validity check (MuJoCo's compile,
+    most of breeding's cost): the child itself whenever that body is valid, as any born body is."""
+    try:
+        breed(parent, seed, check=_stop_at)
+    except _Drafted as drafted:
+        return drafted.genome
+    raise AssertionError("breed returned without checking a body")
 
 
 class Evolution:
@@ -151,6 +183,20 @@ class Evolution:
     def repeat_of(self, genome: Genome) -> str | None:
         """The first agent born with the body `genome` (None: a body not born yet)."""
         return self.bodies.get(body_hash(genome))
+
+    def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
+        """If tournament child `child` will have a body born already: that agent, the body and
+        its mutation. Its first draft is looked up first (cheap); only one whose draft is born
+        is bred. A child whose draft is invalid and whose body is born is missed (rare: trained)."""
+        parent_body, seed = self.to_train(child)
+        try:
+            if seed is None or self.repeat_of(first_draft(parent_body, seed)) is None:
+                return None
+            genome, mutation = breed(parent_body, seed)
+        except MutationFailed:  # its trainer fails the same way, and the child is given up
+            return None
+        earlier = self.repeat_of(genome)
+        return None if earlier is None else (earlier, genome, mutation)
 
     def birth(
         self, agent: str, fitness: float, genome: Genome, repeat_of: str | None = None

@@ -197,8 +197,10 @@ def mutate(
     rng: np.random.Generator,
     op: str | None = None,
     max_attempts: int = MAX_ATTEMPTS,
+    check: Callable[[Genome], None] = check_body,
 ) -> tuple[Genome, Mutation]:
-    """A valid child of `genome` made by one operator (drawn uniformly if not given)."""
+    """A valid child of `genome` made by one operator (drawn uniformly if not given); `check`
+    raises `InvalidBody` for a body that cannot exist."""
     ops = applicable(genome)
     if op is None:
         op = _pick(rng, ops)
@@ -208,7 +210,7 @@ def mutate(
     for _ in range(max_attempts):
         try:
             child, detail = OPERATORS[op](genome, rng)
-            check_body(child)
+            check(child)
         except ValidationError as error:  # structurally impossible (e.g. more than 10 limbs)
             reason = error.errors()[0]["msg"]
             continue
