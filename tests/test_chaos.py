@@ -192,7 +192,8 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
 
     born = births(local.dir)
     given_up = [m.child for m in journaled(local.dir, ChildFailed)]
-    assert given_up == [failed.child] and failed.child not in born
+    assert given_up == [failed.child], (given_up, failed.job)
+    assert failed.child not in born, (failed.job, born)
     assert [m.job for m in journaled(local.dir, JobFailed)] == [failed.job]
     assert max(Counter(born).values()) == 1, born  # none born twice
     assert len(born) + len(given_up) == PROFILE["total"]  # none lost
