@@ -6,21 +6,27 @@ time (a training takes a uniform 0.5-1.5 time units), the P initial bodies first
 gets the next tournament's child, bred as the coordinator breeds it, and a child whose body
 (`body_hash`) is born already is born at once with that body's fitness (a repeat, no training),
 as the coordinator does (`Evolution.repeat`; `missed`: born bodies it did not see, their first
-draft being invalid). A body equal to one still in training is trained again (`in_training`),
-with the same fitness (training is deterministic within a run). Fitness models: ``random`` (every
-distinct body an independent N(0, 1)) and ``inherited`` (the parent's plus N(0, 0.5)). The
+draft being invalid). With ``hold`` false a body equal to one still in training is trained again
+(`trained_twice`, with the same fitness: training is deterministic within a run); with ``hold``
+true (the coordinator's policy, `CoordinatorState.hold`) a child whose first draft is that of a
+child in training waits for its birth, then is looked up again, while its trainer takes the next
+child. Fitness models: ``random`` (every distinct body an independent N(0, 1), the default) and
+``inherited`` (the parent's plus N(0, 0.5)). The
 initial population is drawn once per profile (its sampling dominates the cost); the seeds vary
 the tournaments, the mutations and the fitness. `saved` is repeats / tournament children.
 Run: python bench/repeats.py [--profiles demo paper] [--seeds 5] [--workers 1 2 16]
+[--fitness random inherited]
 """
 
 from __future__ import annotations
 
 import argparse
 import heapq
+import itertools
 import json
 import statistics
 import time
+from collections import deque
 
 import numpy as np
 
@@ -31,9 +37,10 @@ MODELS = ("random", "inherited")
 
 
 def simulate(
-    config: EvolutionConfig, initial: list[Genome], workers: int, model: str, seed: int
+    config: EvolutionConfig, initial: list[Genome], workers: int, model: str, seed: int, hold: bool
 ) -> dict[str, float]:
-    """One run: tournament children, repeats born untrained, and equal bodies trained twice."""
+    """One run: tournament children, repeats born untrained, and equal bodies trained twice;
+    `hold`: a child whose first draft is that of a child in training waits for its birth."""
     config = config.model_copy(update={"seed": seed})
     evolution = Evolution(config, initial)
     rng = np.random.default_rng([seed, 7])
@@ -46,46 +53,71 @@ def simulate(
         evolution.birth(str(name), fitness[body_hash(genome)], genome)
     running: list[tuple[float, str, Genome, str]] = []  # (finish, child, body, hash)
     training: dict[str, int] = {}  # hash -> trainings of it under way
+    drafted: dict[str, str] = {}  # first draft's hash -> the child in training with it
+    held: dict[str, list[str]] = {}  # child in training -> the children held for it
+    waiting: deque[str] = deque()  # children released by a birth: looked up again first
     repeats = missed = in_training = 0
     lookups: list[float] = []  # s per `Evolution.repeat` (the coordinator's cost per child)
-    now = 0.0
+    now, idle = 0.0, workers
+
+    def next_child() -> str | None:
+        if waiting:
+            return waiting.popleft()
+        started = evolution.settled + len(running) + sum(map(len, held.values()))
+        if started >= config.total:
+            return None
+        decided = evolution.tournament()
+        evolution.record(decided)
+        return decided.name
 
     def assign() -> bool:
         nonlocal repeats, missed, in_training
-        while evolution.settled + len(running) < config.total:
-            decided = evolution.tournament()
-            evolution.record(decided)
+        while (name := next_child()) is not None:
             start = time.perf_counter()
-            repeat = evolution.repeat(decided.name)  # as the coordinator looks it up
+            repeat = evolution.repeat(name)  # as the coordinator looks it up
             lookups.append(time.perf_counter() - start)
             if repeat is not None:
                 earlier, body, _ = repeat
-                evolution.birth(decided.name, evolution.fitness[earlier], body, earlier)
+                evolution.birth(name, evolution.fitness[earlier], body, earlier)
                 repeats += 1
                 continue
-            body = breed(*evolution.to_train(decided.name))[0]
+            draft = evolution.draft(name)
+            if hold and draft is not None and drafted.get(draft, name) != name:
+                held.setdefault(drafted[draft], []).append(name)
+                continue
+            if draft is not None:
+                drafted.setdefault(draft, name)
+            body = breed(*evolution.to_train(name))[0]
             missed += evolution.repeat_of(body) is not None  # its first draft was invalid
             key = body_hash(body)
             in_training += training.get(key, 0) > 0
             training[key] = training.get(key, 0) + 1
             if key not in fitness:
-                base = evolution.fitness[decided.parent] if model == "inherited" else 0.0
+                parent = evolution.parents[name]
+                base = evolution.fitness[parent] if model == "inherited" else 0.0
                 fitness[key] = base + float(rng.normal(0.0, 0.5 if model == "inherited" else 1.0))
-            heapq.heappush(running, (now + rng.uniform(0.5, 1.5), decided.name, body, key))
+            heapq.heappush(running, (now + rng.uniform(0.5, 1.5), name, body, key))
             return True
         return False
 
-    for _ in range(workers):
-        if not assign():
-            break
+    def dispatch() -> None:
+        nonlocal idle
+        while idle and assign():
+            idle -= 1
+
+    dispatch()
     while running:
         now, name, body, key = heapq.heappop(running)
+        idle += 1
         training[key] -= 1
         evolution.birth(name, fitness[key], body)
-        assign()
-    children = config.total - config.population
+        if drafted.get(evolution.drafts.get(name) or "") == name:
+            del drafted[evolution.drafts[name]]
+        waiting.extendleft(reversed(held.pop(name, [])))
+        dispatch()
+    assert evolution.complete and not held and not waiting
     return {
-        "children": children,
+        "children": config.total - config.population,
         "repeats": repeats,
         "missed": missed,
         "in_training": in_training,
@@ -93,39 +125,39 @@ def simulate(
     }
 
 
-def bench(profiles: list[str], seeds: int, workers: list[int]) -> list[dict[str, object]]:
+def bench(
+    profiles: list[str], seeds: int, workers: list[int], models: list[str]
+) -> list[dict[str, object]]:
     results = []
     for profile in profiles:
         config = load_profile(profile)
         start = time.perf_counter()
         initial = sample_population(config.population, np.random.default_rng([config.seed, 0]))
         sampled_s = time.perf_counter() - start
-        for count in workers:
-            for model in MODELS:
-                runs = [simulate(config, initial, count, model, seed) for seed in range(seeds)]
-                saved = [r["repeats"] / r["children"] for r in runs]
-                results.append(
-                    {
-                        "profile": config.name,
-                        "population": config.population,
-                        "tournament": config.tournament,
-                        "total": config.total,
-                        "workers": count,
-                        "fitness": model,
-                        "children": runs[0]["children"],
-                        "repeats_median": statistics.median(r["repeats"] for r in runs),
-                        "saved_median": round(statistics.median(saved), 4),
-                        "saved_range": [round(min(saved), 4), round(max(saved), 4)],
-                        "missed_median": statistics.median(r["missed"] for r in runs),
-                        "trained_twice_median": statistics.median(r["in_training"] for r in runs),
-                        "repeats": [r["repeats"] for r in runs],
-                        "lookup_ms_median": round(
-                            statistics.median(r["lookup_ms"] for r in runs), 3
-                        ),
-                        "initial_sampling_s": round(sampled_s, 1),
-                    }
-                )
-                print(json.dumps(results[-1]), flush=True)
+        for count, model, hold in itertools.product(workers, models, (False, True)):
+            runs = [simulate(config, initial, count, model, seed, hold) for seed in range(seeds)]
+            saved = [r["repeats"] / r["children"] for r in runs]
+            results.append(
+                {
+                    "profile": config.name,
+                    "population": config.population,
+                    "tournament": config.tournament,
+                    "total": config.total,
+                    "workers": count,
+                    "fitness": model,
+                    "hold": hold,
+                    "children": runs[0]["children"],
+                    "repeats_median": statistics.median(r["repeats"] for r in runs),
+                    "saved_median": round(statistics.median(saved), 4),
+                    "saved_range": [round(min(saved), 4), round(max(saved), 4)],
+                    "missed_median": statistics.median(r["missed"] for r in runs),
+                    "trained_twice_median": statistics.median(r["in_training"] for r in runs),
+                    "repeats": [r["repeats"] for r in runs],
+                    "lookup_ms_median": round(statistics.median(r["lookup_ms"] for r in runs), 3),
+                    "initial_sampling_s": round(sampled_s, 1),
+                }
+            )
+            print(json.dumps(results[-1]), flush=True)
     return results
 
 
@@ -134,8 +166,9 @@ def main() -> None:
     parser.add_argument("--profiles", nargs="+", default=["demo", "paper"])
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 16])
+    parser.add_argument("--fitness", nargs="+", choices=MODELS, default=["random"])
     args = parser.parse_args()
-    bench(args.profiles, args.seeds, args.workers)
+    bench(args.profiles, args.seeds, args.workers, args.fitness)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """The coordinator's handlers on a real Zenoh session: group commit (nothing is published before
 the journal file holds it) and checkpoint files (an Ack only once the file is on disk, and a
 lost file written again from the repeated report), and a child whose body is born already born
-as its repeat, untrained, through a restart."""
+as its repeat, untrained, through a restart (and one drafted like a child in training held until
+that child is born)."""
 
 from __future__ import annotations
 
@@ -19,8 +20,19 @@ import pytest
 from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
 from derl.evolution.population import first_draft
 from derl.unimal import Genome, sample_population
-from messages import Ack, Birth, Curve, FitnessReport, MessageBase, TrainJob, WorkerReady, decode
+from messages import (
+    Ack,
+    Birth,
+    Curve,
+    FitnessReport,
+    MessageBase,
+    Tournament,
+    TrainJob,
+    WorkerReady,
+    decode,
+)
 from nodes.coordinator.node import INITIAL_FILE, Coordinator
+from nodes.coordinator.state import CoordinatorState
 from nodes.journal.history import run_log
 from nodes.journal.segments import read_segment
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -215,3 +227,35 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
     bodies = {body.id: body for body in run_log(tmp_path).bodies}  # what `derl report` reads
     assert bodies["c00000"].repeat_of == twin and bodies[twin].repeat_of is None
     assert bodies["c00000"].curve_returns == bodies[twin].curve_returns == (0.0, 1.0)
+
+
+def _born(run: str, child: str, parent: str | None, genome: Genome, birth: int) -> Birth:
+    return Birth(
+        run=run, child=child, parent=parent, job=f"{child}.1", node="w1", birth=birth,
+        generation=int(parent is not None), fitness=1.0, cost_of_work=1.0, energy=1.0, mass=1.0,
+        mutation=None if parent is None else "gear", genome=genome,
+    )  # fmt: skip
+
+
+def test_a_child_drafted_like_one_in_training_waits_for_its_birth() -> None:
+    """Two tournaments that draw the same parent and mutation: the second child is held while
+    the first trains, goes first in the queue once it is born, and is then its repeat."""
+    config = load_profile("smoke").model_copy(update={"population": 2, "total": 6})
+    initial = sample_population(2, np.random.default_rng(3))
+    state = CoordinatorState.start(config, initial)
+    run = "held"
+    for k, genome in enumerate(initial):
+        state.apply(_born(run, f"i000{k}", None, genome, k))
+    seed = next(s for s in range(100) if first_draft(initial[0], s) == breed(initial[0], s)[0])
+    for k in range(2):
+        state.apply(Tournament(run=run, child=f"c0000{k}", contestants=("i0000",),
+                               fitness=(1.0,), parent="i0000", mutation_seed=seed,
+                               iteration=k))  # fmt: skip
+    state.training("c00000")
+    assert not state.hold("c00000")  # not held for itself
+    assert state.hold("c00001") and state.held == {"c00001": "c00000"}
+    assert list(state.waiting) == ["c00000"] and not state.wants_tournament()
+    body, mutation = breed(initial[0], seed)
+    state.apply(_born(run, "c00000", "i0000", body, 2))
+    assert list(state.waiting) == ["c00001"] and not state.held and not state.drafted
+    assert state.evolution.repeat("c00001") == ("c00000", body, mutation)

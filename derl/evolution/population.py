@@ -117,6 +117,7 @@ class Evolution:
         self.fitness: dict[str, float] = {}
         self.given_up: set[str] = set()  # children whose trainings kept failing: never born
         self.bodies: dict[str, str] = {}  # body_hash -> the first agent born with that body
+        self.drafts: dict[str, str | None] = {}  # child -> body_hash of its first draft
         self.iterations = 0
 
     @property
@@ -184,17 +185,27 @@ class Evolution:
         """The first agent born with the body `genome` (None: a body not born yet)."""
         return self.bodies.get(body_hash(genome))
 
+    def draft(self, child: str) -> str | None:
+        """The `body_hash` of tournament child `child`'s first draft (None: an initial child, or
+        one that cannot be bred); the child's own when the draft is valid."""
+        if child not in self.drafts:
+            parent_body, seed = self.to_train(child)
+            try:
+                key = None if seed is None else body_hash(first_draft(parent_body, seed))
+            except MutationFailed:  # its trainer fails the same way, and the child is given up
+                key = None
+            self.drafts[child] = key
+        return self.drafts[child]
+
     def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
         """If tournament child `child` will have a body born already: that agent, the body and
         its mutation. Its first draft is looked up first (cheap); only one whose draft is born
         is bred. A child whose draft is invalid and whose body is born is missed (rare: trained)."""
+        key = self.draft(child)
         parent_body, seed = self.to_train(child)
-        try:
-            if seed is None or self.repeat_of(first_draft(parent_body, seed)) is None:
-                return None
-            genome, mutation = breed(parent_body, seed)
-        except MutationFailed:  # its trainer fails the same way, and the child is given up
+        if key is None or key not in self.bodies or seed is None:
             return None
+        genome, mutation = breed(parent_body, seed)
         earlier = self.repeat_of(genome)
         return None if earlier is None else (earlier, genome, mutation)
 

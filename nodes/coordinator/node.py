@@ -16,8 +16,9 @@ retried on another worker up to `max_attempts` times, then the child is given up
 Before a tournament child is assigned the coordinator looks its body up (`Evolution.repeat`: its
 first draft, ~0.2 ms, and breeding only if that is a born body): a body born already is not
 trained again, the child is born at once as its repeat (Birth `repeat_of`, with its result, and
-its checkpoint file linked) and the worker gets the next child. A child whose equal is still in
-training is trained (only born bodies are known by their result).
+its checkpoint file linked) and the worker gets the next child. A child whose first draft is
+that of a child in training is held back until that one is born (`CoordinatorState.hold`), then
+looked up again: it is then most likely its repeat.
 Births and failed children go out on ``births/<child>``; a Zenoh query on ``births/*`` or
 ``population`` answers a monitor that starts late.
 """
@@ -101,6 +102,8 @@ class Coordinator:
         self.logged_born = self.born
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
+        for child in self.state.by_child:  # children in training hold later equal ones
+            self.state.training(child)
         for birth in self.state.births:  # a crash may have lost a repeat's link
             if birth.repeat_of is not None and not self.checkpoints.path(birth.child).exists():
                 self.checkpoints.link(birth.child, birth.repeat_of).add_done_callback(
@@ -306,8 +309,9 @@ class Coordinator:
                 child = decided.name
             if child is None:
                 return
-            if not self._born_as_repeat(child):
+            if not self._born_as_repeat(child) and not state.hold(child):
                 break
+        state.training(child)
         genome, mutation_seed = evolution.to_train(child)
         job = TrainJob(
             run=self.run,

@@ -7,7 +7,10 @@ JobFailed takes a job back (its subject waits for the next worker), a Cancel end
 child was born from another, a ChildFailed gives a child up, an EvalResult completes an
 evaluation; a Birth with `repeat_of` is a child never trained (its body is an earlier one's).
 Which jobs are in flight, who holds them and what waits for a worker are all derived here; time
-(leases) and the checks of incoming messages are the node's business.
+(leases) and the checks of incoming messages are the node's business. Not from the journal: the
+children held back because a child with their first draft is in training (`hold`); each goes
+back to the front of the queue once that child is born or given up (a restart forgets them: they
+are in the queue again, and held again when they come up).
 """
 
 from __future__ import annotations
@@ -70,6 +73,8 @@ class CoordinatorState(RunHistory):
         self.eval_waiting: deque[EvalKey] = deque()
         self.by_node: dict[str, str] = {}  # node -> its job in flight
         self.by_child: dict[str, str] = {}  # child -> its training job in flight
+        self.drafted: dict[str, str] = {}  # first draft's body_hash -> the child trained with it
+        self.held: dict[str, str] = {}  # child -> the child in training with its first draft
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
@@ -121,6 +126,7 @@ class CoordinatorState(RunHistory):
         self._remove(msg.job)
         if msg.child in self.waiting:  # born from a late report while it waited
             self.waiting.remove(msg.child)
+        self._release(msg.child)
 
     def on_Cancel(self, msg: Cancel) -> None:
         self._remove(msg.job)
@@ -139,6 +145,7 @@ class CoordinatorState(RunHistory):
         self.evolution.give_up(msg.child)
         if msg.child in self.waiting:
             self.waiting.remove(msg.child)
+        self._release(msg.child)
 
     def on_EvalResult(self, msg: EvalResult) -> None:
         super().on_EvalResult(msg)
@@ -154,6 +161,33 @@ class CoordinatorState(RunHistory):
                 self.waiting.appendleft(job.subject)
         elif (job.subject, *job.evaluation) not in self.evaluations:
             self.eval_waiting.appendleft((job.subject, *job.evaluation))
+
+    def training(self, child: str) -> None:
+        """`child` is assigned for training: a later child with its first draft is held."""
+        key = self.evolution.draft(child)
+        if key is not None:
+            self.drafted.setdefault(key, child)
+
+    def hold(self, child: str) -> bool:
+        """Hold `child` back (True) if a child with its first draft is in training: it is
+        likely the same body, whose result it can take once born."""
+        key = self.evolution.draft(child)
+        earlier = None if key is None else self.drafted.get(key)
+        if earlier is None or earlier == child:
+            return False
+        if child in self.waiting:
+            self.waiting.remove(child)
+        self.held[child] = earlier
+        return True
+
+    def _release(self, child: str) -> None:
+        """`child` is born or given up: the children held for it go first in the queue."""
+        key = self.evolution.drafts.get(child)
+        if key is not None and self.drafted.get(key) == child:
+            del self.drafted[key]
+        for held in [c for c, earlier in self.held.items() if earlier == child][::-1]:
+            del self.held[held]
+            self.waiting.appendleft(held)
 
     def _add(self, job: Job) -> None:
         self.jobs[job.id] = job
@@ -194,7 +228,7 @@ class CoordinatorState(RunHistory):
     def wants_tournament(self) -> bool:
         """Whether a new child should be decided for an idle trainer now."""
         evolution = self.evolution
-        started = evolution.settled + self.training_in_flight() + len(self.waiting)
+        started = evolution.settled + self.training_in_flight() + len(self.waiting) + len(self.held)
         return (
             evolution.initial_born
             and bool(evolution.born)
