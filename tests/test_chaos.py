@@ -38,7 +38,7 @@ from nodes.runtime.bus import Bus
 from nodes.tools.logs import read_log
 
 PROFILE = {
-    "total": 12,
+    "total": 20,  # room for the coordinator kill after the trainer faults, on a fast machine too
     "train_steps": 24576,  # twelve PPO iterations of 16 envs x 128 steps: time to interrupt one
     "lease_s": 8.0,
     "max_attempts": 1,  # a failed training gives its child up
