@@ -75,6 +75,7 @@ class CoordinatorState(RunHistory):
         self.by_child: dict[str, str] = {}  # child -> its training job in flight
         self.drafted: dict[str, str] = {}  # first draft's body_hash -> the child trained with it
         self.held: dict[str, str] = {}  # child -> the child in training with its first draft
+        self.holding: dict[str, list[str]] = {}  # that child in training -> the children held
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
@@ -178,6 +179,7 @@ class CoordinatorState(RunHistory):
         if child in self.waiting:
             self.waiting.remove(child)
         self.held[child] = earlier
+        self.holding.setdefault(earlier, []).append(child)
         return True
 
     def _release(self, child: str) -> None:
@@ -185,7 +187,7 @@ class CoordinatorState(RunHistory):
         key = self.evolution.drafts.get(child)
         if key is not None and self.drafted.get(key) == child:
             del self.drafted[key]
-        for held in [c for c, earlier in self.held.items() if earlier == child][::-1]:
+        for held in reversed(self.holding.pop(child, [])):
             del self.held[held]
             self.waiting.appendleft(held)
 
