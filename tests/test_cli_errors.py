@@ -1,0 +1,81 @@
+"""Bad input on the command line gets one clear line and a non-zero exit, never a traceback or a
+hang: one row per mistake a user makes (a budget below one rollout, zero workers or copies, a
+port in use, a missing run directory or log, a run directory that is a file, a misspelt key in a
+profile or a launch file, an unknown message type, a folder with no trained body)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+from nodes_fixtures import REPO, derl_argv, free_port
+
+from derl.unimal import Genome
+
+GENOME = "genome.json"
+
+
+@pytest.fixture
+def busy_port() -> Iterator[int]:
+    """A port something already listens on."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", free_port()))
+        taken.listen()
+        yield taken.getsockname()[1]
+
+
+def _files(tmp: Path, genome: Genome) -> None:
+    (tmp / GENOME).write_text(genome.model_dump_json())
+    (tmp / "typo.yaml").write_text(yaml.safe_dump({"profile": "smoke", "populaton": 3}))
+    launch = {"run": "r", "run_dir": "runs/r", "topology": {"kind": "peer_mesh",
+              "seed": "tcp/127.0.0.1:7447"}, "hosts": [{"name": "h", "nodes": [{"role":
+              "trainer", "cont": 2}]}]}  # fmt: skip
+    (tmp / "launch.yaml").write_text(yaml.safe_dump(launch))
+    (tmp / "a-file").write_text("")
+
+
+CASES = {  # name: (arguments, exit status, what its last line says)
+    "budget below one rollout": (["train", "--genome", GENOME, "--out", "t", "--steps", "100"],
+                                 1, "total_steps 100 < one rollout"),
+    "zero copies": (["train", "--genome", GENOME, "--out", "t", "--envs", "0"], 2,
+                    "--envs: must be at least 1, not 0"),
+    "zero workers": (["run", "--workers", "0"], 2, "--workers: must be at least 1, not 0"),
+    "misspelt profile key": (["run", "--profile", "typo.yaml"], 1,
+                             "unknown key 'populaton'; valid keys: name, world, population"),
+    "misspelt launch key": (["launch", "launch.yaml", "--dry-run"], 1,
+                            "unknown key 'hosts.0.nodes.0.cont'; valid keys: role, count"),
+    "run directory is a file": (["run", "--run-dir", "a-file"], 1, "a-file is a file"),
+    "no run directory": (["report", "missing", "--out", "r"], 1,
+                         "no run directory or log at missing"),
+    "no log": (["log", "info", "missing.mcap"], 1, "missing.mcap: no such file"),
+    "no trained body": (["rollout", "."], 2, "holds no trained body"),
+    "unknown message type": (["schema", "Nope"], 2, "unknown message type 'Nope'; valid:"),
+    "router's port in use": (["router", "--listen", "tcp/127.0.0.1:{port}"], 2,
+                             "the port is in use"),
+    "coordinator's port in use": (["coordinator", "--run", "r", "--run-dir", "c", "--listen",
+                                   "tcp/127.0.0.1:{port}"], 2, "the port is in use"),
+    "run's port in use": (["run", "--port", "{port}", "--run-dir", "x"], 2,
+                          "Address already in use"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_bad_input_gets_one_line_and_an_exit_status(
+    name: str, tmp_path: Path, busy_port: int, quadruped: Genome
+) -> None:
+    arguments, status, says = CASES[name]
+    _files(tmp_path, quadruped)
+    argv = derl_argv(*(a.format(port=busy_port) for a in arguments))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(argv, capture_output=True, text=True, cwd=tmp_path, env=env,
+                          timeout=60)  # fmt: skip
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == status, done.stderr
+    assert lines and says in lines[-1], done.stderr
+    assert "Traceback" not in done.stderr
+    assert len([line for line in lines if line.startswith("derl")]) == 1, done.stderr
