@@ -146,7 +146,9 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         wait_for(lambda: journaled(local.dir, ChildFailed), 30, "the child given up")
         saboteur.leave()
 
-        # garbage on every key kind: rejected, counted, nobody falls over
+        # garbage on every key kind: rejected, counted, nobody falls over (once the test's
+        # session hears trainer a: a peer's puts reach another peer once the two are linked)
+        wait_for(lambda: any(p.node == "a" for p in observer.progress), 60, "trainer a heard")
         at["garbage"] = time.time()
         put, _stray = _garbage(bus)
         coordinator_kinds = 5 * 4  # ready, fitness, progress, eval, failure: all four payloads
