@@ -9,8 +9,8 @@ import pytest
 
 from derl.evolution import Child, Evolution, breed, load_profile
 from derl.evolution.population import first_draft
-from derl.unimal import Genome, check_body, is_valid, sample_population
-from derl.unimal.mutations import OPERATORS
+from derl.unimal import Genome, Joint, Limb, body_hash, check_body, is_valid, sample_population
+from derl.unimal.mutations import OPERATORS, MutationFailed
 
 
 @pytest.fixture(scope="module")
@@ -197,3 +197,32 @@ def test_replicates_differ_by_their_seed_alone() -> None:
     assert one == start(1)
     assert all(a != b for a, b in zip(one[0], two[0], strict=True))
     assert one[1] != two[1]
+
+
+def test_a_child_that_cannot_be_bred_is_no_repeat() -> None:
+    """A child whose first draft is a born body but that cannot be bred at all (its parent, not
+    a valid body, has three limbs in one place: no single mutation fixes that) is no repeat:
+    `repeat` says so instead of raising (the coordinator's lookup raised on every WorkerReady
+    that drew the child); its trainer fails the same way and the child is given up."""
+    joint = Joint(axis="x", range=(-30, 60), gear=200)
+    limb = Limb(id=0, paired=False, length=0.3, theta=0, phi=90, joints=(joint,))
+    limbs = tuple(limb.model_copy(update={"id": k}) for k in range(3))
+    stacked = Genome(head_density=700, limb_density=600, limbs=limbs)
+    config = load_profile("smoke").model_copy(update={"population": 2, "tournament": 2})
+
+    def decided(initial: list[Genome]) -> tuple[Evolution, Child]:
+        evolution = Evolution(config, initial)
+        for k, founder in enumerate(evolution.initial):
+            evolution.birth(founder.name, float(1 - k), founder.genome)
+        child = evolution.tournament()  # parent and seed do not depend on the bodies
+        evolution.record(child)
+        return evolution, child
+
+    _, probe = decided([stacked, stacked])
+    draft = first_draft(stacked, probe.mutation_seed)
+    order = [stacked, draft] if probe.parent == "i0000" else [draft, stacked]
+    evolution, child = decided(order)
+    assert evolution.draft(child.name) == body_hash(draft)  # a born body
+    with pytest.raises(MutationFailed):
+        breed(stacked, child.mutation_seed)
+    assert evolution.repeat(child.name) is None

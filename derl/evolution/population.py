@@ -197,6 +197,23 @@ class Evolution:
             self.drafts[child] = key
         return self.drafts[child]
 
+    def bred_as(self, child: str, genome: Genome) -> bool:
+        """Whether `genome` is tournament child `child`'s body, the one breeding its parent with
+        its mutation seed gives. Its first draft is compared first (cheap: the child is its
+        first draft whenever that draft is valid, so a body equal to it is taken without the
+        validity check); any other body is bred here and compared (rare: 2-3 ms)."""
+        parent_body, seed = self.to_train(child)
+        if seed is None:
+            return genome == parent_body
+        key = body_hash(genome)
+        if key == self.draft(child):
+            return True
+        try:
+            bred, _ = breed(parent_body, seed)
+        except MutationFailed:
+            return False
+        return body_hash(bred) == key
+
     def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
         """If tournament child `child` will have a body born already: that agent, the body and
         its mutation. Its first draft is looked up first (cheap); only one whose draft is born
@@ -205,7 +222,10 @@ class Evolution:
         parent_body, seed = self.to_train(child)
         if key is None or key not in self.bodies or seed is None:
             return None
-        genome, mutation = breed(parent_body, seed)
+        try:
+            genome, mutation = breed(parent_body, seed)
+        except MutationFailed:  # its trainer fails the same way, and the child is given up
+            return None
         earlier = self.repeat_of(genome)
         return None if earlier is None else (earlier, genome, mutation)
 
