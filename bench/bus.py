@@ -5,10 +5,9 @@
    TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
    simulated worker sends WorkerReady (again every second while idle, like a real one), and
    answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (an initial child
-   with its job's body, a tournament child with its first draft, `first_draft(parent, seed)`,
-   which is the child whenever valid: the full breeding, 2-3 ms, is the trainers' work; env
-   steps within the job's PPO budget; a fitness within the world's bound). Every Reject it gets
-   is counted. For W = 100, 1,000,
+   with its job's body, a tournament child with its parent's body and a mutation's name:
+   breeding is the trainers' work, off the coordinator; env steps within the job's PPO budget; a
+   fitness within the world's bound). Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
    once, i.e. the most assignments/s the coordinator gives; (b) `paced`: each simulated job
    lasts W / R s so the workers offer R = 1,000 assignments/s (the goal's load), and
@@ -62,7 +61,6 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from derl.evolution import EvolutionConfig, load_profile
-from derl.evolution.population import first_draft
 from derl.unimal import Genome, sample_population
 from messages import (
     Curve,
@@ -86,7 +84,7 @@ SCALE_PROFILE = {
     "eval_tasks": [],
 }
 GOAL_RATE = 1000.0
-BODIES = 576  # distinct sampled bodies (the paper's population), cycled beyond it
+BODIES = 16  # distinct sampled bodies, cycled to fill the initial population
 
 
 def _free_port() -> int:
@@ -123,9 +121,8 @@ def bodies() -> list[Genome]:
 
 
 def seed_run_dir(run_dir: Path, population: int) -> None:
-    """The initial population a coordinator would draw, written ahead (sampled once per
-    process: sampling 576 bodies takes about a minute and is not what is measured). Distinct
-    bodies, as in a real run: copies would make children repeat bodies far more often."""
+    """The initial population a coordinator would draw, written ahead (sampling 576 bodies
+    takes about a minute and is not what is measured)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     genomes = [bodies()[k % BODIES].model_dump() for k in range(population)]
     (run_dir / "initial_population.json").write_text(json.dumps(genomes))
@@ -158,8 +155,7 @@ class LoadGenerator:
         self.cancelled = 0
         self.job_s = 0.0
         self.jitter = random.Random(0)
-        # answers to send: (node, job, child, the job's genome, its mutation seed, its step
-        # budget); job ""
+        # answers to send: (node, job, child, the job's genome, bred, its step budget); job ""
         # asks for work
         self.answers: queue.Queue[tuple[str, str, str, dict | None, bool, int]] = queue.Queue()
         self.due: list[tuple[float, int, tuple]] = []  # heap of (when, order, answer)
@@ -216,7 +212,7 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 self.received.append((now, now - since, job["child"]))
-        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"],
+        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"] is not None,
                   job["ppo"]["total_steps"])  # fmt: skip
         if self.job_s <= 0:
             self.answers.put(answer)
@@ -238,17 +234,15 @@ class LoadGenerator:
         curve = Curve(env_steps=(1, 2), returns=(0.0, 1.0))
         while not self.stop.is_set():
             try:
-                node, job, child, genome, seed, budget = self.answers.get(timeout=0.1)
+                node, job, child, genome, bred, budget = self.answers.get(timeout=0.1)
             except queue.Empty:
                 continue
             if not job:  # acknowledged: ask for the next job
                 self._ready(node, time.perf_counter())
                 continue
-            if seed is not None:  # a tournament child: its first draft, the child when valid
-                genome = first_draft(Genome.model_validate(genome), seed)
             report = FitnessReport(
                 run=self.run, child=child, job=job, node=node, genome=genome,
-                mutation="gear" if seed is not None else None,
+                mutation="gear" if bred else None,
                 fitness=self.jitter.uniform(0, 100), fitness_source="window",
                 fitness_episodes=1, curve=curve, energy=1.0, cost_of_work=1.0, mass=1.0,
                 episodes=1, env_steps=min(2, budget), wall_s=0.0, steps_per_s=0.0,
@@ -398,13 +392,11 @@ def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
 
 
 def _report(run: str, job: TrainJob, fitness: float) -> FitnessReport:
-    """A fake result for `job`: a tournament child is reported with its first draft (the child
-    whenever that draft is valid: the full breeding is the trainers' work)."""
-    mutation, genome = None, job.genome
-    if job.mutation_seed is not None:
-        mutation, genome = "gear", first_draft(job.genome, job.mutation_seed)
+    """A fake result for `job`: a tournament child is reported with its parent's body (nothing
+    is bred here: breeding is the trainers' work, not the coordinator's)."""
+    mutation = None if job.mutation_seed is None else "gear"
     return FitnessReport(
-        run=run, child=job.child, job=job.job, node=job.node, genome=genome,
+        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome,
         mutation=mutation, fitness=fitness,
         fitness_source="window", fitness_episodes=10,
         curve=Curve(env_steps=tuple(range(4096, 4096 * 101, 4096)),
@@ -456,9 +448,8 @@ class Driver:
                     raise RuntimeError("the coordinator gives no work")
                 continue
             job = self.busy.popleft()
-            report = _report(coordinator.run, job, self.rng.uniform(0, 100))  # the worker's part
             start = time.thread_time()
-            coordinator._fitness(report)
+            coordinator._fitness(_report(coordinator.run, job, self.rng.uniform(0, 100)))
             coordinator._flush()
             following = self._ready(job.node)
             times.append(time.thread_time() - start)

@@ -26,7 +26,6 @@ from messages import (
     Curve,
     FitnessReport,
     MessageBase,
-    Reject,
     Tournament,
     TrainJob,
     WorkerReady,
@@ -164,36 +163,6 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(ack, Ack) and ack.child == second.child
     assert coordinator.checkpoints.path(second.child).read_bytes() == b"weights-2"
     assert coordinator.born == 2
-
-
-def test_a_tournament_child_is_born_only_with_the_body_its_parent_and_seed_breed(
-    coordinator: tuple[Coordinator, queue.Queue[MessageBase]],
-) -> None:
-    """Trainers breed tournament children: a report with another body (its parent's, or
-    another body's mutation) is rejected, the bred body is born."""
-    coordinator, _ = coordinator
-    for node in ("w1", "w2"):
-        coordinator._fitness(_report(_job_for(coordinator, node), b"w"))
-        coordinator._flush()
-    job = _job_for(coordinator, "w3")
-    assert job.mutation_seed is not None and job.parent is not None  # a tournament child
-    bred, mutation = breed(job.genome, job.mutation_seed)
-    other = next(g for g in coordinator.state.evolution.genomes.values() if g != job.genome)
-    forged = {
-        "its parent's body": job.genome,
-        "another body's child": breed(other, job.mutation_seed)[0],
-    }
-    for body in forged.values():
-        report = _report(job, b"w").model_copy(update={"genome": body, "mutation": mutation.op})
-        coordinator._fitness(report)
-        coordinator._flush()
-    assert job.child not in coordinator.state.evolution.fitness
-    reasons = [m.reason for m in _journaled(coordinator) if isinstance(m, Reject)]
-    assert reasons == ["not the body its parent and mutation seed breed"] * len(forged)
-    real = _report(job, b"w").model_copy(update={"genome": bred, "mutation": mutation.op})
-    coordinator._fitness(real)
-    coordinator._flush()
-    assert coordinator.state.evolution.genomes[job.child] == bred
 
 
 def _wait_for(path: Path) -> bytes:

@@ -118,6 +118,8 @@ class Evolution:
         self.given_up: set[str] = set()  # children whose trainings kept failing: never born
         self.bodies: dict[str, str] = {}  # body_hash -> the first agent born with that body
         self.drafts: dict[str, str | None] = {}  # child -> body_hash of its first draft
+        self.bred: dict[str, tuple[Genome, Mutation] | None] = {}  # child -> bred here once (None:
+        # it cannot be bred), for the children whose first draft is a born body
         self.iterations = 0
 
     @property
@@ -197,37 +199,28 @@ class Evolution:
             self.drafts[child] = key
         return self.drafts[child]
 
-    def bred_as(self, child: str, genome: Genome) -> bool:
-        """Whether `genome` is tournament child `child`'s body, the one breeding its parent with
-        its mutation seed gives. Its first draft is compared first (cheap: the child is its
-        first draft whenever that draft is valid, so a body equal to it is taken without the
-        validity check); any other body is bred here and compared (rare: 2-3 ms)."""
-        parent_body, seed = self.to_train(child)
-        if seed is None:
-            return genome == parent_body
-        key = body_hash(genome)
-        if key == self.draft(child):
-            return True
-        try:
-            bred, _ = breed(parent_body, seed)
-        except MutationFailed:
-            return False
-        return body_hash(bred) == key
-
     def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
         """If tournament child `child` will have a body born already: that agent, the body and
         its mutation. Its first draft is looked up first (cheap); only one whose draft is born
         is bred. A child whose draft is invalid and whose body is born is missed (rare: trained)."""
         key = self.draft(child)
-        parent_body, seed = self.to_train(child)
-        if key is None or key not in self.bodies or seed is None:
+        if key is None or key not in self.bodies or self.to_train(child)[1] is None:
             return None
-        try:
-            genome, mutation = breed(parent_body, seed)
-        except MutationFailed:  # its trainer fails the same way, and the child is given up
+        bred = self._breed(child)
+        if bred is None:  # its trainer fails the same way, and the child is given up
             return None
-        earlier = self.repeat_of(genome)
-        return None if earlier is None else (earlier, genome, mutation)
+        earlier = self.repeat_of(bred[0])
+        return None if earlier is None else (earlier, *bred)
+
+    def _breed(self, child: str) -> tuple[Genome, Mutation] | None:
+        """Tournament child `child` bred here, once (None: it cannot be bred)."""
+        if child not in self.bred:
+            parent_body, seed = self.to_train(child)
+            try:
+                self.bred[child] = breed(parent_body, seed)
+            except MutationFailed:
+                self.bred[child] = None
+        return self.bred[child]
 
     def birth(
         self, agent: str, fitness: float, genome: Genome, repeat_of: str | None = None

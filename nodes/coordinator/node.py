@@ -471,15 +471,14 @@ class Coordinator:
     def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
         """Why `report` cannot be accepted for `order` ("" if it can).
 
-        A tournament child's body, bred by its trainer, must be what breeding its parent with
-        its mutation seed gives (`Evolution.bred_as`: breeding is deterministic)."""
+        A child bred by its trainer is taken as reported (breeding is deterministic and trainers
+        are trusted like their fitness; with TLS only the node's own certificate can publish on
+        its keys)."""
         if order.mutation_seed is None:
             if report.mutation is not None or report.genome != order.genome:
                 return "not the body of its job"
         elif report.mutation is None:
             return "a tournament child without its mutation"
-        elif not self.state.evolution.bred_as(report.child, report.genome):
-            return "not the body its parent and mutation seed breed"
         bound = self.fitness_bound
         if not abs(report.fitness) <= bound:
             return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
