@@ -4,13 +4,16 @@
 
 `derl run` names the run after its run directory (``runs/smoke`` -> ``smoke``) and listens on
 tcp/127.0.0.1:7447. This script joins the bus as a Zenoh peer that connects to that endpoint
-(multicast scouting off, like every derl node), first asks the coordinator for the births so far
-(a query on ``derl/RUN/births/*``), then subscribes to the birth stream ``derl/RUN/births/*``
-through a RingChannel (when it falls behind, the oldest samples are dropped: a monitor must never
-slow the run). Each payload is a msgpack map with ``type`` "Birth" (child, parent, fitness,
-cost_of_work, birth, generation, node, mutation, ...) or "ChildFailed" (child, attempts, error);
-docs/protocol.md lists every field. Births are journaled before they are published, so these are
-exactly the run's births; a birth heard twice (query and stream) is printed once. Ctrl-C stops it.
+(multicast scouting off, like every derl node), first asks the coordinator for the births so far (a
+query on ``derl/RUN/births/*``), then subscribes to the birth stream ``derl/RUN/births/*`` through
+a RingChannel (when it falls behind, the oldest samples are dropped: a monitor must never slow the
+run). It also reads the coordinator's status (``derl/RUN/status``, once a second): when that counts
+more births and failed children than it has printed (a birth journaled just before a coordinator
+crash and never published, or dropped by the RingChannel), it asks again. Each payload is a msgpack
+map with ``type`` "Birth" (child, parent, fitness, cost_of_work, birth, generation, node, mutation,
+...) or "ChildFailed" (child, attempts, error); docs/protocol.md lists every field. Births are
+journaled before they are published, so these are exactly the run's births; a birth heard twice
+(query and stream) is printed once. Ctrl-C stops it.
 """
 
 import json
@@ -44,18 +47,31 @@ def show(sample: zenoh.Sample) -> None:
         print(f"{child} failed after {event['attempts']} attempts: {event['error']}", flush=True)
 
 
-with zenoh.open(config) as session:
-    key = f"derl/{run}/births/*"
-    births = session.declare_subscriber(key, zenoh.handlers.RingChannel(256))
+def ask(session: zenoh.Session, key: str) -> None:
+    """The births the coordinator remembers (its latest 1,000)."""
     for reply in session.get(key, timeout=2.0):
         if reply.ok is not None:
             show(reply.ok)
+
+
+with zenoh.open(config) as session:
+    key = f"derl/{run}/births/*"
+    births = session.declare_subscriber(key, zenoh.handlers.RingChannel(256))
+    status = session.declare_subscriber(f"derl/{run}/status", zenoh.handlers.RingChannel(1))
+    ask(session, key)
+    gap = 0  # what asking cannot fill (a late monitor of a run beyond the 1,000 remembered)
     try:
         while True:
-            sample = births.try_recv()
-            if sample is None:
-                time.sleep(0.05)
-            else:
+            sample, news = births.try_recv(), status.try_recv()
+            if sample is not None:
                 show(sample)
+            if news is not None:
+                counts = msgpack.unpackb(news.payload.to_bytes())
+                settled = counts["born"] + counts["failed"]
+                if settled - len(seen) > gap:  # one went by unheard
+                    ask(session, key)
+                    gap = settled - len(seen)
+            if sample is None and news is None:
+                time.sleep(0.05)
     except KeyboardInterrupt:
         pass
