@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import zenoh
 from nodes_fixtures import Processes, derl_argv, free_port, wait_for
 
 from messages import (
@@ -298,6 +299,49 @@ def test_example_monitor_prints_fitness(
     lines = procs.log("example").splitlines()
     assert sum(line in wanted for line in lines) == 3  # each child once
     assert any(line.startswith("skipped derl/") for line in lines)
+
+
+@pytest.mark.parametrize("watcher", ["example", "monitor"])
+def test_a_birth_never_published_is_asked_for_again(
+    watcher: str, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    """A birth the coordinator journaled but never published (it was killed in between): once
+    the status counts it, the example monitor and `derl monitor` ask again and show it."""
+    birth = next(m for m in examples(bus.run, 0) if isinstance(m, Birth))
+    status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
+    journaled: list[Birth] = []  # what the coordinator's query answers
+    asked: list[float] = []
+
+    def answer(query: zenoh.Query) -> None:
+        asked.append(time.monotonic())
+        for b in list(journaled):
+            query.reply(bus.keys.births(b.child), encode(b))
+
+    queryable = bus.session.declare_queryable(bus.keys.all("births"), answer)
+    try:
+        argv = {
+            "example": [sys.executable, "examples/fitness_monitor.py", bus.run, endpoint],
+            "monitor": derl_argv(
+                "monitor", "--once", "15", "--run", bus.run, "--connect", endpoint
+            ),
+        }[watcher]
+        started = time.monotonic()
+        procs.start(watcher, argv)
+        # its question at start is answered with nothing (or, before it knew of the queryable,
+        # not at all)
+        wait_for(lambda: asked or time.monotonic() > started + 8, 10, "the question at start")
+        journaled.append(birth)  # journaled, and the coordinator killed before publishing it
+        counts = status.model_copy(update={"born": 1, "failed": 0})
+        for _ in range(8):  # the restarted coordinator's status, once a second
+            bus.publish(counts)
+            time.sleep(0.5)
+        shown = f"{birth.child} fitness {birth.fitness:.2f}" if watcher == "example" else "born 1/"
+        wait_for(lambda: shown in procs.log(watcher), 20, "the birth asked for again")
+        if watcher == "monitor":
+            assert procs.finish(procs.started["monitor"]) == 0, procs.log("monitor")
+            assert "fitness over 1 births" in procs.log("monitor")
+    finally:
+        queryable.undeclare()
 
 
 # --- without a bus ---------------------------------------------------------------------------

@@ -103,6 +103,11 @@ class RunView:
     def births(self) -> list[Birth]:
         return self.history.births
 
+    @property
+    def settled(self) -> int:
+        """Children heard born or given up."""
+        return len(self.history.births) + len(self.history.failed)
+
     def _row(self, node: str, now: float) -> WorkerRow:
         row = self.workers.setdefault(node, WorkerRow(node))
         row.heard = now
@@ -267,14 +272,22 @@ def monitor(
 
         keys = KeySpace(view.run)
         tap = Tap(session, keys.everything(), on_sample)
-        for reply in session.get(keys.all("births"), timeout=2.0):  # births before we came
-            if reply.ok is not None:
-                on_sample(reply.ok, time.monotonic())
+
+        def ask() -> None:
+            """The births the coordinator remembers: those before we came, and any that went
+            by unheard (journaled just before a coordinator crash and never published)."""
+            for reply in session.get(keys.all("births"), timeout=2.0):
+                if reply.ok is not None:
+                    on_sample(reply.ok, time.monotonic())
+
+        ask()
+        gap = 0  # what asking cannot fill (a late monitor of a run beyond the births remembered)
         Bus(session, view.run).watch_alive(
             lambda role, node, up: inbox.append((time.monotonic(), (role, node, up)))
         )
 
         def update() -> Group:
+            nonlocal gap
             while inbox:
                 at, item = inbox.popleft()
                 if isinstance(item, MessageBase):
@@ -282,10 +295,19 @@ def monitor(
                 else:
                     view.liveliness(*item, at)
             view.rejected = rejected
+            if view.status is not None:
+                missing = view.status.born + view.status.failed - view.settled
+                if missing > gap:  # one went by unheard: its answer comes with the next update
+                    ask()
+                gap = missing
             return view.render(time.monotonic())
 
         if once is not None:
-            stop.wait(once)
+            end = time.monotonic() + once
+            while not stop.wait(max(0.0, min(REFRESH_S, end - time.monotonic()))):
+                if time.monotonic() >= end:
+                    break
+                update()  # folds what came, and asks for births that went by unheard
             console.print(update())
         else:
             quiet = logging.getLogger("derl")  # rejections are counted in the header instead
