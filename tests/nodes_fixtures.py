@@ -165,6 +165,14 @@ class Observer:
         bus.subscribe(bus.keys.status(), self.statuses.append, (RunStatus,))
         bus.subscribe(bus.keys.all("progress"), self.progress.append, (TrainProgress,))
 
+    def training(self, node: str, after: int = 0, timeout: float = 120) -> TrainProgress:
+        """Progress of a job `node` is training now, heard after the first `after` progress."""
+        return wait_for(
+            lambda: next((p for p in self.progress[after:]
+                          if p.node == node and p.env_steps < p.total_steps), None),
+            timeout, f"{node} mid-job",
+        )  # fmt: skip
+
 
 @contextmanager
 def observe(run: LocalRun) -> Iterator[Observer]:

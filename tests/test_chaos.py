@@ -18,7 +18,7 @@ from pathlib import Path
 import msgpack
 import pytest
 import zenoh
-from nodes_fixtures import LocalRun, Observer, Processes, births, journaled, observe, wait_for
+from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
 
 from messages import (
     Birth,
@@ -93,15 +93,6 @@ def _garbage(bus: Bus) -> tuple[int, zenoh.LivelinessToken]:
     return len(ARITY) * len(payloads) - 1, stray
 
 
-def _mid_job(observer: Observer, node: str, after: int) -> TrainProgress:
-    """Progress of a job `node` is training now, heard after the first `after` progress."""
-    return wait_for(
-        lambda: next((p for p in observer.progress[after:]
-                      if p.node == node and p.env_steps < p.total_steps), None),
-        120, f"{node} mid-job",
-    )  # fmt: skip
-
-
 def _lost(run_dir: Path, progress: TrainProgress) -> Callable[[], list[JobLost]]:
     """The JobLosts of the job of `progress` in the journal so far."""
     return lambda: [m for m in journaled(run_dir, JobLost) if m.job == progress.job]
@@ -148,7 +139,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
 
         # garbage on every key kind: rejected, counted, nobody falls over (once the test's
         # session hears trainer a: a peer's puts reach another peer once the two are linked)
-        wait_for(lambda: any(p.node == "a" for p in observer.progress), 60, "trainer a heard")
+        observer.training("a", timeout=60)
         at["garbage"] = time.time()
         put, _stray = _garbage(bus)
         coordinator_kinds = 5 * 4  # ready, fitness, progress, eval, failure: all four payloads
@@ -157,14 +148,14 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         assert all(procs.started[n].poll() is None for n in ("coordinator", *TRAINERS))
 
         # a trainer SIGKILLed mid-job, then started again under its name
-        killed = _mid_job(observer, "a", len(observer.progress))
+        killed = observer.training("a", len(observer.progress))
         at["SIGKILL trainer"] = time.time()
         procs.kill("a")
         wait_for(_lost(local.dir, killed), lease + 10, "the killed trainer's job lost")
         procs.start("a", local.trainer("a"))
 
         # a trainer SIGSTOPped past its lease, then SIGCONT
-        frozen = _mid_job(observer, "b", len(observer.progress))
+        frozen = observer.training("b", len(observer.progress))
         at["SIGSTOP trainer"] = time.time()
         os.killpg(procs.started["b"].pid, signal.SIGSTOP)
         try:

@@ -72,10 +72,7 @@ def test_killed_trainer_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("victim", local.trainer("victim"))
     procs.start("survivor", local.trainer("survivor"))
-    progress = wait_for(
-        lambda: [p for p in observer.progress if p.node == "victim"], 120, "the victim training"
-    )
-    child = progress[0].child
+    child = observer.training("victim").child
     procs.kill("victim")
     wait_for(lambda: len(births(local.dir)) == 4, 300, "every body born")
     assert_born_once(local.dir, 4)
@@ -90,10 +87,8 @@ def test_stopped_trainer_is_noticed_within_its_lease(
     procs.start("coordinator", local.coordinator())
     frozen = procs.start("frozen", local.trainer("frozen"))
     procs.start("other", local.trainer("other"))
-    progress = wait_for(
-        lambda: [p for p in observer.progress if p.node == "frozen"], 120, "the frozen training"
-    )
-    job = progress[0].job
+    progress = observer.training("frozen")
+    job = progress.job
     os.killpg(frozen.pid, signal.SIGSTOP)
     stopped = time.monotonic()
     try:
@@ -108,7 +103,7 @@ def test_stopped_trainer_is_noticed_within_its_lease(
     # the transport lease (2.5 s) or the job's lease, whichever is first, and the journal read
     assert noticed < local.lease_s + 3, (noticed, lost)
     wait_for(
-        lambda: [j for j in jobs(local.dir) if j.child == progress[0].child and j.node == "other"],
+        lambda: [j for j in jobs(local.dir) if j.child == progress.child and j.node == "other"],
         120,
         "the child handed to the other trainer",
     )  # once the other trainer is done with its own body

@@ -294,10 +294,6 @@ class BallPlacement(ForwardPlacement):
     density: float = Field(600.0, gt=0)  # kg/m^3
 
     @property
-    def object_half(self) -> float:
-        return self.radius
-
-    @property
     def box_size(self) -> float:
         """The diameter."""
         return 2 * self.radius

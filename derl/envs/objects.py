@@ -107,7 +107,8 @@ class ForwardPlacement(BaseModel):
 
     @property
     def object_half(self) -> float:
-        raise NotImplementedError
+        """Half the object's height (`box_size`, given by the placement of each object)."""
+        return self.box_size / 2
 
     def draw(
         self,

@@ -65,10 +65,6 @@ class BoxPlacement(ForwardPlacement):
     box_size: float = Field(0.4, gt=0)  # side of the cube
     box_mass: float = Field(1.0, gt=0)
 
-    @property
-    def object_half(self) -> float:
-        return self.box_size / 2
-
 
 def mvt(
     terrain: TerrainConfig | None = None,
