@@ -5,9 +5,9 @@ test-task suite, and the appendix D selection of bodies to retrain; plotted and 
 
 from derl.analysis.compute import Analysis, RunAnalysis, analyse
 from derl.analysis.config import AnalysisConfig
-from derl.analysis.records import Body, Evaluation, RunLog
+from derl.analysis.records import Body, Evaluation, Retraining, RunLog
 from derl.analysis.report import ReportFiles, write_report
-from derl.analysis.selection import RetrainJob, RetrainPlan, plan
+from derl.analysis.selection import RetrainJob, RetrainPlan, by_mean_fitness, plan
 from derl.analysis.statistics import BootstrapConfig
 
 __all__ = [
@@ -19,9 +19,11 @@ __all__ = [
     "ReportFiles",
     "RetrainJob",
     "RetrainPlan",
+    "Retraining",
     "RunAnalysis",
     "RunLog",
     "analyse",
+    "by_mean_fitness",
     "plan",
     "write_report",
 ]

@@ -52,7 +52,20 @@ class Evaluation(Record):
     agent: str
     task: str
     seed: int
+    steps: int | None = None
+    """The budget of env steps it was trained for (the paper reports 5M and 1M; None: unknown)."""
     reward: float
+    cost_of_work: float = float("nan")
+
+
+class Retraining(Record):
+    """Appendix D: one of the run's bodies, selected from a surviving lineage, trained again from
+    scratch in the run's world with a new `seed` (a `derl study`'s first stage)."""
+
+    agent: str
+    seed: int
+    steps: int
+    fitness: float
     cost_of_work: float = float("nan")
 
 
@@ -64,6 +77,8 @@ class RunLog(Record):
     """The evolution environment (``ft``, ``vt``, ``mvt``): the task of its training jobs."""
     bodies: tuple[Body, ...]
     evaluations: tuple[Evaluation, ...] = ()
+    retrained: tuple[Retraining, ...] = ()
+    """Its bodies' retrainings with new seeds, where a study selected them (appendix D)."""
     train_steps: int | None = None
     training_seed: int | None = None
     checkpoints: Path | None = None

@@ -9,7 +9,8 @@ JSON file (`RetrainPlan`) that `derl evaluate` can hand to evaluators, one job p
 
 from __future__ import annotations
 
-from typing import Literal
+from collections.abc import Hashable, Iterable
+from typing import Literal, TypeVar
 
 import numpy as np
 from pydantic import Field
@@ -19,6 +20,8 @@ from derl.analysis.records import Record, RunLog
 from derl.unimal import Genome
 
 SEED_RANGE = 2**31
+
+K = TypeVar("K", bound=Hashable)
 
 
 class RetrainJob(Record):
@@ -92,3 +95,13 @@ def plan(runs: list[RunLog], per_lineage: int, seeds: int, seed: int = 0) -> Ret
                 for s in fresh
             )
     return RetrainPlan(per_lineage=per_lineage, seeds=tuple(fresh), jobs=tuple(jobs))
+
+
+def by_mean_fitness(results: Iterable[tuple[K, float]]) -> list[tuple[K, float]]:
+    """Each body's mean fitness over its retrainings, best first (ties: first seen first): the
+    order in which appendix D keeps the 100 best of a world and tests the top 10 of those."""
+    sums: dict[K, list[float]] = {}
+    for key, fitness in results:
+        sums.setdefault(key, []).append(fitness)
+    means = [(key, float(np.mean(values))) for key, values in sums.items()]
+    return sorted(means, key=lambda kv: -kv[1])
