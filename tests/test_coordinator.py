@@ -24,7 +24,9 @@ from messages import (
     Ack,
     Birth,
     Curve,
+    EvalJob,
     FitnessReport,
+    JobFailed,
     MessageBase,
     Tournament,
     TrainJob,
@@ -259,3 +261,28 @@ def test_a_child_drafted_like_one_in_training_waits_for_its_birth() -> None:
     state.apply(_born(run, "c00000", "i0000", body, 2))
     assert list(state.waiting) == ["c00001"] and not state.held and not state.drafted
     assert state.evolution.repeat("c00001") == ("c00000", body, mutation)
+
+
+def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> None:
+    """An evaluation whose job fails `max_attempts` times (a body the test task cannot load) is
+    given up like a child, not handed out forever: the run finishes with the others' results."""
+    config = load_profile("smoke").model_copy(
+        update={"population": 2, "total": 2, "eval_top": 1, "eval_tasks": ("patrol",)}
+    )
+    initial = sample_population(2, np.random.default_rng(3))
+    state = CoordinatorState.start(config, initial)
+    run = "evalfail"
+    for k, genome in enumerate(initial):
+        state.apply(_born(run, f"i000{k}", None, genome, k))
+    key = state.next_evaluation()
+    assert key is not None and key[3] == config.eval_steps
+    agent, task, _, _ = key
+    genome, ppo = state.evaluation_order(key)
+    for attempt in range(config.max_attempts):
+        assert not state.finished and state.next_evaluation() == key
+        job = f"e{attempt}"
+        state.apply(EvalJob(run=run, job=job, agent=agent, node="w", genome=genome, task=task,
+                            ppo=ppo, lease_s=config.lease_s))  # fmt: skip
+        state.apply(JobFailed(run=run, job=job, node="w", subject=agent, error="boom"))
+    assert state.eval_given_up == {key}
+    assert state.next_evaluation() is None and state.finished

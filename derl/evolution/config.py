@@ -51,7 +51,10 @@ class EvolutionConfig(BaseModel):
         60.0, gt=0, le=MAX_LEASE_S, description="a job without progress this long is reassigned"
     )
     max_attempts: int = Field(
-        3, ge=1, le=100, description="trainings of a child that may fail before it is given up"
+        3,
+        ge=1,
+        le=100,
+        description="failed trainings of a child, or evaluations of a body, before it is given up",
     )
     eval_top: int = Field(0, ge=0, description="best bodies evaluated on the test tasks at the end")
     eval_tasks: tuple[str, ...] = Field((), description="test tasks of the final evaluations")

@@ -360,15 +360,16 @@ class Coordinator:
         key = self.state.next_evaluation()
         if key is None:
             return
-        agent, task, seed = key
+        agent, task, _, _ = key
+        genome, ppo = self.state.evaluation_order(key)
         job = EvalJob(
             run=self.run,
-            job=f"e-{agent}-{task}-{seed}.{len(self.state.issued) + 1}",
+            job=f"e{len(self.state.issued) + 1}-{agent}"[:128],
             agent=agent,
             node=node,
-            genome=self.state.evolution.genomes[agent],
+            genome=genome,
             task=task,
-            ppo=self.config.evaluation_ppo(task, seed),
+            ppo=ppo,
             lease_s=self.config.lease_s,
         )
         self._commit(job)
@@ -488,14 +489,13 @@ class Coordinator:
 
     def _evaluation(self, result: EvalResult) -> None:
         order = self.state.orders.get(result.job)
-        key = (result.agent, result.task, result.seed)
+        key = (result.agent, result.task, result.seed, result.steps)
         if key in self.state.evaluations:
             self._ack(result, result.agent)
         elif (
             not isinstance(order, EvalJob)
             or order.node != result.node
-            or (order.agent, order.task, order.seed) != key
-            or order.steps != result.steps
+            or (order.agent, order.task, order.seed, order.steps) != key
         ):
             self._reject(result, result.agent, f"job {result.job} was never issued to "
                          f"{result.node} for {result.agent} in {result.task}")  # fmt: skip
@@ -513,6 +513,9 @@ class Coordinator:
             return
         log.warning("%s failed on %s: %s", failure.subject, failure.node, failure.error)
         self._commit(failure, publish=False)
+        if job.evaluation is not None and (job.subject, *job.evaluation) in state.eval_given_up:
+            log.error("evaluation of %s in %s given up after %d failures", job.subject,
+                      job.evaluation[0], self.config.max_attempts)  # fmt: skip
         if job.evaluation is None and state.failed_trainings(job.subject) >= (
             self.config.max_attempts
         ):

@@ -16,9 +16,11 @@ are in the queue again, and held again when they come up).
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from derl.evolution import Child, Evolution, EvolutionConfig, Member
+from derl.rl import PPOConfig
 from derl.unimal import Genome
 from messages import (
     Birth,
@@ -56,7 +58,7 @@ class Job:
     subject: str  # the child (training) or agent (evaluation)
     node: str
     order: TrainJob | EvalJob  # as sent (sent again to a worker that missed it)
-    evaluation: tuple[str, int] | None = None  # (task, seed) for an evaluation
+    evaluation: tuple[str, int, int] | None = None  # (task, seed, steps) for an evaluation
 
 
 class CoordinatorState(RunHistory):
@@ -71,6 +73,8 @@ class CoordinatorState(RunHistory):
         self.waiting: deque[str] = deque()  # children to (re)assign, in order
         self.planned: dict[EvalKey, None] = {}  # evaluations of the plan, in order
         self.eval_waiting: deque[EvalKey] = deque()
+        self.eval_failures: dict[EvalKey, int] = {}  # failed jobs of each evaluation
+        self.eval_given_up: set[EvalKey] = set()  # failed `max_attempts` times
         self.by_node: dict[str, str] = {}  # node -> its job in flight
         self.by_child: dict[str, str] = {}  # child -> its training job in flight
         self.drafted: dict[str, str] = {}  # first draft's body_hash -> the child trained with it
@@ -115,11 +119,11 @@ class CoordinatorState(RunHistory):
     def on_EvalJob(self, msg: EvalJob) -> None:
         super().on_EvalJob(msg)
         self.orders[msg.job] = msg
-        key = (msg.agent, msg.task, msg.seed)
+        key = (msg.agent, msg.task, msg.seed, msg.steps)
         self._plan_evaluations()
         if key in self.eval_waiting:
             self.eval_waiting.remove(key)
-        self._add(Job(msg.job, msg.agent, msg.node, msg, (msg.task, msg.seed)))
+        self._add(Job(msg.job, msg.agent, msg.node, msg, key[1:]))
 
     def on_Birth(self, msg: Birth) -> None:
         super().on_Birth(msg)
@@ -139,6 +143,12 @@ class CoordinatorState(RunHistory):
     def on_JobFailed(self, msg: JobFailed) -> None:
         super().on_JobFailed(msg)
         self.failed_on.setdefault(msg.subject, set()).add(msg.node)
+        job = self.jobs.get(msg.job)
+        if job is not None and job.evaluation is not None:
+            key = (job.subject, *job.evaluation)
+            self.eval_failures[key] = self.eval_failures.get(key, 0) + 1
+            if self.eval_failures[key] >= self.config.max_attempts:
+                self.eval_given_up.add(key)
         self._take_back(msg.job)
 
     def on_ChildFailed(self, msg: ChildFailed) -> None:
@@ -151,6 +161,7 @@ class CoordinatorState(RunHistory):
     def on_EvalResult(self, msg: EvalResult) -> None:
         super().on_EvalResult(msg)
         self._remove(msg.job)
+        self._plan_evaluations()
 
     def _take_back(self, job_id: str) -> None:
         """A job ends without its result: its subject waits for the next ready worker."""
@@ -160,8 +171,10 @@ class CoordinatorState(RunHistory):
         if job.evaluation is None:
             if job.subject not in self.evolution.fitness and job.subject not in self.failed:
                 self.waiting.appendleft(job.subject)
-        elif (job.subject, *job.evaluation) not in self.evaluations:
-            self.eval_waiting.appendleft((job.subject, *job.evaluation))
+        else:
+            key = (job.subject, *job.evaluation)
+            if key not in self.evaluations and key not in self.eval_given_up:
+                self.eval_waiting.appendleft(key)
 
     def training(self, child: str) -> None:
         """`child` is assigned for training: a later child with its first draft is held."""
@@ -253,9 +266,18 @@ class CoordinatorState(RunHistory):
         for member in self.best()[: self.config.eval_top]:
             for task in self.config.eval_tasks:
                 for seed in range(self.config.eval_seeds):
-                    key = (member.agent, task, seed)
-                    self.planned[key] = None
-                    self.eval_waiting.append(key)
+                    self._plan((member.agent, task, seed, self.config.eval_steps))
+
+    def _plan(self, key: EvalKey) -> None:
+        if key not in self.planned:
+            self.planned[key] = None
+            if key not in self.evaluations and key not in self.eval_given_up:
+                self.eval_waiting.append(key)
+
+    def evaluation_order(self, key: EvalKey) -> tuple[Genome, PPOConfig]:
+        """The body and the learning configuration of a planned evaluation."""
+        agent, task, seed, _ = key
+        return self.evolution.genomes[agent], self.config.evaluation_ppo(task, seed)
 
     def best(self) -> list[Member]:
         """The born bodies, fittest first, each once (a repeat is its earlier agent's body)."""
@@ -270,6 +292,10 @@ class CoordinatorState(RunHistory):
     def evaluated(self) -> int:
         return sum(key in self.evaluations for key in self.planned)
 
+    def evaluations_over(self, keys: Iterable[EvalKey]) -> bool:
+        """Whether each of `keys` has its result or was given up."""
+        return all(key in self.evaluations or key in self.eval_given_up for key in keys)
+
     @property
     def eval_target(self) -> int:
         top = min(self.config.eval_top, self.config.total)
@@ -279,5 +305,4 @@ class CoordinatorState(RunHistory):
     def finished(self) -> bool:
         """Evolution and the evaluations of the run are over."""
         self._plan_evaluations()
-        evaluated = self.evaluated >= min(self.eval_target, len(self.planned))
-        return self.evolution.complete and evaluated
+        return self.evolution.complete and self.evaluations_over(self.planned)

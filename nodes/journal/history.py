@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("derl.history")
 
-EvalKey = tuple[str, str, int]  # (agent, task, seed)
+EvalKey = tuple[str, str, int, int]  # (agent, task, seed, steps)
 
 
 class RunHistory:
@@ -101,7 +101,7 @@ class RunHistory:
         self.lost.append(msg)
 
     def on_EvalResult(self, msg: EvalResult) -> None:
-        self.evaluations.setdefault((msg.agent, msg.task, msg.seed), msg)
+        self.evaluations.setdefault((msg.agent, msg.task, msg.seed, msg.steps), msg)
 
     # --- questions --------------------------------------------------------------------------
 
@@ -162,6 +162,7 @@ def run_log(path: Path) -> RunLog:
             agent=r.agent,
             task=r.task,
             seed=r.seed,
+            steps=r.steps,
             reward=r.reward,
             cost_of_work=r.cost_of_work,
         )
