@@ -315,9 +315,8 @@ def test_analyse_a_run(quadruped: Genome) -> None:
     config = AnalysisConfig(time_points=5)
     run = make_run(quadruped)
     repeat = run.bodies[-1].model_copy(update={"repeat_of": "d"})  # g took d's result
-    (result,) = analyse(
-        [run.model_copy(update={"bodies": (*run.bodies[:-1], repeat)})], config
-    ).runs
+    analysis = analyse([run.model_copy(update={"bodies": (*run.bodies[:-1], repeat)})], config)
+    (result,) = analysis.runs
     s = result.summary
     assert (s.bodies, s.repeats, s.population, s.generations) == (7, 1, 3, 3)
     assert [row.repeat_of for row in body_rows(result)] == [None] * 6 + ["d"]  # bodies.csv
@@ -330,7 +329,9 @@ def test_analyse_a_run(quadruped: Genome) -> None:
     assert [p.x for p in top] == [3, 4, 5, 6, 7]
     assert [p.value for p in top] == [25.0, 190.0, 195.0, 525.0, 400.0]  # top 2 of the window
     assert ids(result.top) == ["f", "d"]
-    assert ORDER[result.illustrative] == "f"  # the top agent with the most generations
+    (world,) = analysis.worlds  # fig. 5d's lineage is now chosen among the world's top agents
+    assert world.illustrative[0] is result
+    assert ORDER[world.illustrative[1]] == "f"  # the top agent with the most generations
     assert [p.value for p in result.series["cost_of_work"]] == [4.0, 1.0, 0.5]
     assert [p.value for p in result.series["dof"]] == [quadruped.dof] * 5
     assert result.morphology[0].passively_stable is not None

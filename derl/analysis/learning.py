@@ -4,7 +4,9 @@ A body's learning speed is the number of env steps at which its learning curve f
 criterion: the 75th percentile of the initial population's fitness. A body that never reaches it
 has no learning speed (NaN): it is counted and left out, never given a made-up value. The top
 agents' ancestors are followed generation by generation: at generation g, each top agent
-contributes the value of its ancestor at depth g (the paper's "as a function of generations").
+contributes the value of its ancestor at depth g (the paper's "as a function of generations"),
+pooled over the runs of a world. Fig. 5d's numbers compare a lineage's founder with its last
+generation: how much more it reaches at the end of learning and how much sooner it learns.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from derl.analysis.lineage import Tree
-from derl.analysis.records import Body, RunLog
+from derl.analysis.records import Body, Record, RunLog
 from derl.analysis.statistics import BootstrapConfig, Point, point
 
 
@@ -43,9 +45,99 @@ def by_generation(
     tree: Tree, agents: np.ndarray, values: np.ndarray, config: BootstrapConfig
 ) -> list[Point]:
     """Mean (with CI) over `agents` of the value of their ancestor at each generation."""
-    chains = [tree.ancestry(int(a)) for a in agents]
-    depth = max((len(chain) for chain in chains), default=0)
-    return [
-        point(g, [values[chain[g]] for chain in chains if len(chain) > g], config)
-        for g in range(depth)
-    ]
+    return pooled_by_generation([(tree, agents, values)], config)
+
+
+def pooled_by_generation(
+    parts: list[tuple[Tree, np.ndarray, np.ndarray]], config: BootstrapConfig
+) -> list[Point]:
+    """`by_generation` over the agents of several runs together: (tree, agents, values) each."""
+    lines = [values[tree.ancestry(int(a))] for tree, agents, values in parts for a in agents]
+    depth = max((line.size for line in lines), default=0)
+    return [point(g, [line[g] for line in lines if line.size > g], config) for g in range(depth)]
+
+
+class LineageGain(Record):
+    """Fig. 5d's comparison of a lineage's first generation (its founder) with a descendant."""
+
+    run: str
+    first: str
+    last: str
+    generations: int
+    """Generations from the founder to the descendant."""
+    first_return: float | None
+    last_return: float | None
+    """The last point of each learning curve (None without a curve)."""
+    return_ratio: float | None
+    """last_return / first_return (None unless both are known and the first is positive)."""
+    first_steps: float | None
+    last_steps: float | None
+    """Env steps each needs to reach the learning criterion (None: never)."""
+    speedup: float | None
+    """first_steps / last_steps: how many times sooner the descendant reaches the criterion."""
+    last_steps_to_first_return: float | None
+    """Env steps the descendant needs to reach the founder's final return (None: never)."""
+
+
+def _final(body: Body) -> float | None:
+    return float(body.curve_returns[-1]) if body.curve_returns else None
+
+
+def _known(value: float) -> float | None:
+    return None if np.isnan(value) else value
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b is not None and b > 0 else None
+
+
+def lineage_gain(run: RunLog, tree: Tree, agent: int, level: float) -> LineageGain:
+    """How `agent` learns compared with its lineage's founder, against the criterion `level`."""
+    first, last = run.bodies[int(tree.founder[agent])], run.bodies[agent]
+    first_return, last_return = _final(first), _final(last)
+    first_steps = _known(steps_to_reach(first, level))
+    last_steps = _known(steps_to_reach(last, level))
+    catch_up = None if first_return is None else _known(steps_to_reach(last, first_return))
+    return LineageGain(
+        run=run.name,
+        first=first.id,
+        last=last.id,
+        generations=int(tree.generation[agent]),
+        first_return=first_return,
+        last_return=last_return,
+        return_ratio=_ratio(last_return, first_return),
+        first_steps=first_steps,
+        last_steps=last_steps,
+        speedup=_ratio(first_steps, last_steps),
+        last_steps_to_first_return=catch_up,
+    )
+
+
+class GainSummary(Record):
+    """Medians of `LineageGain` over the top agents of a world that descend from a founder (the
+    founders among them are left out: they have nothing to compare with)."""
+
+    agents: int
+    return_ratio: float | None
+    speedup: float | None
+    first_steps: float | None
+    last_steps: float | None
+    speedup_defined: int
+    """Agents whose founder and themselves both reach the criterion (the speedup's n)."""
+
+
+def _median(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return float(np.median(known)) if known else None
+
+
+def summarize_gains(gains: list[LineageGain]) -> GainSummary:
+    descended = [g for g in gains if g.generations > 0]
+    return GainSummary(
+        agents=len(descended),
+        return_ratio=_median([g.return_ratio for g in descended]),
+        speedup=_median([g.speedup for g in descended]),
+        first_steps=_median([g.first_steps for g in descended]),
+        last_steps=_median([g.last_steps for g in descended]),
+        speedup_defined=sum(g.speedup is not None for g in descended),
+    )

@@ -71,9 +71,15 @@ def window(t: int, population: int) -> slice:
 
 def time_grid(run: RunLog, points: int) -> np.ndarray:
     """Birth counts to evaluate the population at: from the initial population to the end."""
-    n = len(run.bodies)
-    start = min(run.population, n)
-    return np.unique(np.linspace(start, n, min(points, n - start + 1)).round().astype(int))
+    return shared_grid([run], points)
+
+
+def shared_grid(runs: list[RunLog], points: int) -> np.ndarray:
+    """Birth counts at which every one of `runs` has a whole population: from the largest initial
+    population to the end of the shortest run."""
+    end = min(len(run.bodies) for run in runs)
+    start = min(max(run.population for run in runs), end)
+    return np.unique(np.linspace(start, end, min(points, end - start + 1)).round().astype(int))
 
 
 def fitness_gain(run: RunLog, tree: Tree) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Morphological descriptors of every body and their population means over time (fig. 3, 5b).
+"""Morphological descriptors of every body and their population means over time (fig. 3, 5b),
+of one run or of a world's runs pooled.
 
 Length, width, height (bounding box at rest), DoF and limb count are cheap and measured for every
 body; mass is the one lifetime learning reported. Coverage and passive stability come from
@@ -93,4 +94,14 @@ def over_time(
     values: np.ndarray, times: np.ndarray, population: int, config: BootstrapConfig
 ) -> list[Point]:
     """Population mean (with CI) of per-body `values` after each number of births in `times`."""
-    return [point(int(t), values[window(int(t), population)], config) for t in times]
+    return pooled_over_time([(values, population)], times, config)
+
+
+def pooled_over_time(
+    parts: list[tuple[np.ndarray, int]], times: np.ndarray, config: BootstrapConfig
+) -> list[Point]:
+    """`over_time` of several runs' populations pooled: (values, population) of each run."""
+    return [
+        point(int(t), np.concatenate([v[window(int(t), p)] for v, p in parts]), config)
+        for t in times
+    ]

@@ -1,7 +1,7 @@
 """The report's HTML page: the figures beside it with their captions, the best bodies' gaits,
-the run summaries, links to the tables and the notes (what was sampled, what had too little
-data). One file, no scripts, no external resources; the PNGs and GIFs are referenced by relative
-path.
+the run and world summaries, links to the tables and the notes (what was sampled, what had too
+little data). One file, no scripts, no external resources; the PNGs and GIFs are referenced by
+relative path.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 from html import escape
 from pathlib import Path
 
-from derl.analysis.compute import RunSummary
+from derl.analysis.compute import RunSummary, WorldSummary
 from derl.analysis.records import Record
 
 STYLE = """
@@ -39,6 +39,18 @@ SUMMARY_COLUMNS = {
 }
 
 
+WORLD_COLUMNS = {
+    "world": "world",
+    "runs": "runs",
+    "top_rule": "top agents chosen by",
+    "top_agents": "top agents (n)",
+    "retrained_bodies": "retrained bodies",
+    "retrainings": "retrainings",
+    "top_of_population": "fig. 2a left n",
+    "births": "pooled up to birth",
+}
+
+
 class FigureEntry(Record):
     """A figure on the page: its file (beside the page), title and caption."""
 
@@ -60,7 +72,19 @@ GAITS_TITLE = "The best bodies' gaits"
 def _cell(value: object) -> str:
     if value is None:
         return "-"
+    if isinstance(value, list):
+        return escape(", ".join(map(str, value)))
     return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
+
+
+def _table(rows: list[Record], columns: dict[str, str]) -> str:
+    """`rows` as an HTML table of the given fields, headed by their names."""
+    header = "".join(f"<th>{escape(name)}</th>" for name in columns.values())
+    cells = "".join(
+        "<tr>" + "".join(f"<td>{_cell(getattr(row, key))}</td>" for key in columns) + "</tr>"
+        for row in rows
+    )
+    return f"<table><tr>{header}</tr>{cells}</table>"
 
 
 def _gaits(gaits: list[Gait]) -> list[str]:
@@ -85,18 +109,16 @@ def write_page(
     title: str,
     figures: list[FigureEntry],
     summaries: list[RunSummary],
+    worlds: list[WorldSummary],
     tables: list[Path],
     notes: list[str],
     gaits: list[Gait],
 ) -> Path:
-    rows = "".join(
-        "<tr>" + "".join(f"<td>{_cell(getattr(s, key))}</td>" for key in SUMMARY_COLUMNS) + "</tr>"
-        for s in summaries
-    )
-    header = "".join(f"<th>{escape(name)}</th>" for name in SUMMARY_COLUMNS.values())
     body = [
         f"<h1>{escape(title)}</h1>",
-        f"<table><tr>{header}</tr>{rows}</table>",
+        _table(summaries, SUMMARY_COLUMNS),
+        "<h2>Worlds (runs pooled)</h2>",
+        _table(worlds, WORLD_COLUMNS),
         "<h2>Tables</h2><ul>",
         *(f'<li><a href="{escape(t.name)}">{escape(t.name)}</a></li>' for t in tables),
         "</ul>",

@@ -1,7 +1,9 @@
 """The report's figures as PNG files, drawn with matplotlib (object API, Agg, no pyplot state).
 
 One function per paper figure; each takes computed results (`derl.analysis.compute`) and writes
-one PNG. A panel without enough data still appears, with a note saying what is missing.
+one PNG. The curves of figs. 2a, 3 and 5a-c are one per world, its runs pooled; the trees, Muller
+diagrams and lineages are drawn run by run. A panel without enough data still appears, with a
+note saying what is missing.
 """
 
 from __future__ import annotations
@@ -17,10 +19,10 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from derl.analysis.compute import Analysis, RunAnalysis
+from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis
 from derl.analysis.morphology import DESCRIPTORS
 from derl.analysis.statistics import Point
-from derl.analysis.testsuite import METRICS, tasks_and_worlds
+from derl.analysis.testsuite import budget_label, budgets, tasks_and_worlds
 from derl.unimal import Genome
 from derl.unimal.render import GRID_GAP, render_grid
 
@@ -60,6 +62,13 @@ def run_styles(runs: list[RunAnalysis]) -> dict[str, dict[str, str]]:
     return styles
 
 
+def world_label(world: WorldAnalysis) -> str:
+    """The world and its runs: 'FT: r1' for one run, 'FT (3 runs)' for more."""
+    runs = world.summary.runs
+    name = world.summary.world.upper()
+    return f"{name}: {runs[0]}" if len(runs) == 1 else f"{name} ({len(runs)} runs)"
+
+
 def _save(figure: Figure, path: Path) -> Path:
     figure.savefig(path, dpi=DPI)
     return path
@@ -91,10 +100,13 @@ def _band(axis: Axes, points: list[Point], style: dict[str, str]) -> bool:
     return True
 
 
-def _curves(
-    axis: Axes, runs: list[RunAnalysis], name: str, styles: dict, xlabel: str, ylabel: str
-) -> None:
-    drawn = [_band(axis, r.series[name], styles[r.run.name]) for r in runs]
+def _curves(axis: Axes, analysis: Analysis, name: str, xlabel: str, ylabel: str) -> None:
+    """The world-pooled curve `name` of every world, in its world's colour."""
+    colors = world_colors([w.summary.world for w in analysis.worlds])
+    drawn = [
+        _band(axis, w.series[name], {"color": colors[w.summary.world], "label": world_label(w)})
+        for w in analysis.worlds
+    ]
     axis.set(xlabel=xlabel, ylabel=ylabel)
     axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axis.grid(alpha=0.3)
@@ -104,18 +116,31 @@ def _curves(
         _note(axis, "no values to show")
 
 
+def _sizes(analysis: Analysis, field: str) -> str:
+    """A world summary's count, world by world: '300' or 'FT 300, VT 200'."""
+    sizes = {w.summary.world: getattr(w.summary, field) for w in analysis.worlds}
+    if len(set(sizes.values())) == 1:
+        return str(next(iter(sizes.values())))
+    return ", ".join(f"{world.upper()} {n}" for world, n in sizes.items())
+
+
 def fitness(path: Path, analysis: Analysis) -> Path:
-    """Fig. 2a: the top of the population over time, and the top agents' ancestors."""
-    runs, styles = analysis.runs, run_styles(analysis.runs)
+    """Fig. 2a: the top of the population over time, and the top agents' ancestors, each
+    world's runs pooled."""
     figure = Figure(figsize=(11, 4), layout="constrained")
     left, right = figure.subplots(1, 2)
-    _curves(left, runs, "fitness_top", styles, "bodies born", "fitness")
-    tops = "/".join(str(k) for k in sorted({r.summary.top_of_population for r in runs}))
+    _curves(left, analysis, "fitness_top", "bodies born", "fitness")
     confidence = analysis.config.bootstrap.confidence
-    left.set_title(f"top {tops} of the population: mean, {confidence:.0%} CI", fontsize=10)
-    _curves(right, runs, "fitness_by_generation", styles, "generation", "fitness")
-    agents = "/".join(str(k) for k in sorted({r.summary.top_agents for r in runs}))
-    right.set_title(f"ancestors of the top {agents} agents, by generation", fontsize=10)
+    left.set_title(
+        f"top of each run's population (n={_sizes(analysis, 'top_of_population')}): mean, "
+        f"{confidence:.0%} CI",
+        fontsize=10,
+    )
+    _curves(right, analysis, "fitness_by_generation", "generation", "fitness")
+    right.set_title(
+        f"ancestors of the top agents (n={_sizes(analysis, 'top_agents')}), by generation",
+        fontsize=10,
+    )
     return _save(figure, path)
 
 
@@ -249,12 +274,12 @@ def muller(path: Path, analysis: Analysis) -> Path:
 
 
 def morphology(path: Path, analysis: Analysis) -> Path:
-    """Fig. 3: population mean (with CI) of each descriptor over time."""
-    runs, styles = analysis.runs, run_styles(analysis.runs)
+    """Fig. 3: population mean (with CI) of each descriptor over time, each world's runs
+    pooled."""
     figure = Figure(figsize=(13, 7), layout="constrained")
     for axis, name in zip(figure.subplots(2, 3).flat, DESCRIPTORS, strict=True):
-        _curves(axis, runs, name, styles, "bodies born", UNITS[name])
-        sampled = all(r.summary.stability_simulated == r.summary.bodies for r in runs)
+        _curves(axis, analysis, name, "bodies born", UNITS[name])
+        sampled = all(r.summary.stability_simulated == r.summary.bodies for r in analysis.runs)
         suffix = "" if name != "coverage" or sampled else " (simulated sample)"
         axis.set_title(UNITS[name].split(" (")[0] + suffix, fontsize=10)
     return _save(figure, path)
@@ -262,26 +287,32 @@ def morphology(path: Path, analysis: Analysis) -> Path:
 
 def baldwin(path: Path, analysis: Analysis) -> Path:
     """Fig. 5a-c: learning speed and cost of work of the top agents' ancestors by generation,
-    and the passively stable share of the population over time."""
-    runs, styles = analysis.runs, run_styles(analysis.runs)
+    and the passively stable share of the population over time, each world's runs pooled."""
     figure = Figure(figsize=(14, 4), layout="constrained")
     a, b, c = figure.subplots(1, 3)
-    _curves(a, runs, "steps_to_criterion", styles, "generation", "env steps to the criterion")
+    _curves(a, analysis, "steps_to_criterion", "generation", "env steps to the criterion")
     percentile = analysis.config.criterion_percentile
     a.set_title(f"a. steps to the {percentile:g}th percentile of the initial fitness", fontsize=10)
-    _curves(b, runs, "passively_stable", styles, "bodies born", "passively stable share")
+    _curves(b, analysis, "passively_stable", "bodies born", "passively stable share")
     b.set_title("b. passively stable bodies in the population", fontsize=10)
-    _curves(c, runs, "cost_of_work", styles, "generation", "cost of work")
+    _curves(c, analysis, "cost_of_work", "generation", "cost of work")
     c.set_title("c. cost of work of the top agents' ancestors", fontsize=10)
     return _save(figure, path)
 
 
+def number(value: float | None) -> str:
+    """A ratio or a count of steps, short ('-' when unknown)."""
+    return "-" if value is None else f"{value:.3g}"
+
+
 def illustrative_curves(path: Path, analysis: Analysis) -> Path:
-    """Fig. 5d: learning curves of one top agent's ancestors, one per generation."""
-    runs = analysis.runs
-    figure = Figure(figsize=(8, 4 * len(runs)), layout="constrained")
-    for axis, r in zip(np.atleast_1d(figure.subplots(len(runs), 1)), runs, strict=True):
-        chain = r.tree.ancestry(r.illustrative)
+    """Fig. 5d: learning curves of one top agent's ancestors, one per generation, a panel per
+    world."""
+    worlds = analysis.worlds
+    figure = Figure(figsize=(8, 4 * len(worlds)), layout="constrained")
+    for axis, w in zip(np.atleast_1d(figure.subplots(len(worlds), 1)), worlds, strict=True):
+        r, agent = w.illustrative
+        chain = r.tree.ancestry(agent)
         shown = sorted({chain[int(k)] for k in np.linspace(0, len(chain) - 1, MAX_CURVES)})
         shades = np.linspace(0.15, 0.9, len(chain))
         for body in shown:
@@ -295,9 +326,11 @@ def illustrative_curves(path: Path, analysis: Analysis) -> Path:
             )
         axis.axhline(r.summary.criterion, color="0.4", ls="--", lw=1, label="criterion")
         axis.set(xlabel="env steps", ylabel="mean return")
+        gain = w.summary.illustrative
         axis.set_title(
-            f"{r.run.name} ({r.run.world.upper()}): lineage of {r.run.bodies[chain[-1]].id}, "
-            f"{len(chain)} generations",
+            f"{w.summary.world.upper()}, {r.run.name}: lineage of {gain.last}, {len(chain)} "
+            f"generations; final return x{number(gain.return_ratio)}, criterion reached "
+            f"x{number(gain.speedup)} sooner",
             fontsize=10,
         )
         axis.grid(alpha=0.3)
@@ -351,57 +384,67 @@ def energy(path: Path, analysis: Analysis) -> Path:
 
 
 def tests(path: Path, analysis: Analysis) -> Path:
-    """Fig. 4: median reward and cost of work per test task and world (with CI), with the
-    Mann-Whitney marks between worlds."""
-    summary = analysis.test_summary
-    figure = Figure(figsize=(12, 7), layout="constrained")
-    axes = figure.subplots(2, 1)
-    if not summary:
-        for axis in axes:
-            _note(axis, "no evaluation results in these runs")
+    """Fig. 4b-d: median reward per test task and world (with CI) at each budget of env steps,
+    side by side, largest first, with the Mann-Whitney marks between worlds; below, the cost
+    of work at the largest budget."""
+    steps = budgets(analysis.tests)
+    figure = Figure(figsize=(max(12, 7 * len(steps)), 7), layout="constrained")
+    grid = figure.add_gridspec(2, max(1, len(steps)))
+    if not steps:
+        for row in range(2):
+            _note(figure.add_subplot(grid[row, 0]), "no evaluation results in these runs")
         return _save(figure, path)
-    tasks, worlds = tasks_and_worlds(analysis.tests)
+    panels = [(budget, "reward", figure.add_subplot(grid[0, k])) for k, budget in enumerate(steps)]
+    panels.append((steps[0], "cost_of_work", figure.add_subplot(grid[1, :])))
+    for budget, metric, axis in panels:
+        _test_bars(axis, analysis, budget, metric)
+    return _save(figure, path)
+
+
+def _test_bars(axis: Axes, analysis: Analysis, budget: int | None, metric: str) -> None:
+    """One panel of fig. 4: `metric`'s median per task and world at one budget."""
+    tasks, worlds = tasks_and_worlds([t for t in analysis.tests if t.steps == budget])
     colors = world_colors(worlds)
     width = 0.8 / len(worlds)
-    for axis, metric in zip(axes, METRICS, strict=True):
-        for k, world in enumerate(worlds):
-            rows = {s.task: getattr(s, metric) for s in summary if s.world == world}
-            x = np.array([t for t, task in enumerate(tasks) if task in rows], dtype=float)
-            est = [rows[task] for task in tasks if task in rows]
-            value = np.array([np.nan if e.value is None else e.value for e in est])
-            err = np.array(
-                [[0, 0] if e.low is None else [e.value - e.low, e.high - e.value] for e in est]
-            ).T
-            axis.bar(
-                x + (k - (len(worlds) - 1) / 2) * width,
-                value,
-                width,
-                yerr=err,
-                color=colors[world],
-                label=world.upper(),
-                capsize=3,
+    summary = [s for s in analysis.test_summary if s.steps == budget]
+    for k, world in enumerate(worlds):
+        rows = {s.task: getattr(s, metric) for s in summary if s.world == world}
+        x = np.array([t for t, task in enumerate(tasks) if task in rows], dtype=float)
+        est = [rows[task] for task in tasks if task in rows]
+        value = np.array([np.nan if e.value is None else e.value for e in est])
+        err = np.array(
+            [[0, 0] if e.low is None else [e.value - e.low, e.high - e.value] for e in est]
+        ).T
+        axis.bar(
+            x + (k - (len(worlds) - 1) / 2) * width,
+            value,
+            width,
+            yerr=err,
+            color=colors[world],
+            label=world.upper(),
+            capsize=3,
+        )
+    for t, task in enumerate(tasks):
+        marks = [
+            f"{c.world_a.upper()}-{c.world_b.upper()} {c.test.stars}"
+            for c in analysis.comparisons
+            if c.steps == budget and c.task == task and c.metric == metric and c.test.p is not None
+        ]
+        if marks:
+            axis.annotate(
+                "\n".join(marks),
+                (t, 0.98),
+                xycoords=("data", "axes fraction"),
+                ha="center",
+                va="top",
+                fontsize=7,
             )
-        for t, task in enumerate(tasks):
-            marks = [
-                f"{c.world_a.upper()}-{c.world_b.upper()} {c.test.stars}"
-                for c in analysis.comparisons
-                if c.task == task and c.metric == metric and c.test.p is not None
-            ]
-            if marks:
-                axis.annotate(
-                    "\n".join(marks),
-                    (t, 0.98),
-                    xycoords=("data", "axes fraction"),
-                    ha="center",
-                    va="top",
-                    fontsize=7,
-                )
-        axis.margins(y=0.2)  # room for the marks
-        axis.set_xticks(range(len(tasks)), tasks)
-        axis.set_ylabel(f"median {metric.replace('_', ' ')}")
-        axis.grid(alpha=0.3, axis="y")
-        axis.legend(fontsize=8)
-    return _save(figure, path)
+    axis.margins(y=0.2)  # room for the marks
+    axis.set_xticks(range(len(tasks)), tasks, rotation=20, fontsize=8)
+    axis.set_ylabel(f"median {metric.replace('_', ' ')}")
+    axis.set_title(f"{metric.replace('_', ' ')}, {budget_label(budget)}", fontsize=10)
+    axis.grid(alpha=0.3, axis="y")
+    axis.legend(fontsize=8)
 
 
 def bodies(path: Path, genomes: list[Genome], labels: list[str]) -> Path:

@@ -3,9 +3,11 @@ and index.html.
 
 `write_report(runs, out)` analyses the runs (`compute.analyse`), draws every figure of the paper
 that a run's journal supports, films the best bodies' gaits where their checkpoints are at hand,
-writes the tables and a page that shows them, and returns what it wrote. Captions say what each
-figure shows and how many bodies it covers; the notes say what was sampled and where the data
-were too few.
+writes the tables and a page that shows them, and returns what it wrote. Runs of one world are
+pooled as the paper pools its 3 runs an environment (figs. 2a, 3, 5, 6); the trees, Muller
+diagrams and lineages stay run by run. Captions say what each figure shows, how its top agents
+were chosen and how many values each point rests on (n); the notes say what was sampled and
+where the data were too few.
 """
 
 from __future__ import annotations
@@ -17,12 +19,13 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict
 
 from derl.analysis import plots
-from derl.analysis.compute import Analysis, RunAnalysis, analyse
+from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis, WorldSummary, analyse
 from derl.analysis.config import AnalysisConfig
 from derl.analysis.gaits import write_gaits
 from derl.analysis.page import FigureEntry, write_page
 from derl.analysis.records import Body, RunLog
 from derl.analysis.tables import write_tables
+from derl.analysis.testsuite import budget_label, budgets
 
 log = logging.getLogger("derl.analysis")
 
@@ -53,7 +56,8 @@ def write_report(
     tables = write_tables(analysis, out, notes)
     title = "DERL report: " + ", ".join(f"{r.name} ({r.world.upper()})" for r in runs)
     summaries = [r.summary for r in analysis.runs]
-    page = write_page(out / PAGE, title, entries, summaries, tables, notes, gaits)
+    worlds = [w.summary for w in analysis.worlds]
+    page = write_page(out / PAGE, title, entries, summaries, worlds, tables, notes, gaits)
     return ReportFiles(
         page=page,
         figures=[out / e.file for e in entries],
@@ -68,6 +72,52 @@ def _runs_text(analysis: Analysis, what: Callable[[RunAnalysis], str]) -> str:
     return "; ".join(f"{r.run.name}: {what(r)}" for r in analysis.runs)
 
 
+def _worlds_text(analysis: Analysis, what: Callable[[WorldAnalysis], str]) -> str:
+    """`what` of each world, labelled with the world and its runs."""
+    return "; ".join(
+        f"{w.summary.world.upper()} ({', '.join(w.summary.runs)}): {what(w)}"
+        for w in analysis.worlds
+    )
+
+
+def top_rule(summary: WorldSummary) -> str:
+    """How a world's top agents were chosen, and how many they are."""
+    if summary.top_rule == "retrained":
+        return (
+            f"the {summary.top_agents} best of {summary.retrained_bodies} retrained bodies by "
+            f"mean fitness over {summary.retrainings} retrainings with new seeds (appendix D), "
+            "its runs pooled"
+        )
+    return (
+        f"the {summary.top_agents} fittest in evolution (each run's fittest bodies, pooled; "
+        "no retrainings)"
+    )
+
+
+def _gain_text(w: WorldAnalysis) -> str:
+    """Fig. 5d's numbers of one world: its illustrative lineage, then medians over its top
+    agents."""
+    one, many, n = w.summary.illustrative, w.summary.gains, plots.number
+    return (
+        f"{one.first} (generation 0) to {one.last} (generation {one.generations}): final return "
+        f"{n(one.first_return)} to {n(one.last_return)} (x{n(one.return_ratio)}), env steps to "
+        f"the criterion {n(one.first_steps)} to {n(one.last_steps)} (x{n(one.speedup)} sooner), "
+        f"the founder's final return reached after {n(one.last_steps_to_first_return)} steps; "
+        f"over the {many.agents} top agents with a founder before them: median final return "
+        f"x{n(many.return_ratio)}, median steps to the criterion {n(many.first_steps)} to "
+        f"{n(many.last_steps)}, median speed-up x{n(many.speedup)} (n={many.speedup_defined} "
+        "reaching the criterion both)"
+    )
+
+
+def _tests_text(analysis: Analysis) -> str:
+    """Fig. 4's groups: the results of each budget."""
+    return "; ".join(
+        f"{budget_label(steps)}: {sum(t.steps == steps for t in analysis.tests)} results"
+        for steps in budgets(analysis.tests)
+    )
+
+
 def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntry]:
     config = analysis.config
     ci = (
@@ -79,15 +129,18 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             file=plots.fitness(out / "fitness.png", analysis).name,
             title="Fig. 2a: fitness of the top agents",
             caption=(
-                "Left: mean fitness of the k fittest members of the population (the P most "
-                f"recently born bodies) after each number of births, with {ci}. Right: mean "
-                "fitness, generation by generation, of the ancestors of each run's top agents "
-                "(n at generation g = top agents whose lineage is that deep). "
-                + _runs_text(
+                "Left: mean fitness of the k fittest members of each run's population (the P "
+                f"most recently born bodies) after each number of births, with {ci}, the runs of "
+                "a world pooled (n = runs x k at each point; the axis ends where the world's "
+                "shortest run ends). Right: mean fitness, generation by generation, of the "
+                "ancestors of the world's top agents (n at generation g = top agents whose "
+                "lineage is that deep). "
+                + _worlds_text(
                     analysis,
-                    lambda r: (
-                        f"{r.summary.bodies} bodies, P={r.summary.population}, "
-                        f"k={r.summary.top_of_population}, top agents={r.summary.top_agents}"
+                    lambda w: (
+                        f"n={w.summary.top_of_population} "
+                        f"(k={'/'.join(str(r.summary.top_of_population) for r in w.runs)}), "
+                        f"{w.summary.births} births; top agents: {top_rule(w.summary)}"
                     ),
                 )
             ),
@@ -143,10 +196,11 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             file=plots.morphology(out / "morphology.png", analysis).name,
             title="Fig. 3: morphological descriptors",
             caption=(
-                f"Population mean with {ci} after each number of births: bounding-box length "
-                "(forward), width and height at rest, coverage (body volume / bounding-box "
-                "volume), mass and degrees of freedom. Coverage comes from the stability "
-                "simulation: "
+                f"Population mean with {ci} after each number of births, the populations of a "
+                "world's runs pooled (averaged over its runs: n = runs x P at each point): "
+                "bounding-box length (forward), width and height at rest, coverage (body volume "
+                "/ bounding-box volume), mass and degrees of freedom. Coverage comes from the "
+                "stability simulation: "
                 + _runs_text(
                     analysis,
                     lambda r: f"{r.summary.stability_simulated} of {r.summary.bodies} bodies",
@@ -157,10 +211,13 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             file=plots.tests(out / "tests.png", analysis).name,
             title="Fig. 4: the test-task suite",
             caption=(
-                f"Median reward and cost of work per test task and evolution world, with {ci} of "
-                "the median, over every evaluated (agent, seed); marks: two-tailed Mann-Whitney U "
-                "tests between worlds (* p<0.05, ** p<0.01, *** p<0.001, **** p<0.0001, ns). "
-                f"{len(analysis.tests)} evaluation results."
+                "Top: median reward per test task and evolution world at each training budget "
+                "of env steps, side by side, largest first (the paper's 5M steps, fig. 4b, and "
+                "1M, fig. 4c); bottom: median cost of work at the largest budget (fig. 4d). "
+                f"With {ci} of the median, over every evaluated (agent, seed) of a world's runs; "
+                "marks: two-tailed Mann-Whitney U tests between worlds at the same budget (* "
+                "p<0.05, ** p<0.01, *** p<0.001, **** p<0.0001, ns). "
+                f"{len(analysis.tests)} evaluation results: {_tests_text(analysis) or 'none'}."
             ),
         ),
         FigureEntry(
@@ -169,10 +226,13 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             caption=(
                 f"a: env steps until the learning curve first reaches the "
                 f"{config.criterion_percentile:g}th percentile of the initial population's "
-                "fitness, for the ancestors of the top agents by generation (bodies that never "
-                f"reach it are left out). b: share of passively stable bodies in the population "
-                f"over time ({ci}; simulated bodies only). c: mean cost of work of the same "
-                "ancestors by generation. "
+                "fitness (each run's own), for the ancestors of the world's top agents by "
+                "generation (bodies that never reach it are left out). b: share of passively "
+                f"stable bodies in the population over time, a world's runs pooled ({ci}; "
+                "simulated bodies only). c: mean cost of work of the same ancestors by "
+                "generation. Top agents: "
+                + _worlds_text(analysis, lambda w: top_rule(w.summary))
+                + ". "
                 + _runs_text(
                     analysis,
                     lambda r: (
@@ -187,17 +247,11 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             file=plots.illustrative_curves(out / "curves.png", analysis).name,
             title="Fig. 5d: learning curves across generations of one lineage",
             caption=(
-                "Learning curves (mean return against env steps) of one top agent of each run "
+                "Learning curves (mean return against env steps) of one top agent of each world "
                 "(the one with the most generations behind it) and of its ancestors (at most "
                 f"{plots.MAX_CURVES} generations, evenly spread), darker to lighter from founder "
-                "to descendant; dashed: the learning criterion. "
-                + _runs_text(
-                    analysis,
-                    lambda r: (
-                        f"{r.run.bodies[r.illustrative].id}, generation "
-                        f"{int(r.tree.generation[r.illustrative])}"
-                    ),
-                )
+                "to descendant; dashed: the learning criterion. How much better and sooner the "
+                "last generation learns than the first: " + _worlds_text(analysis, _gain_text)
             ),
         ),
         FigureEntry(
@@ -205,7 +259,8 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             title="Fig. 6: energy efficiency, fitness and learning speed",
             caption=(
                 "a: fitness and b: env steps to the learning criterion against cost of work, for "
-                "the top agents of each world's runs (colour) and for every body (grey); "
+                "the top agents of each world (colour; their fitness and cost of work in "
+                "evolution) and for every body (grey); "
                 "two-tailed Pearson r and p in the legends (bodies with an undefined cost of work "
                 "or learning speed are left out). "
                 + "; ".join(
@@ -272,11 +327,25 @@ def _notes(analysis: Analysis) -> list[str]:
                 f"percentile of the positive gains (how the paper chose its thresholds) is "
                 f"{s.gain_p75:.4g}: try --beneficial {s.world}={s.gain_p75:.3g}"
             )
-        single = sum(p.n < 2 for points in r.series.values() for p in points)
+    for w in analysis.worlds:
+        notes.append(f"{w.summary.world.upper()}: top agents are {top_rule(w.summary)}")
+        single = sum(p.n < 2 for points in w.series.values() for p in points)
         if single:
             notes.append(
-                f"{s.run}: {single} plotted points rest on fewer than 2 values and have no CI "
-                "(a CI needs >= 2 values)"
+                f"{w.summary.world.upper()}: {single} plotted points rest on fewer than 2 values "
+                "and have no CI (a CI needs >= 2 values)"
+            )
+        lengths = {r.summary.bodies for r in w.runs}
+        if len(lengths) > 1:
+            notes.append(
+                f"{w.summary.world.upper()}: its runs differ in length ({min(lengths)} to "
+                f"{max(lengths)} bodies); the pooled time series end at {w.summary.births} births"
+            )
+        missing = [r.run.name for r in w.runs if not r.run.retrained]
+        if w.summary.top_rule == "retrained" and missing:
+            notes.append(
+                f"{w.summary.world.upper()}: no retrainings of {', '.join(missing)}; none of "
+                "their bodies can be among the world's top agents"
             )
     for row in analysis.correlations:
         if row.correlation.r is None:
@@ -287,7 +356,9 @@ def _notes(analysis: Analysis) -> list[str]:
     worlds = {t.world for t in analysis.tests}
     if not analysis.tests:
         notes.append("fig. 4: these runs hold no evaluation (test-task) results")
-    elif len(worlds) < 2:
+    elif None in budgets(analysis.tests):
+        notes.append("fig. 4: some evaluation results have no known budget; they form a group")
+    if analysis.tests and len(worlds) < 2:
         notes.append(
             "fig. 4: Mann-Whitney U tests compare worlds; give runs of at least two worlds with "
             "evaluation results (derl report A B C)"

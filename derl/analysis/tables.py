@@ -1,12 +1,15 @@
 """The machine-readable tables of a report: CSV files (one pydantic row model each) and
-stats.json (run sizes and thresholds, correlations, Mann-Whitney tests, what was sampled).
+stats.json (run and world sizes, the top agents' rule, fig. 5d's numbers, thresholds,
+correlations, Mann-Whitney tests, what was sampled).
 
 bodies.csv      one row per body: tree, fitness, energy, descriptors, stability, learning speed,
                 the earlier body a repeat took its result from (repeat_of)
 lineages.csv    one row per lineage: founder, rank, size, survival, beneficial mutations
-series.csv      every plotted curve: figure series, run, x, n, mean and CI
+series.csv      every run's own curves: figure series, run, x, n, mean and CI
+world_series.csv  the curves the figures draw, each world's runs pooled (n counts every run's)
 muller.csv      abundance and mean fitness of the top lineages after each number of births
-tests.csv       one row per evaluation result; test_summary.csv medians and CIs per world/task
+tests.csv       one row per evaluation result (with its budget, steps); test_summary.csv medians
+                and CIs per budget, world and task
 """
 
 from __future__ import annotations
@@ -18,7 +21,14 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from derl.analysis.compute import Analysis, CorrelationRow, RunAnalysis, RunSummary
+from derl.analysis.compute import (
+    Analysis,
+    CorrelationRow,
+    RunAnalysis,
+    RunSummary,
+    WorldAnalysis,
+    WorldSummary,
+)
 from derl.analysis.config import AnalysisConfig
 from derl.analysis.lineage import Lineage
 from derl.analysis.records import Record
@@ -57,6 +67,7 @@ class Stats(Record):
 
     config: AnalysisConfig
     runs: list[RunSummary]
+    worlds: list[WorldSummary]
     correlations: list[CorrelationRow]
     mann_whitney: list[WorldComparison]
     notes: list[str]
@@ -65,6 +76,17 @@ class Stats(Record):
 class SeriesRow(Record):
     series: str
     run: str
+    x: float
+    n: int
+    mean: float | None
+    low: float | None
+    high: float | None
+
+
+class WorldSeriesRow(Record):
+    series: str
+    world: str
+    runs: int
     x: float
     n: int
     mean: float | None
@@ -111,6 +133,23 @@ def series_rows(result: RunAnalysis) -> list[SeriesRow]:
     return [
         SeriesRow(
             series=name, run=result.run.name, x=p.x, n=p.n, mean=p.value, low=p.low, high=p.high
+        )
+        for name, points in result.series.items()
+        for p in points
+    ]
+
+
+def world_series_rows(result: WorldAnalysis) -> list[WorldSeriesRow]:
+    return [
+        WorldSeriesRow(
+            series=name,
+            world=result.summary.world,
+            runs=len(result.runs),
+            x=p.x,
+            n=p.n,
+            mean=p.value,
+            low=p.low,
+            high=p.high,
         )
         for name, points in result.series.items()
         for p in points
@@ -170,6 +209,11 @@ def write_tables(analysis: Analysis, out: Path, notes: list[str]) -> list[Path]:
         write_csv(out / "bodies.csv", (row for r in runs for row in body_rows(r)), BodyRow),
         write_csv(out / "lineages.csv", (row for r in runs for row in r.lineages), Lineage),
         write_csv(out / "series.csv", (row for r in runs for row in series_rows(r)), SeriesRow),
+        write_csv(
+            out / "world_series.csv",
+            (row for w in analysis.worlds for row in world_series_rows(w)),
+            WorldSeriesRow,
+        ),
         write_csv(out / "muller.csv", (row for r in runs for row in muller_rows(r)), MullerRow),
         write_csv(out / "tests.csv", analysis.tests, TestResult),
         write_csv(out / "test_summary.csv", analysis.test_summary, TaskSummary),
@@ -177,6 +221,7 @@ def write_tables(analysis: Analysis, out: Path, notes: list[str]) -> list[Path]:
     stats = Stats(
         config=analysis.config,
         runs=[r.summary for r in runs],
+        worlds=[w.summary for w in analysis.worlds],
         correlations=analysis.correlations,
         mann_whitney=analysis.comparisons,
         notes=notes,

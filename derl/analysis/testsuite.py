@@ -1,7 +1,10 @@
-"""The test-task suite across worlds (the paper's fig. 4): per world and task, the median reward
-and cost of work with bootstrapped CIs, and two-tailed Mann-Whitney U tests between worlds.
+"""The test-task suite across worlds (the paper's fig. 4): per budget of env steps, world and task,
+the median reward and cost of work with bootstrapped CIs, and two-tailed Mann-Whitney U tests
+between worlds.
 
-Runs of the same world are pooled: every evaluation (agent, task, seed) is one sample.
+Runs of the same world are pooled: every evaluation (agent, task, seed) is one sample. Results
+with different budgets are never pooled: the paper trains the same agents for 5M steps (fig. 4b)
+and for 1M steps (fig. 4c); results without a known budget form a group of their own.
 """
 
 from __future__ import annotations
@@ -25,13 +28,16 @@ class TestResult(Record):
     agent: str
     task: str
     seed: int
+    steps: int | None
+    """Its training budget in env steps (None: unknown)."""
     reward: float
     cost_of_work: float
 
 
 class TaskSummary(Record):
-    """Medians of one world on one task (a row of test_summary.csv)."""
+    """Medians of one world on one task at one budget (a row of test_summary.csv)."""
 
+    steps: int | None
     world: str
     task: str
     reward: Estimate
@@ -39,8 +45,9 @@ class TaskSummary(Record):
 
 
 class WorldComparison(Record):
-    """Mann-Whitney U test of two worlds on one task and metric."""
+    """Mann-Whitney U test of two worlds on one task and metric at one budget."""
 
+    steps: int | None
     task: str
     metric: str
     world_a: str
@@ -56,6 +63,16 @@ def results(runs: list[RunLog]) -> list[TestResult]:
     ]
 
 
+def budgets(rows: list[TestResult]) -> list[int | None]:
+    """The budgets present, largest first; an unknown budget (None) last."""
+    known = sorted({r.steps for r in rows if r.steps is not None}, reverse=True)
+    return known + ([None] if any(r.steps is None for r in rows) else [])
+
+
+def budget_label(steps: int | None) -> str:
+    return "budget unknown" if steps is None else f"{steps:,} env steps"
+
+
 def _values(rows: list[TestResult], world: str, task: str, metric: str) -> np.ndarray:
     return np.array(
         [getattr(r, metric) for r in rows if r.world == world and r.task == task], dtype=float
@@ -67,33 +84,41 @@ def tasks_and_worlds(rows: list[TestResult]) -> tuple[list[str], list[str]]:
     return list(dict.fromkeys(r.task for r in rows)), list(dict.fromkeys(r.world for r in rows))
 
 
+def _groups(rows: list[TestResult]) -> list[tuple[int | None, list[TestResult]]]:
+    """The results of each budget, largest budget first."""
+    return [(steps, [r for r in rows if r.steps == steps]) for steps in budgets(rows)]
+
+
 def summarize(rows: list[TestResult], config: BootstrapConfig) -> list[TaskSummary]:
-    tasks, worlds = tasks_and_worlds(rows)
     return [
         TaskSummary(
+            steps=steps,
             world=world,
             task=task,
-            **{m: estimate(_values(rows, world, task, m), config, "median") for m in METRICS},
+            **{m: estimate(_values(group, world, task, m), config, "median") for m in METRICS},
         )
-        for task in tasks
-        for world in worlds
-        if any(r.world == world and r.task == task for r in rows)
+        for steps, group in _groups(rows)
+        for task in tasks_and_worlds(group)[0]
+        for world in tasks_and_worlds(group)[1]
+        if any(r.world == world and r.task == task for r in group)
     ]
 
 
 def compare(rows: list[TestResult]) -> list[WorldComparison]:
-    """Every pair of worlds on every task both were tested on, for reward and cost of work."""
-    tasks, worlds = tasks_and_worlds(rows)
+    """Every pair of worlds on every task both were tested on at a budget, for reward and cost
+    of work."""
     return [
         WorldComparison(
+            steps=steps,
             task=task,
             metric=metric,
             world_a=a,
             world_b=b,
-            test=mann_whitney(_values(rows, a, task, metric), _values(rows, b, task, metric)),
+            test=mann_whitney(_values(group, a, task, metric), _values(group, b, task, metric)),
         )
-        for task in tasks
+        for steps, group in _groups(rows)
+        for task in tasks_and_worlds(group)[0]
         for metric in METRICS
-        for a, b in combinations(worlds, 2)
-        if _values(rows, a, task, metric).size and _values(rows, b, task, metric).size
+        for a, b in combinations(tasks_and_worlds(group)[1], 2)
+        if _values(group, a, task, metric).size and _values(group, b, task, metric).size
     ]
