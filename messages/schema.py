@@ -478,8 +478,8 @@ class RunStatus(MessageBase):
     type: Literal["RunStatus"] = "RunStatus"
     born: Count
     """Children born."""
-    target: Steps
-    """Children to be born in all."""
+    target: Count
+    """Children to be born in all (0 in a study: it trains no children)."""
     best_fitness: Finite | None = None
     """The best fitness so far."""
     best_agent: Id | None = None

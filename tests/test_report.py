@@ -18,7 +18,8 @@ from derl.rl import PPOConfig
 from derl.unimal import Genome
 from messages import Ack, Birth, Curve, EvalResult, FitnessReport, Tournament, TrainJob
 from nodes.cli.main import main
-from nodes.cli.report import _thresholds, load_runs
+from nodes.cli.report import _thresholds
+from nodes.journal.history import load_runs
 from nodes.journal.history import run_log as load_run
 from nodes.journal.segments import Journal, segments
 

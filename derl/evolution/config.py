@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -23,6 +23,8 @@ EPISODE_STEPS = 1000
 BONUS = 10.0  # the largest per-step bonus of a reward
 SEED_LIMIT = 2**64  # seeds travel as unsigned 64-bit integers
 MAX_LEASE_S = 86_400.0
+
+Settings = TypeVar("Settings", bound=BaseModel)
 
 
 class EvolutionConfig(BaseModel):
@@ -80,13 +82,7 @@ class EvolutionConfig(BaseModel):
         return per_metre * diagonal + BONUS * (EPISODE_STEPS + 1)
 
     def _ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
-        per_job = {"total_steps", "seed", "num_envs", "fitness_component", "fitness_window_steps"}
-        hyper = self.ppo.model_dump(exclude=per_job)
-        try:
-            return ppo_config(task, steps, seed, num_envs=self.num_envs, **hyper)
-        except ValidationError as error:
-            reasons = "; ".join(e["msg"].removeprefix("Value error, ") for e in error.errors())
-            raise ValueError(f"PPO of {task} with {steps} steps: {reasons}") from None
+        return job_ppo(task, steps, seed, self.num_envs, self.ppo)
 
     @model_validator(mode="after")
     def _consistent(self) -> EvolutionConfig:
@@ -101,6 +97,17 @@ class EvolutionConfig(BaseModel):
         for task in self.eval_tasks:
             self.evaluation_ppo(task, 0)
         return self
+
+
+def job_ppo(task: str, steps: int, seed: int, num_envs: int, hyper: PPOConfig) -> PPOConfig:
+    """The PPO of one job: `hyper`'s hyperparameters with the job's budget, seed and copies and
+    the task's fitness settings; ValueError saying why when the budget does not fit them."""
+    per_job = {"total_steps", "seed", "num_envs", "fitness_component", "fitness_window_steps"}
+    try:
+        return ppo_config(task, steps, seed, num_envs=num_envs, **hyper.model_dump(exclude=per_job))
+    except ValidationError as error:
+        reasons = "; ".join(e["msg"].removeprefix("Value error, ") for e in error.errors())
+        raise ValueError(f"PPO of {task} with {steps} steps: {reasons}") from None
 
 
 PROFILES: dict[str, EvolutionConfig] = {
@@ -132,18 +139,26 @@ PROFILES: dict[str, EvolutionConfig] = {
 
 def load_profile(name_or_path: str, **overrides: object) -> EvolutionConfig:
     """A built-in profile by name, or a YAML file; `overrides` (e.g. world) win."""
-    if name_or_path in PROFILES:
-        base: dict[str, object] = PROFILES[name_or_path].model_dump()
+    return load_settings(EvolutionConfig, PROFILES, name_or_path, **overrides)
+
+
+def load_settings(
+    model: type[Settings], builtin: dict[str, Settings], name_or_path: str, **overrides: object
+) -> Settings:
+    """One of `builtin` by name, or a YAML file of `model`'s fields (``profile: NAME`` in it
+    starts from a built-in one, its name is the file's stem); `overrides` that are set win."""
+    if name_or_path in builtin:
+        base: dict[str, object] = builtin[name_or_path].model_dump()
     else:
         path = Path(name_or_path)
         if not path.is_file():
             raise ValueError(
-                f"no profile {name_or_path!r}: use {', '.join(PROFILES)} or a YAML file"
+                f"no profile {name_or_path!r}: use {', '.join(builtin)} or a YAML file"
             )
         data = yaml.safe_load(path.read_text()) or {}
         if not isinstance(data, dict):
             raise ValueError(f"{path}: a profile is a mapping of settings")
         parent = data.pop("profile", None)
-        base = {**(PROFILES[parent].model_dump() if parent else {}), "name": path.stem, **data}
+        base = {**(builtin[parent].model_dump() if parent else {}), "name": path.stem, **data}
     chosen = {k: v for k, v in overrides.items() if v is not None}
-    return EvolutionConfig.model_validate({**base, **chosen})
+    return model.model_validate({**base, **chosen})

@@ -6,7 +6,18 @@ import argparse
 import logging
 import sys
 
-from nodes.cli import certs, evaluate, launch, nodes, report, run, schema, train, unimal, watch
+from nodes.cli import (
+    certs,
+    launch,
+    nodes,
+    report,
+    run,
+    schema,
+    study,
+    train,
+    unimal,
+    watch,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     launch.register(commands)
     certs.register(commands)
     report.register(commands)
-    evaluate.register(commands)
+    study.register(commands)
     watch.register(commands)
     schema.register(commands)
     return parser

@@ -30,9 +30,15 @@ from nodes.runtime.bus import node_name
 
 
 def register(commands: argparse._SubParsersAction) -> None:
-    coordinator = commands.add_parser("coordinator", help="start the coordinator of a run")
+    coordinator = commands.add_parser(
+        "coordinator", help="start the coordinator of a run (or of a study: --study)"
+    )
     add_profile_arguments(coordinator)
-    coordinator.add_argument("--run-dir", type=Path, required=True, help="journal and results")
+    where = coordinator.add_mutually_exclusive_group(required=True)
+    where.add_argument("--run-dir", type=Path, help="journal and results")
+    where.add_argument(
+        "--study", type=Path, metavar="STUDY_DIR", help="coordinate this study (`derl study`)"
+    )
     add_bus_arguments(coordinator)
     coordinator.set_defaults(handler=_coordinator)
 
@@ -53,11 +59,14 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _coordinator(args: argparse.Namespace) -> int:
     from nodes.coordinator.node import serve
+    from nodes.coordinator.study import serve_study
 
-    config = profile_from(args)
-    run_dir = run_directory(args.run_dir)
     try:
-        finished = serve(args.run, run_dir, config, options_from(args))
+        if args.study is not None:
+            finished = serve_study(args.run, args.study, options_from(args))
+        else:
+            finished = serve(args.run, run_directory(args.run_dir), profile_from(args),
+                             options_from(args))  # fmt: skip
     except zenoh.ZError as error:
         fail_on_bus(error)
     return 0 if finished is True else 1

@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING
 
 from rich.console import Console
 
-from nodes.journal.history import run_log
+from nodes.cli.options import fail
+from nodes.journal.history import load_runs
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog
@@ -45,7 +46,11 @@ def register(commands: argparse._SubParsersAction) -> None:
         "stats.json, from the runs' journals alone.",
     )
     report.add_argument(
-        "runs", nargs="+", type=Path, metavar="RUN_DIR_OR_LOG", help="run directory or MCAP log"
+        "runs",
+        nargs="+",
+        type=Path,
+        metavar="RUN_DIR_OR_LOG",
+        help="run directory or MCAP log, or one study directory (`derl study`)",
     )
     report.add_argument("--out", type=Path, required=True, help="output directory")
     report.add_argument(
@@ -115,18 +120,16 @@ def _thresholds(text: str) -> dict[str, float]:
         ) from None
 
 
-def load_runs(paths: list[Path]) -> list[RunLog]:
-    """The runs of `paths`, renamed run-2, run-3... where two carry the same run id."""
-    runs, seen = [], set()
-    for path in paths:
-        run = run_log(path)
-        name, k = run.name, 1
-        while name in seen:
-            k += 1
-            name = f"{run.name}-{k}"
-        seen.add(name)
-        runs.append(run if name == run.name else run.model_copy(update={"name": name}))
-    return runs
+def _runs_or_study(paths: list[Path]) -> list[RunLog]:
+    """The runs of `paths`, or a study's runs with its results (`derl study`)."""
+    from nodes.coordinator.study import SETUP_FILE, study_logs
+
+    studies = [path for path in paths if (path / SETUP_FILE).is_file()]
+    if not studies:
+        return load_runs(paths)
+    if len(paths) > 1:
+        fail(f"{studies[0]} is a study: report it alone (it names its runs)")
+    return study_logs(studies[0])
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -150,7 +153,7 @@ def _report(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise SystemExit(f"derl: {error}") from None
     start = time.monotonic()
-    runs = load_runs(args.runs)
+    runs = _runs_or_study(args.runs)
     try:
         files = write_report(runs, args.out, config)
     except ValueError as error:

@@ -48,7 +48,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     run.add_argument("--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>]")
     run.add_argument(
         "--port",
-        type=_port,
+        type=port_number,
         default=DEFAULT_PORT,
         help=f"the coordinator's port on 127.0.0.1, where monitors connect (default "
         f"{DEFAULT_PORT}; 0: a free one)",
@@ -56,7 +56,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     run.set_defaults(handler=_run)
 
 
-def _port(text: str) -> int:
+def port_number(text: str) -> int:
     try:
         port = int(text)
     except ValueError:
@@ -77,11 +77,14 @@ def _run(args: argparse.Namespace) -> int:
             pass
     except RunDirLocked as error:
         fail(str(error), IN_USE)
-    port = _listenable(args.port)
+    port = listenable(args.port)
     run = re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
     endpoint = f"tcp/127.0.0.1:{port}"
-    supervisor = Supervisor(_commands(args, run, run_dir, endpoint, config.eval_top > 0),
-                            run_dir / "logs")  # fmt: skip
+    env = ("--env", args.env) if args.env else ()
+    seed = ("--seed", str(args.seed)) if args.seed is not None else ()
+    coordinator = ("--profile", args.profile, *env, *seed, "--run-dir", str(run_dir))
+    workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
+    supervisor = Supervisor(local_nodes(run, endpoint, coordinator, workers), run_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
@@ -90,7 +93,7 @@ def _run(args: argparse.Namespace) -> int:
         f"(derl monitor --connect {endpoint} --run {run}); logs in {supervisor.log_dir}",
         highlight=False,
     )
-    code, status = _supervise(supervisor, run, endpoint, config.total)
+    code, status = supervise(supervisor, run, endpoint, config.total)
     if code != 0:
         console.print(f"stopped; `derl run --run-dir {run_dir} ...` resumes the run")
         return code
@@ -102,7 +105,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _listenable(port: int) -> int:
+def listenable(port: int) -> int:
     """`port` (a free one for 0) if the coordinator can listen on it, else exit saying so."""
     with socket.socket() as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener
@@ -114,16 +117,14 @@ def _listenable(port: int) -> int:
         return probe.getsockname()[1]
 
 
-def _commands(
-    args: argparse.Namespace, run: str, run_dir: Path, endpoint: str, evaluator: bool
+def local_nodes(
+    run: str, endpoint: str, coordinator: tuple[str, ...], workers: dict[str, int]
 ) -> list[NodeCommand]:
-    """The coordinator, the trainers and the evaluator, each restarted when it fails."""
-    env = ["--env", args.env] if args.env else []
-    seed = ["--seed", str(args.seed)] if args.seed is not None else []
-    coordinator = ("coordinator", "--run", run, "--profile", args.profile, *env, *seed,
-                   "--run-dir", str(run_dir), "--listen", endpoint)  # fmt: skip
-    nodes = [("coordinator", "coordinator", coordinator)]
-    for role, count in (("trainer", args.workers), ("evaluator", int(evaluator))):
+    """A coordinator (`coordinator`: its own arguments) listening on `endpoint` and `workers`
+    (role -> count) connected to it, each restarted when it fails."""
+    nodes = [("coordinator", "coordinator",
+              ("coordinator", "--run", run, *coordinator, "--listen", endpoint))]  # fmt: skip
+    for role, count in workers.items():
         for k in range(count):
             name = f"{role}-{k}"
             nodes.append((role, name, (role, "--run", run, "--connect", endpoint, "--name", name)))
@@ -133,7 +134,7 @@ def _commands(
     ]
 
 
-def _supervise(
+def supervise(
     supervisor: Supervisor, run: str, endpoint: str, total: int
 ) -> tuple[int, RunStatus | None]:
     """Supervise the nodes until the run is over, showing its status; the supervisor's exit
@@ -142,7 +143,7 @@ def _supervise(
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
-        TextColumn("{task.completed:.0f}/{task.total:.0f} born"),
+        TextColumn("{task.completed:.0f}/{task.total:.0f} {task.fields[unit]}"),
         TextColumn("best {task.fields[best]}"),
         TextColumn("{task.fields[sps]:,.0f} steps/s"),
         TextColumn("eval {task.fields[evaluated]}"),
@@ -155,19 +156,22 @@ def _supervise(
     ):
         bus = Bus(session, run)
         bus.subscribe(bus.keys.status(), latest.append, (RunStatus,))
-        task = bar.add_task("evolution", total=total, best="-", sps=0.0, evaluated="-")
+        task = bar.add_task("evolution", total=total, best="-", sps=0.0, evaluated="-", unit="born")
 
         def show() -> None:
             if not latest:
                 return
             s = latest[-1]
             del latest[:-1]
+            study = s.target == 0  # a study's progress is its evaluations
             bar.update(
                 task,
-                total=s.target,
-                completed=s.born,
+                description="study" if study else "evolution",
+                total=s.eval_target if study else s.target,
+                completed=s.evaluated if study else s.born,
                 best="-" if s.best_fitness is None else f"{s.best_fitness:.1f}",
                 sps=s.steps_per_s,
+                unit="evaluated" if study else "born",
                 evaluated=f"{s.evaluated}/{s.eval_target}",
             )
 

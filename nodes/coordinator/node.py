@@ -87,9 +87,7 @@ class Coordinator:
         self.run, self.run_dir = run, run_dir
         run_dir.mkdir(parents=True, exist_ok=True)
         self.config = self._run_config(config)
-        check_jobs(run, self.config)
-        self.state = CoordinatorState.start(self.config, self._saved_initial_population())
-        self._save_initial_population()
+        self.state = self._new_state()
         replayed = 0
         if segments(run_dir):
             try:
@@ -99,16 +97,9 @@ class Coordinator:
             except JournalDamaged as damage:
                 raise SystemExit(f"derl: {damage}") from None
         self.replayed = replayed
-        self.logged_born = self.born
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
-        for child in self.state.by_child:  # children in training hold later equal ones
-            self.state.training(child)
-        for birth in self.state.births:  # a crash may have lost a repeat's link
-            if birth.repeat_of is not None and not self.checkpoints.path(birth.child).exists():
-                self.checkpoints.link(birth.child, birth.repeat_of).add_done_callback(
-                    _log_failed_link
-                )
+        self._resume()
         # published after the journal flush (and, for an Ack, once its checkpoint is on disk)
         self.outbox: list[tuple[MessageBase, bytes, Future[None] | None]] = []
         self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
@@ -119,13 +110,32 @@ class Coordinator:
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.alive: dict[str, str] = {}  # node -> role
         self.trainers = 0  # of them, trainers (counted, not scanned: one count per assignment)
-        # the same for every job of the run: built once (each builds the world's task)
-        self.training_ppo = config.training_ppo()
-        self.fitness_bound = config.fitness_bound()
         self.rates: dict[str, float] = {}  # node -> steps/s
         self.rejected = 0
         self.stop = threading.Event()
         log.info("run %s: %d journaled messages replayed, %d born", run, replayed, self.born)
+
+    def _new_state(self) -> CoordinatorState:
+        """The state before the journal is replayed: the initial population to be trained."""
+        check_jobs(self.run, self.config)
+        state = CoordinatorState.start(self.config, self._saved_initial_population())
+        self._save_initial_population(state)
+        return state
+
+    def _resume(self) -> None:
+        """What the journal's replay leaves to redo: holds behind children in training, and the
+        checkpoint links of repeats a crash may have lost."""
+        self.logged_born = self.born
+        for child in self.state.by_child:  # children in training hold later equal ones
+            self.state.training(child)
+        for birth in self.state.births:
+            if birth.repeat_of is not None and not self.checkpoints.path(birth.child).exists():
+                self.checkpoints.link(birth.child, birth.repeat_of).add_done_callback(
+                    _log_failed_link
+                )
+        # the same for every job of the run: built once (each builds the world's task)
+        self.training_ppo = self.config.training_ppo()
+        self.fitness_bound = self.config.fitness_bound()
 
     @property
     def born(self) -> int:
@@ -164,11 +174,11 @@ class Coordinator:
             return None
         return [Genome.model_validate(g) for g in json.loads(path.read_text())]
 
-    def _save_initial_population(self) -> None:
+    def _save_initial_population(self, state: CoordinatorState) -> None:
         """Keep the initial bodies as a fact of the run (drawing them again is slow)."""
         path = self.run_dir / INITIAL_FILE
         if not path.exists():
-            bodies = [c.genome.model_dump() for c in self.state.evolution.initial]
+            bodies = [c.genome.model_dump() for c in state.evolution.initial]
             write_atomic(path, json.dumps(bodies))
 
     # --- the loop ----------------------------------------------------------------------------
@@ -672,12 +682,18 @@ def check_jobs(run: str, config: EvolutionConfig) -> None:
         raise SystemExit(f"derl: run {run!r} cannot start: {error}") from None
 
 
-def serve(run: str, run_dir: Path, config: EvolutionConfig, options: ZenohOptions) -> bool:
-    """The coordinator of `run` until the run is finished (True) or it is stopped (False); the
-    run directory is locked from before its journal is read until the end."""
+def serve(
+    run: str,
+    run_dir: Path,
+    config: EvolutionConfig | None,
+    options: ZenohOptions,
+    kind: type[Coordinator] = Coordinator,
+) -> bool:
+    """The coordinator (of `kind`) of `run` until the run is finished (True) or it is stopped
+    (False); the run directory is locked from before its journal is read until the end."""
     try:
         with lock_run_dir(run_dir):
-            coordinator = Coordinator(run, run_dir, config)
+            coordinator = kind(run, run_dir, config)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, lambda *_: coordinator.stop.set())
             return coordinator.serve(options)

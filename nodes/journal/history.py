@@ -177,3 +177,17 @@ def run_log(path: Path) -> RunLog:
         training_seed=first.seed,
         checkpoints=path / CHECKPOINTS if (path / CHECKPOINTS).is_dir() else None,
     )
+
+
+def load_runs(paths: list[Path]) -> list[RunLog]:
+    """The runs of `paths`, renamed run-2, run-3... where two carry the same run id."""
+    runs, seen = [], set()
+    for path in paths:
+        run = run_log(path)
+        name, k = run.name, 1
+        while name in seen:
+            k += 1
+            name = f"{run.name}-{k}"
+        seen.add(name)
+        runs.append(run if name == run.name else run.model_copy(update={"name": name}))
+    return runs

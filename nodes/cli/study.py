@@ -1,0 +1,102 @@
+"""`derl study`: the paper's appendix D over finished runs, on this host or a cluster.
+
+`derl study RUN_DIR... --study-dir DIR` chooses the bodies to retrain from the runs' journals (the
+`per_lineage` fittest of every surviving lineage, each with `seeds` new seeds; `plan.json`), then
+runs the study's coordinator and `--workers` evaluators here, supervised like `derl run`: every
+retraining, then each world's `top` of its `keep` best on the test tasks at every budget. The
+coordinator journals every job and result in DIR, so running the command again resumes the study.
+With `--plan-only` it only writes DIR's plan: a cluster then runs ``derl coordinator --study DIR``
+on one host and ``derl evaluator`` nodes anywhere (or `derl launch` with ``study: DIR``).
+`derl report DIR` draws the study's figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import signal
+from pathlib import Path
+
+from pydantic import ValidationError
+from rich.console import Console
+
+from nodes.cli.options import IN_USE, at_least_one, fail, fail_invalid, run_directory
+from nodes.cli.run import DEFAULT_PORT, listenable, local_nodes, port_number, supervise
+from nodes.launch.supervisor import Supervisor
+from nodes.runtime.rundir import RunDirLocked, lock_run_dir
+
+console = Console()
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    study = commands.add_parser(
+        "study",
+        help="appendix D: retrain the runs' best bodies with new seeds, test the best",
+        description=__doc__.split("\n", 2)[2] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    study.add_argument(
+        "runs", nargs="*", type=Path, metavar="RUN_DIR", help="finished runs (not to resume)"
+    )
+    study.add_argument("--study-dir", type=Path, required=True, help="journal and results")
+    study.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
+    study.add_argument("--workers", type=at_least_one, default=2, help="evaluator processes (2)")
+    study.add_argument(
+        "--port",
+        type=port_number,
+        default=DEFAULT_PORT,
+        help=f"the coordinator's port on 127.0.0.1 (default {DEFAULT_PORT}; 0: a free one)",
+    )
+    study.add_argument("--plan-only", action="store_true", help="write the plan, start nothing")
+    study.set_defaults(handler=_study)
+
+
+def _study(args: argparse.Namespace) -> int:
+    from derl.analysis.study import StudyConfig, load_study_profile
+    from nodes.coordinator.study import prepare_study
+
+    try:
+        config = load_study_profile(args.profile)
+    except ValidationError as error:
+        fail_invalid(f"study profile {args.profile}", error, StudyConfig, top=("profile",))
+    except (ValueError, OSError) as error:
+        fail(f"study profile {args.profile}: {error}")
+    study_dir = run_directory(args.study_dir)
+    try:
+        with lock_run_dir(study_dir):
+            setup = prepare_study(study_dir, args.runs, config)
+    except RunDirLocked as error:
+        fail(str(error), IN_USE)
+    worlds = sorted({job.task for job in _plan(study_dir).jobs})
+    console.print(
+        f"study {study_dir}: {len(setup.runs)} runs ({', '.join(worlds)}), "
+        f"profile {setup.config.name}; plan in {study_dir / 'plan.json'}",
+        highlight=False,
+    )
+    if args.plan_only:
+        return 0
+    port = listenable(args.port)
+    run = re.sub(r"[^A-Za-z0-9_.-]", "-", study_dir.resolve().name)[:128]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    nodes = local_nodes(run, endpoint, ("--study", str(study_dir)), {"evaluator": args.workers})
+    supervisor = Supervisor(nodes, study_dir / "logs")
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: supervisor.stop.set())
+    console.print(
+        f"coordinator on {endpoint} (derl monitor --connect {endpoint} --run {run}); "
+        f"{args.workers} evaluators; logs in {supervisor.log_dir}",
+        highlight=False,
+    )
+    code, status = supervise(supervisor, run, endpoint, 1)
+    if code != 0:
+        console.print(f"stopped; `derl study --study-dir {study_dir}` resumes the study")
+        return code
+    done = f"{status.evaluated} results" if status is not None else "done"
+    console.print(f"done: {done}; `derl report {study_dir} --out DIR` draws its figures")
+    return 0
+
+
+def _plan(study_dir: Path):  # -> RetrainPlan
+    from nodes.coordinator.study import read_plan
+
+    return read_plan(study_dir)
