@@ -181,12 +181,12 @@ def test_steps_to_the_criterion(run: RunLog) -> None:
 def test_by_generation_follows_the_top_agents_ancestors(run: RunLog, tree: Tree) -> None:
     config = BootstrapConfig()
     top = np.array([5, 3])  # f, d: the two fittest
-    points = by_generation(tree, top, run.fitness, config)
+    points = by_generation([(tree, top, run.fitness)], config)
     assert [p.x for p in points] == [0, 1, 2]
     assert [(p.n, p.value) for p in points] == [(2, 10.0), (2, 350.0), (1, 700.0)]
     assert (points[0].low, points[0].high) == (10.0, 10.0)  # constant values: CI is the value
     assert points[2].low is None  # a single value has no CI
-    speed = by_generation(tree, top, learning_speed(run, 25.0), config)
+    speed = by_generation([(tree, top, learning_speed(run, 25.0))], config)
     assert [(p.n, p.value) for p in speed] == [(0, None), (2, 100.0), (1, 100.0)]
 
 
@@ -241,7 +241,7 @@ def test_mann_whitney_on_known_samples() -> None:
 
 def test_population_means_over_time() -> None:
     values = np.array([1, 2, 3, 4, 5, 6, 7], dtype=float)
-    points = over_time(values, np.array([3, 7]), 3, BootstrapConfig())
+    points = over_time([(values, 3)], np.array([3, 7]), BootstrapConfig())
     assert [(p.x, p.n, p.value) for p in points] == [(3, 3, 2.0), (7, 3, 6.0)]
     stable = [True, False, None, True]
     rows = [
@@ -250,7 +250,7 @@ def test_population_means_over_time() -> None:
     ]
     flags = column(rows, "passively_stable")
     np.testing.assert_array_equal(flags, [1.0, 0.0, np.nan, 1.0])
-    (share,) = over_time(flags, np.array([4]), 4, BootstrapConfig())
+    (share,) = over_time([(flags, 4)], np.array([4]), BootstrapConfig())
     assert (share.n, share.value) == (3, pytest.approx(2 / 3))
 
 

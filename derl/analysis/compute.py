@@ -22,10 +22,10 @@ from derl.analysis.config import PAPER_TOP, AnalysisConfig
 from derl.analysis.learning import (
     GainSummary,
     LineageGain,
+    by_generation,
     criterion,
     learning_speed,
     lineage_gain,
-    pooled_by_generation,
     summarize_gains,
     top_agents,
 )
@@ -41,7 +41,7 @@ from derl.analysis.lineage import (
     time_grid,
     window,
 )
-from derl.analysis.morphology import DESCRIPTORS, Morphology, column, measure, pooled_over_time
+from derl.analysis.morphology import DESCRIPTORS, Morphology, column, measure, over_time
 from derl.analysis.records import Record, RunLog
 from derl.analysis.selection import by_mean_fitness
 from derl.analysis.statistics import Correlation, Point, pearson, point
@@ -281,7 +281,7 @@ def pooled_series(runs: list[RunAnalysis], times: np.ndarray, config: AnalysisCo
     boot = config.bootstrap
 
     def ancestors(name: Literal["fitness", "cost_of_work", "steps_to_criterion"]) -> list[Point]:
-        return pooled_by_generation([(r.tree, r.top, r.values(name)) for r in runs], boot)
+        return by_generation([(r.tree, r.top, r.values(name)) for r in runs], boot)
 
     fittest = [
         np.concatenate(
@@ -300,7 +300,7 @@ def pooled_series(runs: list[RunAnalysis], times: np.ndarray, config: AnalysisCo
         "steps_to_criterion": ancestors("steps_to_criterion"),
         "cost_of_work": ancestors("cost_of_work"),
         **{
-            name: pooled_over_time(
+            name: over_time(
                 [(column(r.morphology, name), r.run.population) for r in runs], times, boot
             )
             for name in (*DESCRIPTORS, "passively_stable")

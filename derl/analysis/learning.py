@@ -42,16 +42,10 @@ def top_agents(run: RunLog, count: int) -> np.ndarray:
 
 
 def by_generation(
-    tree: Tree, agents: np.ndarray, values: np.ndarray, config: BootstrapConfig
-) -> list[Point]:
-    """Mean (with CI) over `agents` of the value of their ancestor at each generation."""
-    return pooled_by_generation([(tree, agents, values)], config)
-
-
-def pooled_by_generation(
     parts: list[tuple[Tree, np.ndarray, np.ndarray]], config: BootstrapConfig
 ) -> list[Point]:
-    """`by_generation` over the agents of several runs together: (tree, agents, values) each."""
+    """Mean (with CI) over the agents of every part (tree, agents, values: one run's) of the
+    value of their ancestor at each generation."""
     lines = [values[tree.ancestry(int(a))] for tree, agents, values in parts for a in agents]
     depth = max((line.size for line in lines), default=0)
     return [point(g, [line[g] for line in lines if line.size > g], config) for g in range(depth)]

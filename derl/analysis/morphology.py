@@ -91,16 +91,10 @@ def column(rows: list[Morphology], name: str) -> np.ndarray:
 
 
 def over_time(
-    values: np.ndarray, times: np.ndarray, population: int, config: BootstrapConfig
-) -> list[Point]:
-    """Population mean (with CI) of per-body `values` after each number of births in `times`."""
-    return pooled_over_time([(values, population)], times, config)
-
-
-def pooled_over_time(
     parts: list[tuple[np.ndarray, int]], times: np.ndarray, config: BootstrapConfig
 ) -> list[Point]:
-    """`over_time` of several runs' populations pooled: (values, population) of each run."""
+    """Population mean (with CI) of per-body values after each number of births in `times`,
+    the populations of every part (values, population: one run's) pooled."""
     return [
         point(int(t), np.concatenate([v[window(int(t), p)] for v, p in parts]), config)
         for t in times
