@@ -162,7 +162,8 @@ class WorldAnalysis:
     summary: WorldSummary
     runs: list[RunAnalysis]
     series: dict[str, list[Point]]
-    """The same curves as `RunAnalysis.series`, every run of the world pooled at each x."""
+    """The same curves as `RunAnalysis.series`, every run of the world pooled at each x (a
+    world of one run: its run's)."""
     illustrative: tuple[RunAnalysis, int]
     """Fig. 5d's agent: the top agent with the longest ancestry (the best among those)."""
 
@@ -274,7 +275,9 @@ def analyse_run(run: RunLog, config: AnalysisConfig, top: np.ndarray) -> RunAnal
     return replace(result, series=pooled_series([result], times, config))
 
 
-def pooled_series(runs: list[RunAnalysis], times: np.ndarray, config: AnalysisConfig) -> dict:
+def pooled_series(
+    runs: list[RunAnalysis], times: np.ndarray, config: AnalysisConfig
+) -> dict[str, list[Point]]:
     """The curves of figs. 2a, 3 and 5a-c over `runs` pooled: at each time, the k fittest of
     each run's population (fig. 2a left) or its every member; at each generation, the ancestors
     of each run's top agents."""
@@ -283,19 +286,8 @@ def pooled_series(runs: list[RunAnalysis], times: np.ndarray, config: AnalysisCo
     def ancestors(name: Literal["fitness", "cost_of_work", "steps_to_criterion"]) -> list[Point]:
         return by_generation([(r.tree, r.top, r.values(name)) for r in runs], boot)
 
-    fittest = [
-        np.concatenate(
-            [
-                _fittest(
-                    r.run.fitness[window(int(t), r.run.population)], r.summary.top_of_population
-                )
-                for r in runs
-            ]
-        )
-        for t in times
-    ]
     return {
-        "fitness_top": [point(int(t), top, boot) for t, top in zip(times, fittest, strict=True)],
+        "fitness_top": [point(int(t), _fittest_of_each(runs, int(t)), boot) for t in times],
         "fitness_by_generation": ancestors("fitness"),
         "steps_to_criterion": ancestors("steps_to_criterion"),
         "cost_of_work": ancestors("cost_of_work"),
@@ -306,6 +298,16 @@ def pooled_series(runs: list[RunAnalysis], times: np.ndarray, config: AnalysisCo
             for name in (*DESCRIPTORS, "passively_stable")
         },
     }
+
+
+def _fittest_of_each(runs: list[RunAnalysis], t: int) -> np.ndarray:
+    """The k fittest of each run's population after t births, together (n = runs x k)."""
+    return np.concatenate(
+        [
+            _fittest(r.run.fitness[window(t, r.run.population)], r.summary.top_of_population)
+            for r in runs
+        ]
+    )
 
 
 def _fittest(values: np.ndarray, k: int) -> np.ndarray:
@@ -336,7 +338,7 @@ def analyse_world(runs: list[RunAnalysis], top: TopAgents, config: AnalysisConfi
     return WorldAnalysis(
         summary=summary,
         runs=runs,
-        series=pooled_series(runs, times, config),
+        series=runs[0].series if len(runs) == 1 else pooled_series(runs, times, config),
         illustrative=members[deepest],
     )
 
