@@ -110,6 +110,12 @@ def _gain_text(w: WorldAnalysis) -> str:
     )
 
 
+def _population_text(w: WorldAnalysis) -> str:
+    """n of a world's population means: every run's population, together."""
+    sizes = [r.summary.population for r in w.runs]
+    return f"n={sum(sizes)} (P={'/'.join(map(str, sizes))})"
+
+
 def _tests_text(analysis: Analysis) -> str:
     """Fig. 4's groups: the results of each budget."""
     return "; ".join(
@@ -199,8 +205,9 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 f"Population mean with {ci} after each number of births, the populations of a "
                 "world's runs pooled (averaged over its runs: n = runs x P at each point): "
                 "bounding-box length (forward), width and height at rest, coverage (body volume "
-                "/ bounding-box volume), mass and degrees of freedom. Coverage comes from the "
-                "stability simulation: "
+                "/ bounding-box volume), mass and degrees of freedom. "
+                + _worlds_text(analysis, _population_text)
+                + ". Coverage comes from the stability simulation: "
                 + _runs_text(
                     analysis,
                     lambda r: f"{r.summary.stability_simulated} of {r.summary.bodies} bodies",
@@ -229,8 +236,9 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 "fitness (each run's own), for the ancestors of the world's top agents by "
                 "generation (bodies that never reach it are left out). b: share of passively "
                 f"stable bodies in the population over time, a world's runs pooled ({ci}; "
-                "simulated bodies only). c: mean cost of work of the same ancestors by "
-                "generation. Top agents: "
+                "simulated bodies only: n <= runs x P, as in fig. 3). c: mean cost of work of the "
+                "same ancestors by generation. In a and c, n at generation g = top agents whose "
+                "lineage is that deep, at most the world's top agents: "
                 + _worlds_text(analysis, lambda w: top_rule(w.summary))
                 + ". "
                 + _runs_text(
