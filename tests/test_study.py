@@ -1,0 +1,195 @@
+"""`derl study` (appendix D): the stages as the coordinator's state plans them (retrain every
+selected body, then test each world's best by mean on every task at every budget), its settings
+checked, and end to end: runs of two worlds with two seeds each, a study of them interrupted and
+resumed by real coordinator and evaluator processes, and `derl report` drawing Fig. 4 from it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+from nodes_fixtures import Processes, derl_argv, journaled, wait_for, write_profile
+
+from derl.analysis import RetrainJob, RetrainPlan
+from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
+from derl.unimal import Genome
+from messages import Curve, EvalJob, EvalResult, JobFailed
+from nodes.coordinator.study import StudyState, read_plan
+
+CONFIG = StudyConfig(
+    per_lineage=2,
+    seeds=2,
+    keep=2,
+    top=1,
+    test_tasks=("patrol",),
+    test_seeds=1,
+    budgets=(4096, 2048),
+    num_envs=16,
+    max_attempts=2,
+)
+
+
+def _plan(genome: Genome) -> RetrainPlan:
+    """Per world two runs' bodies: in ft, a1 (evolution fitness 90) and b1 (10); in vt, c1."""
+    bodies = (("r1", "a1", 90.0, "ft"), ("r2", "b1", 10.0, "ft"), ("r3", "c1", 5.0, "vt"))
+    jobs = tuple(
+        RetrainJob(
+            run=run,
+            agent=agent,
+            lineage="i0",
+            fitness=fitness,
+            task=world,
+            steps=4096,
+            seed=seed,
+            genome=genome,
+        )
+        for run, agent, fitness, world in bodies
+        for seed in (7, 8)
+    )
+    return RetrainPlan(per_lineage=2, seeds=(7, 8), jobs=jobs)
+
+
+def _answer(state: StudyState, key: tuple[str, str, int, int], reward: float, n: int) -> list:
+    """The journal's messages for one evaluation done: its job, then its result."""
+    genome, ppo = state.evaluation_order(key)
+    agent, task, seed, steps = key
+    job = EvalJob(run="s", job=f"e{n}", agent=agent, node="w", genome=genome, task=task, ppo=ppo,
+                  lease_s=30.0)  # fmt: skip
+    result = EvalResult(run="s", agent=agent, task=task, seed=seed, steps=steps, reward=reward,
+                        cost_of_work=1.0, curve=Curve(), node="w", job=f"e{n}")  # fmt: skip
+    return [job, result]
+
+
+def test_the_tests_wait_for_every_retraining_and_take_the_best_by_mean(quadruped: Genome) -> None:
+    state = StudyState(CONFIG, _plan(quadruped))
+    journal: list = []
+    means = {"r1.a1": (1.0, 3.0), "r2.b1": (20.0, 30.0), "r3.c1": (4.0, 6.0)}
+    retraining = list(state.retraining)
+    assert [k[1:] for k in retraining[:2]] == [("ft", 7, 4096), ("ft", 8, 4096)]
+    for n, key in enumerate(retraining):
+        assert state.next_evaluation() in retraining  # no test before the last retraining
+        reward = means[key[0]][key[2] - 7]
+        for msg in _answer(state, key, reward, n):
+            journal.append(msg)
+            state.apply(msg)
+    # b1: lowest evolution fitness, best mean (25 > 2): the one ft body tested
+    assert state.tested == {"ft": [("r2.b1", 25.0)], "vt": [("r3.c1", 5.0)]}
+    assert state.kept()["ft"] == [("r2.b1", 25.0), ("r1.a1", 2.0)]
+    tests = [key for key in state.planned if key not in retraining]
+    assert tests == [("r2.b1", "patrol", 0, 4096), ("r2.b1", "patrol", 0, 2048),
+                     ("r3.c1", "patrol", 0, 4096), ("r3.c1", "patrol", 0, 2048)]  # fmt: skip
+    assert state.eval_target == len(retraining) + 4 and not state.finished
+    assert state.evaluation_order(tests[1])[1].total_steps == 2048
+    restarted = StudyState(CONFIG, _plan(quadruped))  # a restart replays the journal
+    for msg in journal:
+        restarted.apply(msg)
+    assert list(restarted.planned) == list(state.planned)
+    assert restarted.next_evaluation() == tests[0]
+    for n, key in enumerate(tests[:3]):
+        for msg in _answer(state, key, 1.0, 100 + n):
+            state.apply(msg)
+    genome, ppo = state.evaluation_order(tests[3])
+    for attempt in range(CONFIG.max_attempts):  # the last one fails: given up, not forever
+        state.apply(EvalJob(run="s", job=f"f{attempt}", agent="r3.c1", node="w", genome=genome,
+                            task="patrol", ppo=ppo, lease_s=30.0))  # fmt: skip
+        state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject="r3.c1", error="x"))
+    assert state.eval_given_up == {tests[3]} and state.finished
+
+
+def test_a_retraining_given_up_still_lets_the_tests_start(quadruped: Genome) -> None:
+    state = StudyState(CONFIG, _plan(quadruped))
+    first, *rest = state.retraining
+    genome, ppo = state.evaluation_order(first)
+    for attempt in range(CONFIG.max_attempts):
+        state.apply(EvalJob(run="s", job=f"f{attempt}", agent=first[0], node="w", genome=genome,
+                            task=first[1], ppo=ppo, lease_s=30.0))  # fmt: skip
+        state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject=first[0], error="x"))
+    for n, key in enumerate(rest):
+        for msg in _answer(state, key, 1.0, n):
+            state.apply(msg)
+    assert set(state.tested) == {"ft", "vt"}
+
+
+def test_study_settings_are_checked(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="top"):
+        StudyConfig(keep=5, top=10)
+    with pytest.raises(ValueError, match="unknown test tasks"):
+        StudyConfig(test_tasks=("swim",))
+    with pytest.raises(ValueError, match="repeat"):
+        StudyConfig(budgets=(1_000_000, 1_000_000))
+    with pytest.raises(ValueError, match="PPO of"):
+        StudyConfig(budgets=(100,))
+    typo = tmp_path / "mine.yaml"
+    typo.write_text(yaml.safe_dump({"profile": "smoke", "test_seed": 3}))
+    with pytest.raises(ValueError, match="test_seed"):
+        load_study_profile(str(typo))
+    typo.write_text(yaml.safe_dump({"profile": "smoke", "test_seeds": 3}))
+    mine = load_study_profile(str(typo))
+    assert (mine.name, mine.test_seeds, mine.budgets) == (
+        "mine",
+        3,
+        STUDY_PROFILES["smoke"].budgets,
+    )
+    paper = STUDY_PROFILES["paper"]
+    assert (paper.per_lineage, paper.seeds, paper.keep, paper.top, paper.test_seeds) == (
+        3, 5, 100, 10, 5)  # fmt: skip
+    assert paper.budgets == (5_000_000, 1_000_000) and len(paper.test_tasks) == 8
+
+
+def _derl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    done = subprocess.run(derl_argv(*args), capture_output=True, text=True, timeout=timeout)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done
+
+
+@pytest.mark.slow
+def test_a_study_of_two_worlds_from_runs_to_figure_4(tmp_path: Path, procs: Processes) -> None:
+    """2 worlds x 2 seeds -> the study (stopped mid-way, resumed) -> `derl report`'s Fig. 4."""
+    profile = write_profile(tmp_path / "tiny.yaml", population=3, total=4)
+    runs = []
+    for world in ("ft", "vt"):
+        for seed in (1, 2):
+            runs.append(tmp_path / f"{world}-s{seed}")
+            _derl("run", "--profile", str(profile), "--env", world, "--seed", str(seed),
+                  "--run-dir", str(runs[-1]), "--port", "0", "--workers", "2")  # fmt: skip
+    study = tmp_path / "study"
+    command = derl_argv("study", *map(str, runs), "--study-dir", str(study), "--port", "0")
+    first = procs.start("study", command)
+    wait_for(lambda: len(journaled(study, EvalResult)) >= 3, 120, "3 results")
+    procs.kill("study")  # the whole process group: coordinator and evaluators
+    done = {(r.agent, r.task, r.seed, r.steps) for r in journaled(study, EvalResult)}
+    issued = len(journaled(study, EvalJob))
+    plan = read_plan(study)
+    resume = procs.start("resume", derl_argv("study", "--study-dir", str(study), "--port", "0"))
+    assert first.returncode != 0 and procs.finish(resume, 300) == 0
+    assert read_plan(study) == plan  # chosen once
+    keys = [(r.agent, r.task, r.seed, r.steps) for r in journaled(study, EvalResult)]
+    assert len(keys) == len(set(keys)), "a result journaled twice"
+    again = [j for j in journaled(study, EvalJob)[issued:]
+             if (j.agent, j.task, j.seed, j.steps) in done]  # fmt: skip
+    assert not again, "work done before the stop was done again"
+    smoke = STUDY_PROFILES["smoke"]
+    retrained = [k for k in keys if k[1] in ("ft", "vt")]
+    assert (
+        len(retrained) == len(plan.jobs) == smoke.seeds * len({(j.run, j.agent) for j in plan.jobs})
+    )
+    assert {j.run for j in plan.jobs} == {r.name for r in runs}
+    tests = [k for k in keys if k[1] not in ("ft", "vt")]
+    per_world = smoke.top * len(smoke.test_tasks) * len(smoke.budgets) * smoke.test_seeds
+    assert len(tests) == 2 * per_world and {k[3] for k in tests} == set(smoke.budgets)
+    selection = json.loads((study / "selection.json").read_text())
+    for world in ("ft", "vt"):
+        kept = selection[world]["kept"]
+        assert kept and len(kept) <= smoke.keep
+        assert [k["mean_fitness"] for k in kept] == sorted((k["mean_fitness"] for k in kept),
+                                                           reverse=True)  # fmt: skip
+        tested = {f"{t['run']}.{t['agent']}" for t in selection[world]["tested"]}
+        assert tested == {k[0] for k in tests if k[0].startswith(f"{world}-")}
+    out = tmp_path / "report"
+    _derl("report", str(study), "--out", str(out), "--gaits", "0", "--pictures", "0")
+    rows = (out / "tests.csv").read_text().splitlines()
+    assert "steps" in rows[0].split(",") and len(rows) == 1 + len(tests)
+    assert (out / "tests.png").stat().st_size > 10_000
