@@ -173,6 +173,27 @@ def test_a_launch_files_seed_reaches_the_coordinator(tmp_path: Path) -> None:
     assert "--seed" not in unseeded.derl_args()
 
 
+def test_a_launch_file_can_run_a_study_with_evaluators(tmp_path: Path) -> None:
+    """`study: DIR` instead of `run_dir`: the coordinator coordinates the study (`derl study
+    --plan-only` wrote it); trainers are refused, and so is a file with neither or both."""
+    data = _mesh(tmp_path)
+    del data["run_dir"]
+    for host in data["hosts"]:
+        host["nodes"] = [n if n["role"] == "coordinator" else {**n, "role": "evaluator"}
+                         for n in host["nodes"]]  # fmt: skip
+    study = LaunchFile.model_validate({**data, "study": str(tmp_path / "study")})
+    head = next(c for c in build_commands(study) if c.role == "coordinator").derl_args()
+    assert head[head.index("--study") + 1] == str(tmp_path / "study") and "--profile" not in head
+    assert build_parser().parse_args(head).study == tmp_path / "study"
+    assert study.directory == tmp_path / "study"
+    with pytest.raises(ValueError, match="one of them"):
+        LaunchFile.model_validate(data)
+    with pytest.raises(ValueError, match="one of them"):
+        LaunchFile.model_validate({**_mesh(tmp_path), "study": "s"})
+    with pytest.raises(ValueError, match="evaluator nodes, not trainers"):
+        LaunchFile.model_validate({**_mesh(tmp_path), "run_dir": None, "study": "s"})
+
+
 def test_a_run_directory_refuses_another_seed(tmp_path: Path) -> None:
     """Resuming a run with another --seed would mix two replicates in one journal."""
     run_dir = tmp_path / "run"

@@ -1,5 +1,5 @@
-"""`derl report` and `derl select` on journals: a hand-written one (the fold into records, every
-file of a report), and a real smoke run made by `derl run` (slow)."""
+"""`derl report` and `derl study --plan-only` on journals: a hand-written one (the fold into
+records, every file of a report), and a real smoke run made by `derl run` (slow)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from derl.analysis import RetrainPlan
 from derl.evolution import breed
@@ -285,25 +286,14 @@ def test_report_of_a_journal(tmp_path: Path, quadruped: Genome) -> None:
     assert len((out / "tests.csv").read_text().splitlines()) == 4
 
 
-def test_select_writes_the_retraining_jobs(tmp_path: Path, quadruped: Genome) -> None:
+def test_study_plan_only_writes_the_retraining_jobs(tmp_path: Path, quadruped: Genome) -> None:
     write_journal(tmp_path / "run", quadruped)
-    out = tmp_path / "plan.json"
-    assert (
-        main(
-            [
-                "select",
-                str(tmp_path / "run"),
-                "--per-lineage",
-                "2",
-                "--seeds",
-                "3",
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
-    result = RetrainPlan.model_validate_json(out.read_text())
+    profile = tmp_path / "select.yaml"
+    profile.write_text(yaml.safe_dump({"profile": "paper", "per_lineage": 2, "seeds": 3}))
+    study = tmp_path / "study"
+    argv = ["study", str(tmp_path / "run"), "--study-dir", str(study), "--plan-only"]
+    assert main([*argv, "--profile", str(profile)]) == 0
+    result = RetrainPlan.model_validate_json((study / "plan.json").read_text())
     # the final population (the last 3 born: i2, c0, c1) is one lineage, i2's
     assert [j.agent for j in result.jobs[::3]] == ["c1", "c0"]
     assert len(result.jobs) == 6 and 1409 not in result.seeds
@@ -329,9 +319,9 @@ def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
     assert stats["runs"][0]["bodies"] == 8 and stats["runs"][0]["world"] == "ft"
     assert (out / "bodies.png").stat().st_size > 50_000  # real pictures, not the placeholder
     assert len((out / "tests.csv").read_text().splitlines()) > 1  # the evaluator's results
-    plan = tmp_path / "plan.json"
-    derl("select", str(run_dir), "--per-lineage", "3", "--seeds", "5", "--out", str(plan))
-    result = RetrainPlan.model_validate_json(plan.read_text())
+    study = tmp_path / "study"
+    derl("study", str(run_dir), "--study-dir", str(study), "--profile", "paper", "--plan-only")
+    result = RetrainPlan.model_validate_json((study / "plan.json").read_text())
     lineages = [line.split(",") for line in (out / "lineages.csv").read_text().splitlines()[1:]]
     surviving = [min(3, int(row[4])) for row in lineages if row[7] == "True"]
     assert len(result.jobs) == 5 * sum(surviving) and len(result.seeds) == 5

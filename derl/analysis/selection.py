@@ -4,7 +4,7 @@ across runs, each to be retrained with several new seeds.
 A lineage survives when it has a member in its run's final population; its top bodies are its
 fittest members ever born (alive or not). Every selected body is paired with every one of the
 same new seeds, drawn at random but never equal to a training seed of the runs. The plan is a
-JSON file (`RetrainPlan`) that `derl evaluate` can hand to evaluators, one job per (agent, seed).
+JSON file (`RetrainPlan`): a `derl study` hands each job to an evaluator node.
 """
 
 from __future__ import annotations

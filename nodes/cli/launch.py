@@ -57,7 +57,7 @@ def _launch(args: argparse.Namespace) -> int:
         return 0
     if any(c.role == "coordinator" and c.remote is None for c in commands):
         profile_from(argparse.Namespace(profile=launch.profile, env=launch.env, seed=launch.seed))
-    supervisor = Supervisor(commands, args.log_dir or launch.run_dir / "logs")
+    supervisor = Supervisor(commands, args.log_dir or launch.directory / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):  # SIGHUP: our ssh session ended
         signal.signal(sig, lambda *_: supervisor.stop.set())
     hosts = sorted({c.host for c in commands})

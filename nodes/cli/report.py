@@ -1,6 +1,6 @@
-"""`derl report` and `derl select`: the paper's analyses of finished (or running) runs.
+"""`derl report`: the paper's analyses of finished (or running) runs, or of a study.
 
-Both read runs through the journal's fold (`nodes.journal.history.run_log`: bodies in birth
+It reads runs through the journal's fold (`nodes.journal.history.run_log`: bodies in birth
 order with their parent, body, mutation, fitness, curve, energy, cost of work and mass; the
 evaluations) and hand those to `derl.analysis`.
 """
@@ -23,27 +23,18 @@ if TYPE_CHECKING:
 
 console = Console()
 
-SELECT_FORMAT = """\
-output (JSON, one job per selected agent and new seed):
-  {"format": "derl-retrain-plan", "version": 1, "per_lineage": 3, "seeds": [S1, ..., S5],
-   "jobs": [{"run": RUN, "agent": ID, "lineage": FOUNDER_ID, "fitness": EVOLUTION_FITNESS,
-             "task": WORLD, "steps": ENV_STEPS_OR_NULL, "seed": S, "genome": {GENOME}}, ...]}
-  run/agent: where the body comes from; lineage: its founder; task: the run's evolution world
-  (ft/vt/mvt) and steps its lifetime budget, so retraining repeats evolution's training with a
-  new seed (appendix D); genome: the body (derl.unimal.Genome JSON). The same seeds are used for
-  every agent and none equals a run's training seed. The file validates as
-  `derl.analysis.RetrainPlan`, for a `derl evaluate` to hand each job to an evaluator.
-"""
-
 
 def register(commands: argparse._SubParsersAction) -> None:
     report = commands.add_parser(
         "report",
-        help="plots and tables of the paper's analyses of one or more runs",
+        help="plots and tables of the paper's analyses of runs or of a study",
         description="Write DIR/index.html, one PNG per figure (figs. 2-6 of the paper and the "
         "best bodies), a GIF of each of the best bodies' gaits (from a run directory's "
-        "checkpoints), CSV tables (bodies, lineages, series, muller, tests, test_summary) and "
-        "stats.json, from the runs' journals alone.",
+        "checkpoints), CSV tables (bodies, lineages, series, world_series, muller, tests, "
+        "test_summary; the tests with their budget in env steps) and stats.json, from the "
+        "journals alone. Runs of one world are pooled as the paper pools them; a study "
+        "(`derl study`) adds its retrainings (the top agents are then each world's best by "
+        "mean retrained fitness) and its test results at every budget (figs. 4b and 4c).",
     )
     report.add_argument(
         "runs",
@@ -85,26 +76,6 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="best bodies filmed walking, a short GIF each (default 3; 0: none)",
     )
     report.set_defaults(handler=_report)
-
-    select = commands.add_parser(
-        "select",
-        help="appendix D: top bodies of the surviving lineages, to retrain with new seeds",
-        description=(
-            "Pick the top bodies of every surviving lineage (one with a member in its run's final\n"
-            "population) across the runs, and pair each with the same new seeds: the paper's\n"
-            "reporting method (appendix D). Writes the jobs; starts nothing."
-        ),
-        epilog=SELECT_FORMAT,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    select.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR_OR_LOG")
-    select.add_argument(
-        "--per-lineage", type=int, default=3, help="fittest bodies per lineage (paper: 3)"
-    )
-    select.add_argument("--seeds", type=int, default=5, help="new seeds per body (paper: 5)")
-    select.add_argument("--seed", type=int, default=0, help="draws the new seeds (default 0)")
-    select.add_argument("--out", type=Path, required=True, help="JSON file to write")
-    select.set_defaults(handler=_select)
 
 
 def _thresholds(text: str) -> dict[str, float]:
@@ -164,22 +135,6 @@ def _report(args: argparse.Namespace) -> int:
         f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
         f"{len(files.tables)} tables) in "
         f"{time.monotonic() - start:.1f} s",
-        highlight=False,
-    )
-    return 0
-
-
-def _select(args: argparse.Namespace) -> int:
-    from derl.analysis import plan
-
-    if args.per_lineage < 1 or args.seeds < 1:
-        raise SystemExit("derl: --per-lineage and --seeds must be at least 1")
-    result = plan(load_runs(args.runs), args.per_lineage, args.seeds, args.seed)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(result.model_dump_json(indent=2) + "\n")
-    agents = len({(job.run, job.agent) for job in result.jobs})
-    console.print(
-        f"wrote {args.out}: {len(result.jobs)} jobs ({agents} bodies x {len(result.seeds)} seeds)",
         highlight=False,
     )
     return 0

@@ -5,7 +5,7 @@ means: a Tournament decides a child, a TrainJob or EvalJob assigns work, the Fit
 coordinator accepted is the evidence of a birth and the Birth that follows it is the birth
 (index, generation, fitness), a ChildFailed gives a child up, an EvalResult completes an
 evaluation. Every reader uses it: the coordinator's state (`nodes.coordinator.state` overrides the
-handlers to keep its jobs in flight), `derl report` and `derl select` (`run_log`), the monitor.
+handlers to keep its jobs in flight), `derl report` and `derl study` (`run_log`), the monitor.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ profile, the Zenoh topology and, per host, the nodes to start with their counts 
 policy::
 
     run: exp1
-    run_dir: runs/exp1
+    run_dir: runs/exp1             # or `study: studies/s1` (`derl study --plan-only`)
     profile: demo                  # a built-in profile or a profile YAML file
     seed: 1                        # optional: the evolution seed (one per replicate)
     topology: {kind: peer_mesh, seed: "tcp/10.0.0.5:7447"}     # or {kind: router, endpoint, host}
@@ -130,7 +130,12 @@ class HostSpec(_Strict):
 
 class LaunchFile(_Strict):
     run: Id = Field(description="the run id (keys live under derl/<run>/)")
-    run_dir: Path = Field(description="the coordinator's run directory")
+    run_dir: Path | None = Field(None, description="the coordinator's run directory")
+    study: Path | None = Field(
+        None,
+        description="instead of a run: the study directory whose appendix D stage the "
+        "coordinator runs with evaluator nodes (planned by `derl study --plan-only`)",
+    )
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
     env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
     seed: int | None = Field(None, ge=0, description="evolution seed (overrides profile)")
@@ -145,8 +150,17 @@ class LaunchFile(_Strict):
     )
     hosts: list[HostSpec] = Field(min_length=1, description="the hosts and their nodes")
 
+    @property
+    def directory(self) -> Path:
+        """The coordinator's directory: the run's or the study's."""
+        return self.study if self.study is not None else self.run_dir  # type: ignore[return-value]
+
     @model_validator(mode="after")
     def _consistent(self) -> LaunchFile:
+        if (self.run_dir is None) == (self.study is None):
+            raise ValueError("give `run_dir` (a run) or `study` (a study), one of them")
+        if self.study is not None and any(n.role == "trainer" for h in self.hosts for n in h.nodes):
+            raise ValueError("a study trains no children: start evaluator nodes, not trainers")
         names = [h.name for h in self.hosts]
         if duplicated := sorted({n for n in names if names.count(n) > 1}):
             raise ValueError(f"host names must be unique: {', '.join(duplicated)} repeated")

@@ -16,11 +16,13 @@ from typing import Final
 from pydantic import BaseModel
 from pydantic_core import to_jsonable_python
 
+import derl.analysis.study
 import derl.evolution.config
 import messages.codec
 import messages.keys
 import messages.schema
 import messages.types
+from derl.analysis.study import STUDY_PROFILES, StudyConfig
 from derl.evolution.config import PROFILES, EvolutionConfig
 from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome, Joint, Limb
@@ -142,7 +144,8 @@ def _message_section(message: MessageBase, links: Links) -> list[str]:
 
 
 def configuration() -> str:
-    """docs/configuration.md: the profile model with the built-in profiles, the launch file."""
+    """docs/configuration.md: the profile models with the built-in profiles (a run's, a
+    study's), the launch file."""
     links = {m.__name__: f"#{m.__name__.lower()}" for m in LAUNCH_MODELS}
     links[PPOConfig.__name__] = PPO_ANCHOR
     lines = _header("Configuration", "configuration")
@@ -162,6 +165,17 @@ def configuration() -> str:
         _markdown(inspect.getdoc(PPOConfig)),
         "",
         *_fields_table(PPOConfig, links, "key", _profile_values(lambda p: p.ppo)),
+        "## Study profiles: StudyConfig",
+        "",
+        _markdown(inspect.getdoc(derl.analysis.study)),
+        "",
+        _markdown(inspect.getdoc(StudyConfig)),
+        "",
+        "`derl study --profile NAME|FILE.yaml` chooses one (an unknown key is an error that "
+        "names the valid ones); its `ppo` is a [PPOConfig](#ppo-ppoconfig). The built-in "
+        "study profiles:",
+        "",
+        *_fields_table(StudyConfig, links, "key", dict(STUDY_PROFILES)),
         "## Launch files: LaunchFile",
         "",
         "`derl launch FILE` starts the nodes a launch file (YAML) places on each host; "
