@@ -1,7 +1,8 @@
 """Bad input on the command line gets one clear line and a non-zero exit, never a traceback or a
 hang: one row per mistake a user makes (a budget below one rollout, zero workers or copies, a
 port in use, a missing run directory or log, a run directory that is a file, a misspelt key in a
-profile or a launch file, an unknown message type, a folder with no trained body)."""
+profile or a launch file, an unknown message type, a folder with no trained body, a study with
+no runs, of a missing run or not made yet)."""
 
 from __future__ import annotations
 
@@ -61,6 +62,13 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                    "tcp/127.0.0.1:{port}"], 2, "the port is in use"),
     "run's port in use": (["run", "--port", "{port}", "--run-dir", "x"], 2,
                           "Address already in use"),
+    "study without runs": (["study", "--study-dir", "s"], 1, "s is not a study yet"),
+    "study of a missing run": (["study", "missing", "--study-dir", "s"], 1,
+                               "no run directory or log at missing"),
+    "misspelt study key": (["study", "a-file", "--study-dir", "s", "--profile", "typo.yaml"], 1,
+                           "unknown key 'populaton'; valid keys: name, per_lineage"),
+    "coordinator of no study": (["coordinator", "--run", "r", "--study", "s"], 1,
+                                "s is not a study (no study.json)"),
 }  # fmt: skip
 
 

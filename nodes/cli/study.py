@@ -53,7 +53,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _study(args: argparse.Namespace) -> int:
     from derl.analysis.study import StudyConfig, load_study_profile
-    from nodes.coordinator.study import prepare_study
+    from nodes.coordinator.study import SETUP_FILE, prepare_study
 
     try:
         config = load_study_profile(args.profile)
@@ -61,6 +61,12 @@ def _study(args: argparse.Namespace) -> int:
         fail_invalid(f"study profile {args.profile}", error, StudyConfig, top=("profile",))
     except (ValueError, OSError) as error:
         fail(f"study profile {args.profile}: {error}")
+    if not (args.study_dir / SETUP_FILE).exists():  # checked before DIR is made
+        if not args.runs:
+            fail(f"{args.study_dir} is not a study yet: give the run directories to study")
+        for path in args.runs:
+            if not path.exists():
+                fail(f"no run directory or log at {path}")
     study_dir = run_directory(args.study_dir)
     try:
         with lock_run_dir(study_dir):

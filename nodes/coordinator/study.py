@@ -237,6 +237,10 @@ def prepare_study(study_dir: Path, runs: list[Path], config: StudyConfig) -> Stu
         return setup
     if not runs:
         raise SystemExit(f"derl: {study_dir} is not a study yet: give the run directories")
+    for path in runs:
+        if path.is_dir() and not (path / "summary.json").exists():
+            log.warning("%s is not finished (no summary.json): its surviving lineages are those "
+                        "of its population now", path)  # fmt: skip
     chosen = plan(load_runs(runs), config.per_lineage, config.seeds, config.seed)
     if not chosen.jobs:
         raise SystemExit("derl: the runs have no surviving lineage to select from")
@@ -249,6 +253,7 @@ def prepare_study(study_dir: Path, runs: list[Path], config: StudyConfig) -> Stu
 
 def serve_study(run: str, study_dir: Path, options: ZenohOptions) -> bool:
     """The coordinator of the study in `study_dir` until it is finished (True) or stopped."""
+    read_setup(study_dir)  # a study, before anything is made there
     return serve(run, study_dir, None, options, StudyCoordinator)
 
 
