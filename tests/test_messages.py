@@ -144,7 +144,7 @@ BAD_VALUES = [
     ("PopulationSnapshot", "birth_counter", 1),
     ("PopulationSnapshot", "members", ({"agent": "a", "fitness": 1.0, "birth": 0},) * 2),
     ("RunStatus", "best_agent", None),
-    ("RunStatus", "target", 0),
+    ("RunStatus", "target", -1),
     ("RunStatus", "in_flight", -1),
 ]
 
