@@ -150,32 +150,30 @@ def configuration() -> str:
     links[PPOConfig.__name__] = PPO_ANCHOR
     lines = _header("Configuration", "configuration")
     lines += [
-        "## Profiles: EvolutionConfig",
-        "",
-        _markdown(inspect.getdoc(derl.evolution.config)),
-        "",
-        _markdown(inspect.getdoc(EvolutionConfig)),
-        "",
-        "`derl run --profile NAME|FILE.yaml` (and a launch file's `profile`) choose one; an "
-        "unknown key is an error that names the valid ones. The built-in profiles:",
-        "",
-        *_fields_table(EvolutionConfig, links, "key", _profile_values(lambda p: p)),
+        *_profiles(
+            "Profiles",
+            derl.evolution.config,
+            EvolutionConfig,
+            "`derl run --profile NAME|FILE.yaml` (and a launch file's `profile`) choose one; an "
+            "unknown key is an error that names the valid ones. The built-in profiles:",
+            _profile_values(lambda p: p),
+            links,
+        ),
         "## ppo: PPOConfig",
         "",
         _markdown(inspect.getdoc(PPOConfig)),
         "",
         *_fields_table(PPOConfig, links, "key", _profile_values(lambda p: p.ppo)),
-        "## Study profiles: StudyConfig",
-        "",
-        _markdown(inspect.getdoc(derl.analysis.study)),
-        "",
-        _markdown(inspect.getdoc(StudyConfig)),
-        "",
-        "`derl study --profile NAME|FILE.yaml` chooses one (an unknown key is an error that "
-        "names the valid ones); its `ppo` is a [PPOConfig](#ppo-ppoconfig). The built-in "
-        "study profiles:",
-        "",
-        *_fields_table(StudyConfig, links, "key", dict(STUDY_PROFILES)),
+        *_profiles(
+            "Study profiles",
+            derl.analysis.study,
+            StudyConfig,
+            "`derl study --profile NAME|FILE.yaml` chooses one (an unknown key is an error that "
+            "names the valid ones); its `ppo` is a [PPOConfig](#ppo-ppoconfig). The built-in "
+            "study profiles:",
+            dict(STUDY_PROFILES),
+            links,
+        ),
         "## Launch files: LaunchFile",
         "",
         "`derl launch FILE` starts the nodes a launch file (YAML) places on each host; "
@@ -189,6 +187,29 @@ def configuration() -> str:
         lines += [f"### {model.__name__}", "", *([doc, ""] if doc else [])]
         lines += _fields_table(model, links, "key")
     return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _profiles(
+    title: str,
+    module: object,
+    model: type[BaseModel],
+    usage: str,
+    values: dict[str, BaseModel],
+    links: Links,
+) -> list[str]:
+    """A section on a profile model: its module's and its own docs, how a command chooses
+    one, and its fields with each built-in profile's value."""
+    return [
+        f"## {title}: {model.__name__}",
+        "",
+        _markdown(inspect.getdoc(module)),
+        "",
+        _markdown(inspect.getdoc(model)),
+        "",
+        usage,
+        "",
+        *_fields_table(model, links, "key", values),
+    ]
 
 
 def _profile_values(pick: Callable[[EvolutionConfig], BaseModel]) -> dict[str, BaseModel]:
