@@ -21,7 +21,7 @@ from derl.analysis import (
     RunLog,
     write_report,
 )
-from derl.analysis.testsuite import budgets, results
+from derl.analysis.testsuite import TestResult, budgets, results, tasks_and_worlds
 from derl.unimal import Genome
 
 STEPS = (100, 200, 300, 400, 500)
@@ -192,3 +192,26 @@ def test_fig5d_numbers_of_a_lineage(tmp_path: Path, quadruped: Genome) -> None:
     page = written.page.read_text()
     assert "final return 30 to 90 (x3), env steps to the criterion 400 to 100 (x4 sooner)" in page
     assert "median speed-up x3 (n=2" in page
+
+
+def test_every_fig4_panel_orders_tasks_and_worlds_as_the_paper() -> None:
+    """Whatever order the results came in (here each budget's differs, VT first), every panel
+    and table lists the tasks as fig. 4 does and the worlds FT, VT, MVT."""
+    rows = [
+        TestResult(
+            run="r",
+            world=world,
+            agent="a",
+            task=task,
+            seed=0,
+            steps=steps,
+            reward=1.0,
+            cost_of_work=1.0,
+        )
+        for steps, tasks in ((2048, ("obstacle", "patrol")), (4096, ("patrol", "obstacle")))
+        for world in ("vt", "ft")
+        for task in tasks
+    ]
+    for steps in (2048, 4096):
+        group = [r for r in rows if r.steps == steps]
+        assert tasks_and_worlds(group) == (["patrol", "obstacle"], ["ft", "vt"])

@@ -13,11 +13,9 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from derl.envs.registry import TASKS, TEST_TASKS
+from derl.envs.registry import TASKS, TEST_TASKS, WORLDS
 from derl.evolution.config import MAX_LEASE_S, job_ppo, load_settings
 from derl.rl import PPOConfig
-
-WORLDS = ("ft", "vt", "mvt")
 
 
 class StudyConfig(BaseModel):

@@ -9,12 +9,14 @@ and for 1M steps (fig. 4c); results without a known budget form a group of their
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from itertools import combinations
 
 import numpy as np
 
 from derl.analysis.records import Record, RunLog
 from derl.analysis.statistics import BootstrapConfig, Comparison, Estimate, estimate, mann_whitney
+from derl.envs.registry import TEST_TASKS, WORLDS
 
 METRICS = ("reward", "cost_of_work")
 
@@ -80,8 +82,14 @@ def _values(rows: list[TestResult], world: str, task: str, metric: str) -> np.nd
 
 
 def tasks_and_worlds(rows: list[TestResult]) -> tuple[list[str], list[str]]:
-    """The tasks and worlds present, in order of first appearance."""
-    return list(dict.fromkeys(r.task for r in rows)), list(dict.fromkeys(r.world for r in rows))
+    """The tasks and worlds present, in the paper's order (tasks as in fig. 4, worlds FT, VT,
+    MVT; others after them, as they first appear): the same in every panel and table."""
+    return _ordered((r.task for r in rows), TEST_TASKS), _ordered((r.world for r in rows), WORLDS)
+
+
+def _ordered(names: Iterable[str], order: tuple[str, ...]) -> list[str]:
+    present = list(dict.fromkeys(names))
+    return sorted(present, key=lambda n: order.index(n) if n in order else len(order))
 
 
 def _groups(rows: list[TestResult]) -> list[tuple[int | None, list[TestResult]]]:
