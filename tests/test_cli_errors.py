@@ -2,7 +2,7 @@
 hang: one row per mistake a user makes (a budget below one rollout, zero workers or copies, a
 port in use, a missing run directory or log, a run directory that is a file, a misspelt key in a
 profile or a launch file, an unknown message type, a folder with no trained body, a study with
-no runs, of a missing run or not made yet)."""
+no runs, of a missing run or not made yet, a run directory of another run id)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,8 @@ import yaml
 from nodes_fixtures import REPO, derl_argv, free_port
 
 from derl.unimal import Genome
+from messages import WorkerReady
+from nodes.journal.segments import Journal
 
 GENOME = "genome.json"
 
@@ -38,6 +40,8 @@ def _files(tmp: Path, genome: Genome) -> None:
               "trainer", "cont": 2}]}]}  # fmt: skip
     (tmp / "launch.yaml").write_text(yaml.safe_dump(launch))
     (tmp / "a-file").write_text("")
+    with Journal(tmp / "other") as journal:  # a run directory of run "other"
+        journal.write(WorkerReady(run="other", node="n", role="trainer", host="h", pid=1))
 
 
 CASES = {  # name: (arguments, exit status, what its last line says)
@@ -67,6 +71,9 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                "no run directory or log at missing"),
     "misspelt study key": (["study", "a-file", "--study-dir", "s", "--profile", "typo.yaml"], 1,
                            "unknown key 'populaton'; valid keys: name, per_lineage"),
+    "another run's journal": (["coordinator", "--run", "r", "--run-dir", "other", "--listen",
+                               "tcp/127.0.0.1:0"], 1,
+                              "holds the journal of run 'other', not 'r': resume it with --run"),
     "coordinator of no study": (["coordinator", "--run", "r", "--study", "s"], 1,
                                 "s is not a study (no study.json)"),
 }  # fmt: skip

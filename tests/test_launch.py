@@ -186,6 +186,15 @@ def test_a_launch_file_can_run_a_study_with_evaluators(tmp_path: Path) -> None:
     assert head[head.index("--study") + 1] == str(tmp_path / "study") and "--profile" not in head
     assert build_parser().parse_args(head).study == tmp_path / "study"
     assert study.directory == tmp_path / "study"
+    planned_here = LaunchFile.model_validate(
+        {**data, "study": "s", "study_runs": ["runs/ft-s1", "runs/vt-s1"], "profile": "paper"}
+    )
+    head = next(c for c in build_commands(planned_here) if c.role == "coordinator").derl_args()
+    parsed = build_parser().parse_args(head)
+    assert parsed.study_runs == [Path("runs/ft-s1"), Path("runs/vt-s1")]
+    assert parsed.profile == "paper" and parsed.listen  # the bus flags still follow
+    with pytest.raises(ValueError, match="go with `study`"):
+        LaunchFile.model_validate({**_mesh(tmp_path), "study_runs": ["r"]})
     with pytest.raises(ValueError, match="one of them"):
         LaunchFile.model_validate(data)
     with pytest.raises(ValueError, match="one of them"):

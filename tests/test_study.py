@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from nodes_fixtures import Processes, derl_argv, journaled, wait_for, write_profile
+from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for, write_profile
 
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
@@ -147,7 +147,8 @@ def _derl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
 
 @pytest.mark.slow
 def test_a_study_of_two_worlds_from_runs_to_figure_4(tmp_path: Path, procs: Processes) -> None:
-    """2 worlds x 2 seeds -> the study (stopped mid-way, resumed) -> `derl report`'s Fig. 4."""
+    """2 worlds x 2 seeds -> the study, planned and started by a coordinator and evaluators as on
+    a cluster, killed mid-way, resumed by `derl study` -> `derl report`'s Fig. 4."""
     profile = write_profile(tmp_path / "tiny.yaml")
     runs = [tmp_path / f"{world}-s{seed}" for world in ("ft", "vt") for seed in (1, 2)]
     evolving = [  # side by side: most of a tiny run is starting and announcing its end
@@ -157,16 +158,23 @@ def test_a_study_of_two_worlds_from_runs_to_figure_4(tmp_path: Path, procs: Proc
         for run in runs
     ]  # fmt: skip
     assert [procs.finish(run, 300) for run in evolving] == [0] * 4
-    study = tmp_path / "study"
-    command = derl_argv("study", *map(str, runs), "--study-dir", str(study), "--port", "0")
-    first = procs.start("study", command)
+    study, run, endpoint = tmp_path / "study", "s1", f"tcp/127.0.0.1:{free_port()}"
+    # as on a cluster: the coordinator plans the study from the runs, evaluators connect
+    coordinator = procs.start("coordinator", derl_argv(
+        "coordinator", "--run", run, "--study", str(study), "--study-runs", *map(str, runs),
+        "--profile", "smoke", "--listen", endpoint))  # fmt: skip
+    for k in range(2):
+        procs.start(f"evaluator-{k}", derl_argv("evaluator", "--run", run, "--connect", endpoint,
+                                                "--name", f"e{k}"))  # fmt: skip
     wait_for(lambda: len(journaled(study, EvalResult)) >= 3, 120, "3 results")
-    procs.kill("study")  # the whole process group: coordinator and evaluators
+    for name in ("coordinator", "evaluator-0", "evaluator-1"):
+        procs.kill(name)
     done = {(r.agent, r.task, r.seed, r.steps) for r in journaled(study, EvalResult)}
     issued = len(journaled(study, EvalJob))
     plan = read_plan(study)
+    # then on one host: `derl study` resumes it where it stopped
     resume = procs.start("resume", derl_argv("study", "--study-dir", str(study), "--port", "0"))
-    assert first.returncode != 0 and procs.finish(resume, 300) == 0
+    assert coordinator.returncode != 0 and procs.finish(resume, 300) == 0
     assert read_plan(study) == plan  # chosen once
     keys = [(r.agent, r.task, r.seed, r.steps) for r in journaled(study, EvalResult)]
     assert len(keys) == len(set(keys)), "a result journaled twice"

@@ -24,6 +24,7 @@ from nodes.cli.options import (
     options_from,
     profile_from,
     run_directory,
+    study_profile_from,
 )
 from nodes.launch.model import split_endpoint, with_port
 from nodes.runtime.bus import node_name
@@ -38,6 +39,15 @@ def register(commands: argparse._SubParsersAction) -> None:
     where.add_argument("--run-dir", type=Path, help="journal and results")
     where.add_argument(
         "--study", type=Path, metavar="STUDY_DIR", help="coordinate this study (`derl study`)"
+    )
+    coordinator.add_argument(
+        "--study-runs",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="RUN_DIR",
+        help="with --study: the runs to select from when STUDY_DIR is not planned yet (then "
+        "--profile names a study profile)",
     )
     add_bus_arguments(coordinator)
     coordinator.set_defaults(handler=_coordinator)
@@ -63,7 +73,9 @@ def _coordinator(args: argparse.Namespace) -> int:
 
     try:
         if args.study is not None:
-            finished = serve_study(args.run, args.study, options_from(args))
+            config = study_profile_from(args) if args.study_runs else None
+            finished = serve_study(args.run, args.study, options_from(args), args.study_runs,
+                                   config)  # fmt: skip
         else:
             finished = serve(args.run, run_directory(args.run_dir), profile_from(args),
                              options_from(args))  # fmt: skip

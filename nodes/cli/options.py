@@ -112,6 +112,20 @@ def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
         fail(f"profile {args.profile}: {error}")
 
 
+def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
+    """The study's profile from --profile, or exit with the reason it is not valid."""
+    from derl.analysis.study import StudyConfig, load_study_profile
+
+    try:
+        return load_study_profile(args.profile)
+    except ValidationError as error:
+        fail_invalid(f"study profile {args.profile}", error, StudyConfig, top=(PROFILE_KEY,))
+    except yaml.YAMLError as error:
+        fail(f"study profile {args.profile}: not valid YAML: {error}")
+    except (ValueError, OSError) as error:
+        fail(f"study profile {args.profile}: {error}")
+
+
 def fail_invalid(
     what: str, error: ValidationError, model: type[BaseModel], top: tuple[str, ...] = ()
 ) -> NoReturn:

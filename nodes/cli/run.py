@@ -78,7 +78,7 @@ def _run(args: argparse.Namespace) -> int:
     except RunDirLocked as error:
         fail(str(error), IN_USE)
     port = listenable(args.port)
-    run = re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
+    run = local_run_id(run_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
     env = ("--env", args.env) if args.env else ()
     seed = ("--seed", str(args.seed)) if args.seed is not None else ()
@@ -115,6 +115,14 @@ def listenable(port: int) -> int:
             fail(f"cannot listen on 127.0.0.1:{port}: {error.strerror} (another run, node or "
                  "router?); choose another port with --port", IN_USE)  # fmt: skip
         return probe.getsockname()[1]
+
+
+def local_run_id(run_dir: Path) -> str:
+    """The run id of the run (or study) in `run_dir`: its journal's when it has one (it may
+    have been started by `derl coordinator --run ID`), else the directory's name."""
+    from nodes.journal.history import journal_run
+
+    return journal_run(run_dir) or re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
 
 
 def local_nodes(

@@ -5,23 +5,29 @@
 runs the study's coordinator and `--workers` evaluators here, supervised like `derl run`: every
 retraining, then each world's `top` of its `keep` best on the test tasks at every budget. The
 coordinator journals every job and result in DIR, so running the command again resumes the study.
-With `--plan-only` it only writes DIR's plan: a cluster then runs ``derl coordinator --study DIR``
-on one host and ``derl evaluator`` nodes anywhere (or `derl launch` with ``study: DIR``).
+With `--plan-only` it only writes DIR's plan. On a cluster, ``derl coordinator --study DIR
+--study-runs RUN_DIR...`` plans and coordinates on one host, ``derl evaluator`` nodes work
+anywhere; a launch file with ``study: DIR`` and ``study_runs:`` starts them all.
 `derl report DIR` draws the study's figures.
 """
 
 from __future__ import annotations
 
 import argparse
-import re
 import signal
 from pathlib import Path
 
-from pydantic import ValidationError
 from rich.console import Console
 
-from nodes.cli.options import IN_USE, at_least_one, fail, fail_invalid, run_directory
-from nodes.cli.run import DEFAULT_PORT, listenable, local_nodes, port_number, supervise
+from nodes.cli.options import IN_USE, at_least_one, fail, run_directory, study_profile_from
+from nodes.cli.run import (
+    DEFAULT_PORT,
+    listenable,
+    local_nodes,
+    local_run_id,
+    port_number,
+    supervise,
+)
 from nodes.launch.supervisor import Supervisor
 from nodes.runtime.rundir import RunDirLocked, lock_run_dir
 
@@ -52,15 +58,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from derl.analysis.study import StudyConfig, load_study_profile
     from nodes.coordinator.study import SETUP_FILE, prepare_study
 
-    try:
-        config = load_study_profile(args.profile)
-    except ValidationError as error:
-        fail_invalid(f"study profile {args.profile}", error, StudyConfig, top=("profile",))
-    except (ValueError, OSError) as error:
-        fail(f"study profile {args.profile}: {error}")
+    config = study_profile_from(args)
     if not (args.study_dir / SETUP_FILE).exists():  # checked before DIR is made
         if not args.runs:
             fail(f"{args.study_dir} is not a study yet: give the run directories to study")
@@ -82,7 +82,7 @@ def _study(args: argparse.Namespace) -> int:
     if args.plan_only:
         return 0
     port = listenable(args.port)
-    run = re.sub(r"[^A-Za-z0-9_.-]", "-", study_dir.resolve().name)[:128]
+    run = local_run_id(study_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
     nodes = local_nodes(run, endpoint, ("--study", str(study_dir)), {"evaluator": args.workers})
     supervisor = Supervisor(nodes, study_dir / "logs")

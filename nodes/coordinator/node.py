@@ -96,6 +96,9 @@ class Coordinator:
                     replayed += 1
             except JournalDamaged as damage:
                 raise SystemExit(f"derl: {damage}") from None
+        if self.state.run not in (None, run):  # its own messages would not change the state
+            raise SystemExit(f"derl: {run_dir} holds the journal of run {self.state.run!r}, not "
+                             f"{run!r}: resume it with --run {self.state.run}")  # fmt: skip
         self.replayed = replayed
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
@@ -685,12 +688,13 @@ def check_jobs(run: str, config: EvolutionConfig) -> None:
 def serve(
     run: str,
     run_dir: Path,
-    config: EvolutionConfig | None,
+    config: object,
     options: ZenohOptions,
     kind: type[Coordinator] = Coordinator,
 ) -> bool:
-    """The coordinator (of `kind`) of `run` until the run is finished (True) or it is stopped
-    (False); the run directory is locked from before its journal is read until the end."""
+    """The coordinator (of `kind`, started with `config`: a run's EvolutionConfig) of `run`
+    until the run is finished (True) or it is stopped (False); the run directory is locked
+    from before its journal is read until the end."""
     try:
         with lock_run_dir(run_dir):
             coordinator = kind(run, run_dir, config)

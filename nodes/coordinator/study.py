@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -49,6 +50,15 @@ class StudySetup(BaseModel):
 
     config: StudyConfig
     runs: tuple[Path, ...]
+
+
+@dataclass
+class StudyRequest:
+    """What a study coordinator is started with: the runs and settings of a study to make in
+    its directory if there is none yet (none given: the directory must hold one)."""
+
+    runs: list[Path]
+    config: StudyConfig | None = None
 
 
 def study_agent(job: RetrainJob) -> str:
@@ -130,8 +140,11 @@ class StudyCoordinator(Coordinator):
     def born(self) -> int:
         return 0
 
-    def _run_config(self, given: StudyConfig) -> StudyConfig:  # type: ignore[override]
-        """The study's settings as `study.json` holds them (see `prepare_study`)."""
+    def _run_config(self, given: StudyRequest) -> StudyConfig:  # type: ignore[override]
+        """The study's settings as `study.json` holds them, made now from the request's runs
+        if there is none yet (see `prepare_study`)."""
+        if given.runs and given.config is not None:
+            return prepare_study(self.run_dir, given.runs, given.config).config
         return read_setup(self.run_dir).config
 
     def _new_state(self) -> StudyState:  # type: ignore[override]
@@ -251,10 +264,18 @@ def prepare_study(study_dir: Path, runs: list[Path], config: StudyConfig) -> Stu
     return setup
 
 
-def serve_study(run: str, study_dir: Path, options: ZenohOptions) -> bool:
-    """The coordinator of the study in `study_dir` until it is finished (True) or stopped."""
-    read_setup(study_dir)  # a study, before anything is made there
-    return serve(run, study_dir, None, options, StudyCoordinator)
+def serve_study(
+    run: str,
+    study_dir: Path,
+    options: ZenohOptions,
+    runs: list[Path] | None = None,
+    config: StudyConfig | None = None,
+) -> bool:
+    """The coordinator of the study in `study_dir` until it is finished (True) or stopped;
+    given `runs` and `config`, it makes the study there first if there is none yet."""
+    if not runs:
+        read_setup(study_dir)  # a study, before anything is made there
+    return serve(run, study_dir, StudyRequest(runs or [], config), options, StudyCoordinator)
 
 
 def study_logs(study_dir: Path) -> list[RunLog]:

@@ -26,7 +26,7 @@ from messages import (
     Tournament,
     TrainJob,
 )
-from nodes.journal.segments import read_segment, replay, segments
+from nodes.journal.segments import JournalDamaged, read_segment, replay, segments
 from nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
 if TYPE_CHECKING:
@@ -108,6 +108,17 @@ class RunHistory:
     def generation(self, parent: str | None) -> int:
         """The generation of a child of `parent` (0 for the initial population)."""
         return 0 if parent is None else self.born[parent].generation + 1
+
+
+def journal_run(run_dir: Path) -> str | None:
+    """The run id of the journal in `run_dir` (its first message's), None without one."""
+    if not segments(run_dir):
+        return None
+    try:
+        first = next(replay(run_dir), None)
+    except JournalDamaged:
+        return None  # the coordinator says so when it starts
+    return None if first is None else first.run
 
 
 def load_history(path: Path) -> RunHistory:

@@ -130,7 +130,10 @@ def ssh_command(launch: LaunchFile, file: Path, host: HostSpec) -> NodeCommand:
 
 def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     if spec.role == "coordinator" and launch.study is not None:
-        return ["--run", launch.run, "--study", str(launch.study)]
+        study = ["--run", launch.run, "--study", str(launch.study)]
+        if launch.study_runs:
+            study += ["--profile", launch.profile, "--study-runs", *map(str, launch.study_runs)]
+        return study
     if spec.role == "coordinator":
         env = ["--env", launch.env] if launch.env else []
         seed = ["--seed", str(launch.seed)] if launch.seed is not None else []

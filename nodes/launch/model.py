@@ -5,7 +5,7 @@ profile, the Zenoh topology and, per host, the nodes to start with their counts 
 policy::
 
     run: exp1
-    run_dir: runs/exp1             # or `study: studies/s1` (`derl study --plan-only`)
+    run_dir: runs/exp1             # or a study: `study: studies/s1` and `study_runs: [...]`
     profile: demo                  # a built-in profile or a profile YAML file
     seed: 1                        # optional: the evolution seed (one per replicate)
     topology: {kind: peer_mesh, seed: "tcp/10.0.0.5:7447"}     # or {kind: router, endpoint, host}
@@ -134,7 +134,12 @@ class LaunchFile(_Strict):
     study: Path | None = Field(
         None,
         description="instead of a run: the study directory whose appendix D stage the "
-        "coordinator runs with evaluator nodes (planned by `derl study --plan-only`)",
+        "coordinator runs with evaluator nodes (`profile` then names a study profile)",
+    )
+    study_runs: list[Path] = Field(
+        [],
+        description="the runs the study selects from, on the coordinator's host (the study "
+        "is planned there at its first start; none: `derl study --plan-only` planned it)",
     )
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
     env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
@@ -159,6 +164,8 @@ class LaunchFile(_Strict):
     def _consistent(self) -> LaunchFile:
         if (self.run_dir is None) == (self.study is None):
             raise ValueError("give `run_dir` (a run) or `study` (a study), one of them")
+        if self.study_runs and self.study is None:
+            raise ValueError("`study_runs` go with `study`")
         if self.study is not None and any(n.role == "trainer" for h in self.hosts for n in h.nodes):
             raise ValueError("a study trains no children: start evaluator nodes, not trainers")
         names = [h.name for h in self.hosts]
