@@ -58,7 +58,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from nodes.coordinator.study import SETUP_FILE, prepare_study
+    from nodes.coordinator.study import SETUP_FILE, prepare_study, read_plan
 
     config = study_profile_from(args)
     if not (args.study_dir / SETUP_FILE).exists():  # checked before DIR is made
@@ -73,7 +73,7 @@ def _study(args: argparse.Namespace) -> int:
             setup = prepare_study(study_dir, args.runs, config)
     except RunDirLocked as error:
         fail(str(error), IN_USE)
-    worlds = sorted({job.task for job in _plan(study_dir).jobs})
+    worlds = sorted({job.task for job in read_plan(study_dir).jobs})
     console.print(
         f"study {study_dir}: {len(setup.runs)} runs ({', '.join(worlds)}), "
         f"profile {setup.config.name}; plan in {study_dir / 'plan.json'}",
@@ -100,9 +100,3 @@ def _study(args: argparse.Namespace) -> int:
     done = f"{status.evaluated} results" if status is not None else "done"
     console.print(f"done: {done}; `derl report {study_dir} --out DIR` draws its figures")
     return 0
-
-
-def _plan(study_dir: Path):  # -> RetrainPlan
-    from nodes.coordinator.study import read_plan
-
-    return read_plan(study_dir)

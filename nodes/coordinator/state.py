@@ -221,10 +221,6 @@ class CoordinatorState(RunHistory):
 
     # --- questions the node asks -------------------------------------------------------------
 
-    def issued_to(self, job: str, node: str) -> bool:
-        """Whether `job` was ever given to `node` (a result for any other is forged or lost)."""
-        return self.issued.get(job) == node
-
     def job_of(self, node: str) -> Job | None:
         job = self.by_node.get(node)
         return None if job is None else self.jobs[job]

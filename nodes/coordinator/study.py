@@ -66,13 +66,18 @@ def study_agent(job: RetrainJob) -> str:
     return f"{job.run}.{job.agent}"
 
 
+def selected_bodies(plan: RetrainPlan) -> dict[str, RetrainJob]:
+    """The plan's bodies by their name in the study (one of each body's jobs)."""
+    return {study_agent(job): job for job in plan.jobs}
+
+
 class StudyState(CoordinatorState):
     """The jobs in flight (the run's bookkeeping) and appendix D's two stages as evaluations."""
 
     def __init__(self, config: StudyConfig, plan: RetrainPlan) -> None:
         super().__init__(config, None)  # type: ignore[arg-type]  # no evolution in a study
         self.config: StudyConfig = config
-        self.selected = {study_agent(job): job for job in plan.jobs}  # agent -> its body
+        self.selected = selected_bodies(plan)  # agent -> its body
         self.retraining = [
             (study_agent(job), job.task, job.seed, config.retrain_steps or job.steps)
             for job in plan.jobs
@@ -284,7 +289,7 @@ def study_logs(study_dir: Path) -> list[RunLog]:
     from derl.analysis import Evaluation, Retraining
 
     setup, plan = read_setup(study_dir), read_plan(study_dir)
-    selected = {study_agent(job): job for job in plan.jobs}
+    selected = selected_bodies(plan)
     retrained: dict[str, list[Retraining]] = {}
     tested: dict[str, list[Evaluation]] = {}
     for (agent, task, seed, steps), result in load_history(study_dir).evaluations.items():
