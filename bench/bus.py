@@ -426,6 +426,7 @@ class Driver:
         ready = WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
         coordinator._ready(ready)
         coordinator._flush()  # as the serve loop does after each group (here: each message)
+        coordinator._publish_released()
         job = state.job_of(node)
         return None if job is None else job.order
 
@@ -451,6 +452,7 @@ class Driver:
             start = time.thread_time()
             coordinator._fitness(_report(coordinator.run, job, self.rng.uniform(0, 100)))
             coordinator._flush()
+            coordinator._publish_released()
             following = self._ready(job.node)
             times.append(time.thread_time() - start)
             self.busy.append(following) if following else self.idle.append(job.node)
@@ -460,7 +462,7 @@ class Driver:
 BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
     "tournament (drawing contestants)": ("evolution/population.py", "tournament"),
     "journal writes": ("nodes/journal/segments.py", "write"),
-    "journal flushes (fsync included)": ("nodes/journal/segments.py", "flush"),
+    "journal flushes (the fsync is on the outbox thread)": ("nodes/journal/segments.py", "flush"),
     "checkpoint hand-off (a thread writes the file)": ("nodes/runtime/checkpoints.py", "save"),
     "messages built (pydantic validation)": ("pydantic/main.py", "__init__"),
     "encode (msgpack)": ("messages/codec.py", "encode"),
@@ -485,7 +487,7 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
         profiler.enable()
         profiled = driver.run(births)
         profiler.disable()
-        coordinator.journal.close()
+        coordinator.close()
         stats = pstats.Stats(profiler, stream=io.StringIO()).stats
         total = sum(profiled)
         breakdown = {}
@@ -578,7 +580,7 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
     driver = Driver(coordinator, random.Random(1))
     driver.add_workers(64)
     driver.run(bodies_total)
-    coordinator.journal.close()
+    coordinator.close()
     made = time.perf_counter() - start
     journal = segments(run_dir)[0]
     times = []
@@ -586,7 +588,7 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
         start = time.perf_counter()
         restarted = Coordinator("recovery", run_dir, config)
         times.append(time.perf_counter() - start)
-        restarted.journal.close()
+        restarted.close()
         assert restarted.born == bodies_total, restarted.born
         segments(run_dir)[-1].unlink()  # the empty segment each start opens
     return {

@@ -65,8 +65,7 @@ def _serving(
             yield coordinator, heard
         finally:
             subscriber.undeclare()
-            coordinator.checkpoints.close()
-            coordinator.journal.close()
+            coordinator.close()
 
 
 @pytest.fixture
@@ -96,7 +95,7 @@ def _ready(coordinator: Coordinator, node: str) -> None:
 
 def _job_for(coordinator: Coordinator, node: str) -> TrainJob:
     _ready(coordinator, node)
-    coordinator._flush()
+    coordinator.settle()
     job = coordinator.state.job_of(node)
     assert job is not None and isinstance(job.order, TrainJob)
     return job.order
@@ -119,7 +118,7 @@ def test_a_job_is_published_only_once_the_journal_file_holds_it(
     assert not [m for m in _journaled(coordinator) if isinstance(m, TrainJob)]
     assert _quiet(heard), "a job went out before the journal file had it"
 
-    coordinator._flush()
+    coordinator.settle()
     sent = heard.get(timeout=10)
     assert isinstance(sent, TrainJob) and sent.node == node
     assert sent in _journaled(coordinator)
@@ -136,7 +135,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
 
     # accepted: the Ack comes, and the checkpoint file is whole by then
     coordinator._fitness(_report(first, b"weights-1"))
-    coordinator._flush()
+    coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)  # the birth stream: journaled, published
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == first.child
@@ -149,7 +148,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     report = _report(second, b"weights-2")
     with caplog.at_level(logging.ERROR, logger="derl.coordinator"):
         coordinator._fitness(report)
-        coordinator._flush()
+        coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)
     assert second.child in coordinator.state.evolution.fitness
     assert report.model_copy(update={"checkpoint": b""}) in _journaled(coordinator)
@@ -160,7 +159,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     folder.unlink()
     folder.mkdir()
     coordinator._fitness(report)
-    coordinator._flush()
+    coordinator.settle()
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == second.child
     assert coordinator.checkpoints.path(second.child).read_bytes() == b"weights-2"
@@ -198,7 +197,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         for node, weights in (("w1", b"weights-1"), ("w2", b"weights-2")):
             coordinator._fitness(_report(_job_for(coordinator, node), weights))
         _ready(coordinator, "w1")
-        coordinator._flush()
+        coordinator.settle()
         journaled = _journaled(coordinator)
         births = {m.child: m for m in journaled if isinstance(m, Birth)}
         repeat = births["c00000"]
@@ -224,8 +223,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         assert "c00000" not in state.waiting and restarted._status().repeats == 1
         assert _wait_for(checkpoint) == restarted.checkpoints.path(twin).read_bytes()
     finally:
-        restarted.checkpoints.close()
-        restarted.journal.close()
+        restarted.close()
     bodies = {body.id: body for body in run_log(tmp_path).bodies}  # what `derl report` reads
     assert bodies["c00000"].repeat_of == twin and bodies[twin].repeat_of is None
     assert bodies["c00000"].curve_returns == bodies[twin].curve_returns == (0.0, 1.0)

@@ -65,9 +65,10 @@ from messages import (
     encode,
 )
 from messages.examples import GENOME
+from nodes.coordinator.outbox import Outbox, Reply
 from nodes.coordinator.state import CoordinatorState, tournament_message
 from nodes.journal.segments import Journal, JournalDamaged, replay, segments
-from nodes.runtime.bus import MSGPACK, Bus, ZenohOptions, open_session
+from nodes.runtime.bus import MSGPACK, Bus, Inlet, ZenohOptions, open_session
 from nodes.runtime.checkpoints import CheckpointFiles
 from nodes.runtime.rundir import RunDirLocked, lock_run_dir, write_atomic
 
@@ -77,6 +78,8 @@ STATUS_PERIOD_S = 1.0
 SNAPSHOT_PERIOD_S = 5.0
 DONE_ANNOUNCEMENTS = 5
 GROUP_S = 0.005  # the longest a group is handled before its journal flush and replies
+TAKE = 64  # messages taken from one inlet before the next one's turn
+IDLE_S = (0.0005, 0.01)  # the wait when nothing came: the first, doubled up to the last
 RECENT_BIRTHS = 1000  # births a late monitor gets by query
 PROFILE_FILE = "profile.json"
 INITIAL_FILE = "initial_population.json"
@@ -103,8 +106,9 @@ class Coordinator:
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
         self._resume()
-        # published after the journal flush (and, for an Ack, once its checkpoint is on disk)
-        self.outbox: list[tuple[MessageBase, bytes, Future[None] | None]] = []
+        # the group's replies: published once it is on disk (an Ack, once its checkpoint is)
+        self.outbox: list[Reply] = []
+        self.sender = Outbox(self.journal.sync)
         self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
         self.recent_lock = threading.Lock()
         for birth in self.state.births[-RECENT_BIRTHS:]:
@@ -191,16 +195,18 @@ class Coordinator:
         finished = False
         with open_session(options) as session:
             bus = Bus(session, self.run, on_reject=self._bus_rejected)
-            inbox: queue.Queue[tuple[str, object]] = queue.Queue()
-            for kind, types in (
-                ("ready", (WorkerReady,)),
-                ("fitness", (FitnessReport,)),
-                ("progress", (TrainProgress,)),
-                ("eval", (EvalResult,)),
-                ("failure", (JobFailed,)),
-            ):
-                bus.subscribe(bus.keys.all(kind), lambda m: inbox.put(("msg", m)), types)
-            bus.watch_alive(lambda role, node, up: inbox.put(("alive", (role, node, up))))
+            inlets = [
+                bus.inlet(bus.keys.all(kind), types)
+                for kind, types in (
+                    ("ready", (WorkerReady,)),
+                    ("fitness", (FitnessReport,)),
+                    ("progress", (TrainProgress,)),
+                    ("eval", (EvalResult,)),
+                    ("failure", (JobFailed,)),
+                )
+            ]
+            changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
+            bus.watch_alive(lambda role, node, up: changes.put((role, node, up)))
             queryables = [
                 session.declare_queryable(bus.keys.all("births"), self._answer_births),
                 session.declare_queryable(bus.keys.population(), self._answer_population),
@@ -208,15 +214,16 @@ class Coordinator:
             self.bus = bus
             next_status = next_snapshot = 0.0
             announced = 0
+            idle_s = IDLE_S[0]
             while not self.stop.is_set():
-                try:
-                    self._take(*inbox.get(timeout=0.2))
-                    until = time.monotonic() + GROUP_S
-                    while time.monotonic() < until:
-                        self._take(*inbox.get_nowait())
-                except queue.Empty:
-                    pass
+                took = self._take_group(inlets, changes)
                 self._flush()
+                self.sender.released.clear()
+                if self._publish_released() or took:
+                    idle_s = IDLE_S[0]
+                else:  # until replies are released or the wait is over
+                    self.sender.released.wait(idle_s)
+                    idle_s = min(2 * idle_s, IDLE_S[1])
                 now = time.monotonic()
                 if now >= next_status:
                     # The state only grows (every body, every job) and its handling makes no
@@ -226,31 +233,56 @@ class Coordinator:
                     gc.freeze()
                     self._log_births()
                     self._check_leases(now)
-                    self._flush()
-                    bus.publish(self._status())
+                    self._say(self._status())
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:
                         announced += 1
                         if announced == 1:
+                            self.sender.drain()  # the best agents' checkpoints are on disk
+                            self._publish_released()
                             self._write_results()
                         if announced >= DONE_ANNOUNCEMENTS:
                             finished = True
                             break
                 if now >= next_snapshot:
-                    bus.publish(self._snapshot())
+                    self._say(self._snapshot())
                     next_snapshot = now + SNAPSHOT_PERIOD_S
             for queryable in queryables:
                 queryable.undeclare()
-            self.checkpoints.close()
-            self.journal.close()
+            self.close()
         return finished
 
-    def _take(self, kind: str, item: object) -> None:
+    def close(self) -> None:
+        """Publish what is waiting, then close the checkpoint files and the journal."""
+        self._flush()
+        self.sender.close()
+        self._publish_released()
+        self.checkpoints.close()
+        self.journal.close()
+
+    def _take_group(self, inlets: list[Inlet], changes: queue.SimpleQueue) -> bool:
+        """Handle what is waiting (liveliness changes, then each inlet's messages in turn) for
+        at most `GROUP_S`; whether there was anything."""
+        took = False
+        until = time.monotonic() + GROUP_S
+        while True:
+            taken: list[object] = []
+            while not changes.empty():
+                taken.append(changes.get())
+            for inlet in inlets:
+                taken += inlet.take(TAKE)
+            for item in taken:
+                self._take(item)
+            took = took or bool(taken)
+            if not taken or time.monotonic() >= until:
+                return took
+
+    def _take(self, item: object) -> None:
         try:
-            if kind == "msg":
-                self._handle(item)
-            elif kind == "alive":
+            if isinstance(item, tuple):
                 self._liveliness(*item)
+            else:
+                self._handle(item)
         except Exception:  # one message must never stop the run: log it and go on
             self.rejected += 1
             log.exception("handling %r failed", item)
@@ -267,20 +299,38 @@ class Coordinator:
             self.outbox.append((msg, data, after))
 
     def _flush(self) -> None:
-        """The group's messages into the journal file and onto the disk, then its replies onto
-        the bus."""
+        """The group's messages into the journal file; its replies are released once the file
+        is on the disk (`Outbox`)."""
         if not self.outbox and not self.journal.pending:
             return
-        self.journal.flush(sync=True)
-        for msg, data, after in self.outbox:
-            failed = None if after is None else after.exception()
-            if failed is None:
+        self.journal.flush()
+        self.sender.send(self.outbox)
+        self.outbox = []
+
+    def settle(self) -> None:
+        """Flush the group, wait until it is on the disk and publish its replies (the loop does
+        this without waiting; tests and tools that drive the handlers call this)."""
+        self._flush()
+        self.sender.drain()
+        self._publish_released()
+
+    def _publish_released(self) -> int:
+        """Publish the replies the outbox released; how many."""
+        replies = self.sender.take()
+        for msg, data in replies:
+            try:
                 self.bus.publish(msg, data=data)
-                if isinstance(msg, Birth | ChildFailed):
-                    self._remember(msg, data)
-            else:  # unacknowledged: its trainer sends the report again, and the write is retried
-                log.error("%s not acknowledged: its checkpoint was not written: %s", msg, failed)
-        self.outbox.clear()
+            except Exception:  # one reply must never stop the others
+                log.exception("publishing %s failed", msg)
+            if isinstance(msg, Birth | ChildFailed):
+                self._remember(msg, data)
+        return len(replies)
+
+    def _say(self, msg: MessageBase) -> None:
+        """Publish a message that is not journaled (status, snapshot) in order after the
+        group before it."""
+        self.outbox.append((msg, encode(msg), None))
+        self._flush()
 
     def _handle(self, msg: object) -> None:
         if isinstance(msg, WorkerReady):

@@ -8,7 +8,7 @@ appended to. Each message type has its own channel (topic ``derl/<run>/<kind>``,
 Durability (docs/journal.md): chunked, uncompressed, and ``Writer.flush()`` after every
 message, which closes the chunk (its messages get their CRC) and flushes the file. A SIGKILL then
 loses at most the message being written. A writer that handles messages in groups (the
-coordinator) appends a group with ``flush=False`` and flushes it once with ``sync=True`` (fsync),
+coordinator) appends a group with ``flush=False``, flushes it once and has it synced (fsync)
 before it publishes anything of the group: a crash, even a power loss, loses at most a group
 nobody saw. Reading goes record by record without the summary, so a segment cut at any byte gives
 back every message written before the cut. A new `Journal` first cuts the torn tail of the
@@ -88,16 +88,25 @@ class JournalWriter:
                 self.pending += 1
             self._sequence += 1
 
-    def flush(self, sync: bool = False) -> None:
-        """Close the chunk of the messages appended since the last flush and flush the file;
-        with `sync`, also to the disk (fsync)."""
+    def flush(self) -> None:
+        """Close the chunk of the messages appended since the last flush and write it into the
+        file (not yet onto the disk: `sync`)."""
         with self._lock:
             if not self._closed:
                 self._writer.flush()
                 self.pending = 0
-                if sync:
-                    self._file.flush()
-                    os.fsync(self._file.fileno())
+
+    def sync(self) -> None:
+        """Put what the file holds onto the disk (fsync); safe beside `write` and `flush` on
+        another thread, and a no-op once closed (closing syncs)."""
+        with self._lock:
+            if self._closed:
+                return
+            fd = os.dup(self._file.fileno())
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
     def _channel(self, msg: MessageBase) -> int:
         channel = self._channels.get((msg.type, msg.run))
@@ -117,11 +126,13 @@ class JournalWriter:
         return channel
 
     def close(self) -> None:
-        """Write the summary and footer; closing twice is harmless."""
+        """Write the summary and footer and sync the file; closing twice is harmless."""
         with self._lock:
             if not self._closed:
                 self._closed = True
                 self._writer.finish()
+                self._file.flush()
+                os.fsync(self._file.fileno())
                 self._file.close()
 
     def __enter__(self) -> JournalWriter:

@@ -33,6 +33,7 @@ LEASE_MS = 2500
 # default an ephemeral loopback port; across hosts, give --listen with a routable address.
 LOOPBACK_ANY_PORT = ("tcp/127.0.0.1:0",)
 MSGPACK = zenoh.Encoding("application/msgpack")
+INLET_CAPACITY = 1 << 16  # samples an `Inlet` holds before Zenoh waits for its reader
 
 
 DROPPABLE: Final = frozenset({"TrainProgress", "PopulationSnapshot", "RunStatus"})
@@ -137,6 +138,15 @@ class Bus:
         self.subscribe(key_expr, box.put, kinds)
         return box
 
+    def inlet(self, key_expr: str, kinds: tuple[type[MessageBase], ...] = ()) -> Inlet:
+        """The valid messages on `key_expr`, queued by Zenoh and decoded by the thread that
+        takes them (`Inlet.take`)."""
+        subscriber = self.session.declare_subscriber(
+            key_expr, zenoh.handlers.FifoChannel(INLET_CAPACITY)
+        )
+        self._subscribers.append(subscriber)
+        return Inlet(self, subscriber, kinds)
+
     def check(
         self, payload: bytes, key: str, kinds: tuple[type[MessageBase], ...] = ()
     ) -> MessageBase | None:
@@ -183,6 +193,29 @@ class Bus:
                 self.keys.all("alive"), on_sample, history=True
             )
         )
+
+
+class Inlet:
+    """Samples of one subscription, held in Zenoh's own queue until taken: no Python callback
+    thread, so a busy single-threaded reader (the coordinator) does not hand the interpreter
+    lock to a callback for every sample (measured: each hand-over costs more than decoding)."""
+
+    def __init__(
+        self, bus: Bus, subscriber: zenoh.Subscriber, kinds: tuple[type[MessageBase], ...]
+    ) -> None:
+        self.bus, self.subscriber, self.kinds = bus, subscriber, kinds
+
+    def take(self, limit: int) -> list[MessageBase]:
+        """Up to `limit` valid messages that are waiting (checked as `Bus.check`), oldest first."""
+        taken: list[MessageBase] = []
+        for _ in range(limit):
+            sample = self.subscriber.try_recv()
+            if sample is None:
+                break
+            message = self.bus.check(sample.payload.to_bytes(), str(sample.key_expr), self.kinds)
+            if message is not None:
+                taken.append(message)
+        return taken
 
 
 def open_session(options: ZenohOptions) -> zenoh.Session:
