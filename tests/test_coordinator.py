@@ -33,6 +33,7 @@ from messages import (
     WorkerReady,
     decode,
 )
+from nodes.coordinator import node
 from nodes.coordinator.node import INITIAL_FILE, Coordinator
 from nodes.coordinator.state import CoordinatorState
 from nodes.journal.history import run_log
@@ -284,3 +285,22 @@ def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> 
         state.apply(JobFailed(run=run, job=job, node="w", subject=agent, error="boom"))
     assert state.eval_given_up == {key}
     assert state.next_evaluation() is None and state.finished
+
+
+def test_a_job_goes_out_again_for_a_worker_that_asks_only_after_a_while(
+    coordinator: tuple[Coordinator, queue.Queue[MessageBase]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A WorkerReady sent before the job reached its worker does not send the job again (under a
+    backlog those re-sends made a 10,000-worker run collapse); one a while later does (the job
+    was lost, or the coordinator restarted)."""
+    monkeypatch.setattr(node, "RESEND_AFTER_S", 0.5)
+    coordinator, heard = coordinator
+    job = _job_for(coordinator, "w1")
+    assert heard.get(timeout=10) == job
+    _ready(coordinator, "w1")
+    coordinator.settle()
+    assert _quiet(heard), "the job was sent again at once"
+    time.sleep(0.5)
+    _ready(coordinator, "w1")
+    coordinator.settle()
+    assert heard.get(timeout=10) == job
