@@ -9,9 +9,10 @@
    breeding is the trainers' work, off the coordinator; env steps within the job's PPO budget; a
    fitness within the world's bound). Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
-   once, i.e. the most assignments/s the coordinator gives; (b) `paced`: each simulated job
-   lasts W / R s so the workers offer R = 1,000 assignments/s (the goal's load), and
-   (c) `half_capacity`: R = half of (a). For each: assignments/s, ready-to-job latency
+   once, i.e. the most assignments/s the coordinator gives; (c) `half_capacity`: each simulated
+   job lasts W / R s with R = half of (a); (b) `paced`: each job lasts W / R s less the round
+   trip measured in (c), so the workers offer about R = 1,000 assignments/s (the goal's load),
+   run after (c). For each: assignments/s, ready-to-job latency
    p50/p99/max (from the moment a worker became idle until its job arrived), and the CPU use
    of the coordinator and of the load generator (on a small machine they share the cores).
 2. `coordinator_profile`: the coordinator's own code (no bus, no network) driven in this process
@@ -329,11 +330,14 @@ def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, ob
             saturated = _phase(generator, coordinator.pid, 0.0, duration)
             result["saturated"] = saturated
             capacity = max(float(saturated["assignments_per_s"]), 1.0)
+            overhead = 0.0  # a simulated worker's cycle beyond its job: the round trips
             for name, rate in (("half_capacity", capacity / 2), ("paced_1000_per_s", GOAL_RATE)):
-                job_s = workers / rate
+                job_s = max(workers / rate - overhead, 0.01)
                 phase = _phase(generator, coordinator.pid, job_s, duration, settle=job_s * 1.5)
                 result[name] = {"offered_per_s": round(rate, 1), "job_s": round(job_s, 3),
                                 **phase}  # fmt: skip
+                served = max(float(phase["assignments_per_s"]), 1.0)
+                overhead = max(workers / served - job_s, 0.0)  # the next phase's job is shorter
         finally:
             generator.close()
     finally:
