@@ -12,16 +12,15 @@ goes to the next ready worker, and the first valid report for a child wins, whoe
 (the other job is cancelled). A report is acknowledged once its checkpoint is on disk, and
 answered with a Reject when it can never be accepted (a job never issued to the sender, another
 body than its job's, an impossible fitness); a message whose node differs from its key's node
-segment is
-rejected by the bus check. Each of these is journaled and counted. A failed job (JobFailed) is
-retried on another worker up to `max_attempts` times, then the child is given up (ChildFailed).
-Before a tournament child is assigned the coordinator looks its body up (`Evolution.repeat`: its
-first draft, ~0.2 ms, and breeding only if that is a born body): a body born already is not
-trained again, the child is born at once as its repeat (Birth `repeat_of`, with its result, and
-its checkpoint file linked) and the worker gets the next child. A child whose first draft is
-that of a child in training is held back until that one is born (`CoordinatorState.hold`), then
-looked up again: it is then most likely its repeat.
-Births and failed children go out on ``births/<child>``; a Zenoh query on ``births/*`` or
+segment is rejected by the bus check. Each of these is journaled and counted. A failed job
+(JobFailed) is retried on another worker up to `max_attempts` times, then the child is given up
+(ChildFailed). Before a tournament child is assigned the coordinator looks its body up
+(`Evolution.repeat`: its first draft, ~0.1 ms, and breeding only if that is a born body): a body
+born already is not trained again, the child is born at once as its repeat (Birth `repeat_of`,
+with its result, and its checkpoint file linked) and the worker gets the next child. A child
+whose first draft is that of a child in training is held back until that one is born
+(`CoordinatorState.hold`), then looked up again: it is then most likely its repeat. Births and
+failed children go out on ``births/<child>``; a Zenoh query on ``births/*`` or
 ``population`` answers a monitor that starts late.
 """
 
