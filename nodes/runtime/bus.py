@@ -33,7 +33,8 @@ LEASE_MS = 2500
 # default an ephemeral loopback port; across hosts, give --listen with a routable address.
 LOOPBACK_ANY_PORT = ("tcp/127.0.0.1:0",)
 MSGPACK = zenoh.Encoding("application/msgpack")
-INLET_CAPACITY = 1 << 16  # samples an `Inlet` holds before Zenoh waits for its reader
+INLET_CAPACITY = 1 << 20  # samples an `Inlet` holds (allocated as they come): a full one would
+# stall the session's whole receive path, so it is sized never to fill (docs/bus.md)
 
 
 DROPPABLE: Final = frozenset({"TrainProgress", "PopulationSnapshot", "RunStatus"})

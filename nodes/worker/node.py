@@ -1,13 +1,15 @@
 """Trainer and evaluator nodes: announce themselves, take a job, learn, deliver until acknowledged.
 
 A worker holds a liveliness token for its whole life, publishes WorkerReady every second while
-idle, trains one job at a time with `derl.lifetime` and the job's own PPO configuration (one
-training per process; a tournament's child is first bred from its parent's body with
-`derl.evolution.breed`), reports progress every second (the coordinator's lease on the job), and
-re-sends its result every second until the coordinator acknowledges it, so a coordinator restart
-loses nothing. A Reject makes it drop the result, a Cancel of its job stops the training, and a
-training that raises is reported as JobFailed; each time it asks for work again. Every key it
-publishes on carries its node id. It stops on SIGTERM or SIGINT, or when the run is done.
+idle (the first one once the coordinator's subscription is known here: one sent before is lost,
+and a neighbour may take the job meanwhile), trains one job at a time with `derl.lifetime` and
+the job's own PPO configuration (one training per process; a tournament's child is first bred
+from its parent's body with `derl.evolution.breed`), reports progress every second (the
+coordinator's lease on the job), and re-sends its result every second until the coordinator
+acknowledges it, so a coordinator restart loses nothing. A Reject makes it drop the result, a
+Cancel of its job stops the training, and a training that raises is reported as JobFailed; each
+time it asks for work again. Every key it publishes on carries its node id. It stops on SIGTERM
+or SIGINT, or when the run is done.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from nodes.runtime.bus import Bus, ZenohOptions, open_session
 log = logging.getLogger("derl.worker")
 
 READY_PERIOD_S = 1.0
+HEARD_POLL_S = 0.01  # how often a worker looks whether its WorkerReady would be heard
 PROGRESS_PERIOD_S = 1.0
 RESEND_PERIOD_S = 1.0
 
@@ -77,6 +80,7 @@ class Worker:
             bus.subscribe(bus.keys.job(self.node), self._order(jobs), (*kinds, Cancel))
             answers = bus.inbox(bus.keys.ack(self.node), (Ack, Reject))
             bus.subscribe(bus.keys.status(), self._status, (RunStatus,))
+            self.asking = session.declare_publisher(bus.keys.ready(self.node))
             log.info("%s %s ready for run %s", self.role, self.node, self.run)
             while not self._over(max_jobs):
                 job = self._next_job(jobs)
@@ -125,6 +129,9 @@ class Worker:
             pid=os.getpid(),
             nthread=self.nthread,
         )
+        deadline = time.monotonic() + READY_PERIOD_S
+        while not self.asking.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(HEARD_POLL_S)  # no coordinator would hear it yet
         self.bus.publish(ready)
         try:
             job = jobs.get(timeout=READY_PERIOD_S)
