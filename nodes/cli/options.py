@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, TypeGuard, get_args
 
@@ -100,30 +101,34 @@ def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
     """The run's profile from --profile/--env, or exit with the reason it is not valid."""
     from derl.evolution import EvolutionConfig, load_profile
 
-    try:
-        return load_profile(args.profile, world=args.env, seed=args.seed)
-    except ValidationError as error:
-        fail_invalid(f"profile {args.profile}", error, EvolutionConfig, top=(PROFILE_KEY,))
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        fail(f"profile {args.profile}: not valid YAML{at}: {getattr(error, 'problem', error)}")
-    except (ValueError, OSError) as error:
-        fail(f"profile {args.profile}: {error}")
+    return _profile_or_exit(
+        f"profile {args.profile}",
+        EvolutionConfig,
+        lambda: load_profile(args.profile, world=args.env, seed=args.seed),
+    )
 
 
 def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
     """The study's profile from --profile, or exit with the reason it is not valid."""
     from derl.analysis.study import StudyConfig, load_study_profile
 
+    return _profile_or_exit(
+        f"study profile {args.profile}", StudyConfig, lambda: load_study_profile(args.profile)
+    )
+
+
+def _profile_or_exit(what: str, model: type[BaseModel], load: Callable[[], BaseModel]):
+    """`load()`, or exit with one line saying why `what` is not a valid `model`."""
     try:
-        return load_study_profile(args.profile)
+        return load()
     except ValidationError as error:
-        fail_invalid(f"study profile {args.profile}", error, StudyConfig, top=(PROFILE_KEY,))
+        fail_invalid(what, error, model, top=(PROFILE_KEY,))
     except yaml.YAMLError as error:
-        fail(f"study profile {args.profile}: not valid YAML: {error}")
+        mark = getattr(error, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        fail(f"{what}: not valid YAML{at}: {getattr(error, 'problem', error)}")
     except (ValueError, OSError) as error:
-        fail(f"study profile {args.profile}: {error}")
+        fail(f"{what}: {error}")
 
 
 def fail_invalid(
