@@ -119,7 +119,7 @@ def test_fused_network_matches_torch_and_autograd() -> None:
     noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
     actions = np.empty_like(noise)
     fused.begin_sampling()
-    fused.act(obs, noise, actions)
+    fused.act({k: v.numpy() for k, v in obs.items()}, noise, actions)
     with torch.no_grad():
         mean = net.action_mean(obs)
         pi = torch.distributions.Normal(mean, net.log_std.exp())
@@ -168,6 +168,24 @@ def test_fused_network_matches_torch_and_autograd() -> None:
     before = [p.detach().clone() for p in net.parameters()]
     fused.store_into_net()  # the step moved every parameter, and the net receives it
     assert all(not torch.equal(b, p) for b, p in zip(before, net.parameters(), strict=True))
+
+
+def test_fused_adam_steps_as_torch_optim_adam() -> None:
+    """The directly called kernel moves the parameters exactly as `torch.optim.Adam` does,
+    through steps with different gradients and a changed learning rate."""
+    torch.manual_seed(0)
+    fused = FusedActorCritic(ActorCritic(DERL_OBS, 5), lr=3e-4, adam_eps=1e-5)
+    theta = fused.theta.detach().clone().requires_grad_()
+    reference = torch.optim.Adam([theta], lr=3e-4, eps=1e-5, fused=True)
+    for step in range(3):
+        if step == 2:
+            fused.set_lr(1e-4)
+            reference.param_groups[0]["lr"] = 1e-4
+        fused.grad.copy_(torch.randn_like(fused.grad))
+        theta.grad = fused.grad.clone()
+        fused.adam.step()
+        reference.step()
+        torch.testing.assert_close(fused.theta, theta.detach(), atol=0, rtol=0)
 
 
 def test_running_mean_std_matches_numpy_and_round_trips() -> None:

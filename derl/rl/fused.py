@@ -5,16 +5,21 @@ cost of small layers.
 `ActorCritic` (network.py) defines and initialises the network; `FusedActorCritic` copies its
 weights into one flat vector (`store_into` copies them back) and runs
 
-- `act`: the actor on one batched step, Gaussian noise from a numpy generator;
+- `act`: the actor on one batched step, Gaussian noise from a numpy generator, in numpy (on
+  numpy views of the same weights): between two physics steps, which evict the caches, numpy's
+  few small calls cost a third of torch's (FT, 10 limbs: 59 us against 190 us a step);
 - `values`: the critic on many rows at once (a rollout's values are computed after it);
 - `step`: one minibatch of the clipped PPO loss of the released code (clipped surrogate, clipped
   value loss, entropy bonus as the mean over action dimensions), its gradient by the chain rule,
-  gradient-norm clipping and one fused Adam step on the flat vector.
+  gradient-norm clipping and one step of torch's fused Adam kernel on the flat vector, called
+  directly (`torch.optim.Adam` costs ~0.14 ms a step around it, and its constructor imports
+  torch._dynamo: ~0.8 s once per process).
 
-Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed. Products are
-torch's (MKL; one thread under `torch.set_num_threads(1)`), tanh is numpy's, in place on the
-same memory (torch 2.13's CPU tanh is ~10x slower than numpy's). Buffers are allocated once per
-batch size. The gradient equals autograd's on the released code's loss to float32 rounding.
+Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed. The update's
+products are torch's (MKL; one thread under `torch.set_num_threads(1)`), the sampling's numpy's
+(OpenBLAS; the trainer limits it to as many threads), tanh is numpy's, in place on the same
+memory (torch 2.13's CPU tanh is ~10x slower than numpy's). Buffers are allocated once per batch
+size. The gradient equals autograd's on the released code's loss to float32 rounding.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ class _Linear:
         self.module = module
         self.w, self.gw = slab.take(module.in_features, module.out_features)
         self.b, self.gb = slab.take(module.out_features)
+        self.w_np, self.b_np = self.w.numpy(), self.b.numpy()
 
     def load(self) -> None:
         self.w.copy_(self.module.weight.detach().T)
@@ -68,7 +74,7 @@ class _Linear:
 
 @dataclass
 class _Activations:
-    """Forward buffers of one tower for a batch of `rows`; `*_np` are numpy views of the same."""
+    """Forward buffers of one tower for a batch of `rows`, as torch tensors."""
 
     a1: list[torch.Tensor]
     a2: list[torch.Tensor]
@@ -82,6 +88,30 @@ class _Activations:
             a2=[torch.empty(rows, HIDDEN) for _ in range(branches)],
             f=torch.empty(rows, HIDDEN),
             y=torch.empty(rows, out),
+        )
+
+
+@dataclass
+class _Sampling:
+    """The actor's buffers for one batched step, as numpy arrays (`f2`: a fuse product)."""
+
+    a1: list[np.ndarray]
+    a2: list[np.ndarray]
+    f: np.ndarray
+    f2: np.ndarray
+    y: np.ndarray
+
+    @classmethod
+    def allocate(cls, rows: int, branches: int, out: int) -> _Sampling:
+        def empty(cols: int) -> np.ndarray:
+            return np.empty((rows, cols), np.float32)
+
+        return cls(
+            a1=[empty(HIDDEN) for _ in range(branches)],
+            a2=[empty(HIDDEN) for _ in range(branches)],
+            f=empty(HIDDEN),
+            f2=empty(HIDDEN),
+            y=empty(out),
         )
 
 
@@ -100,6 +130,7 @@ class _Tower:
         rows = range(0, HIDDEN * len(self.branches), HIDDEN)
         self.fuse_w = [self.fuse.w[r : r + HIDDEN] for r in rows]
         self.fuse_gw = [self.fuse.gw[r : r + HIDDEN] for r in rows]
+        self.fuse_w_np = [w.numpy() for w in self.fuse_w]
 
     def activations(self, rows: int) -> _Activations:
         return _Activations.allocate(rows, len(self.branches), self.head.module.out_features)
@@ -114,6 +145,19 @@ class _Tower:
             act.f.addmm_(a2, w)
         _tanh(act.f)
         return torch.addmm(self.head.b, act.f, self.head.w, out=act.y)
+
+    def forward_numpy(self, xs: list[np.ndarray], act: _Sampling) -> np.ndarray:
+        """`forward` in numpy, for one batched step while sampling."""
+        for (first, second), x, a1, a2 in zip(self.branches, xs, act.a1, act.a2, strict=True):
+            _affine_tanh(x, first, a1)
+            _affine_tanh(a1, second, a2)
+        np.matmul(act.a2[0], self.fuse_w_np[0], out=act.f)
+        for a2, w in zip(act.a2[1:], self.fuse_w_np[1:], strict=True):
+            np.add(act.f, np.matmul(a2, w, out=act.f2), out=act.f)
+        np.add(act.f, self.fuse.b_np, out=act.f)
+        np.tanh(act.f, out=act.f)
+        np.matmul(act.f, self.head.w_np, out=act.y)
+        return np.add(act.y, self.head.b_np, out=act.y)
 
     def backward(
         self,
@@ -142,6 +186,13 @@ class _Tower:
             _tanh_backward(g_act, a1, grad_input=g_pre)
             torch.mm(x.T, g_pre, out=first.gw)
             torch.sum(g_pre, 0, out=first.gb)
+
+
+def _affine_tanh(x: np.ndarray, layer: _Linear, out: np.ndarray) -> None:
+    """out = tanh(x @ w + b), in numpy."""
+    np.matmul(x, layer.w_np, out=out)
+    np.add(out, layer.b_np, out=out)
+    np.tanh(out, out=out)
 
 
 def _tanh(x: torch.Tensor) -> None:
@@ -186,10 +237,9 @@ class FusedActorCritic:
         self.critic = _Tower(slab, net.critic, net.value_head)
         self.log_std, self.g_log_std = slab.take(net.action_dim)
         self.theta, self.grad = slab.theta, slab.grad
-        self.theta.grad = self.grad
         self.load_from_net()
-        self.optimizer = torch.optim.Adam([self.theta], lr=lr, eps=adam_eps, fused=True)
-        self._acting: _Activations | None = None
+        self.adam = _Adam(self.theta, self.grad, lr, adam_eps)
+        self._acting: _Sampling | None = None
         self._valuing: _Activations | None = None
         self._minibatch: _Minibatch | None = None
 
@@ -205,13 +255,13 @@ class FusedActorCritic:
         with torch.no_grad():
             self.net.log_std.copy_(self.log_std)
 
-    def act(self, obs: dict[str, torch.Tensor], noise: np.ndarray, actions: np.ndarray) -> None:
+    def act(self, obs: dict[str, np.ndarray], noise: np.ndarray, actions: np.ndarray) -> None:
         """Actions mean + std * noise for one batched step (`begin_sampling` first): `noise` holds
         standard normal draws, `actions` receives the result."""
         xs = [obs[key] for key in self.keys]
         if self._acting is None or self._acting.f.shape[0] != len(xs[0]):
-            self._acting = self.actor.activations(len(xs[0]))
-        mean = self.actor.forward(xs, self._acting).numpy()
+            self._acting = _Sampling.allocate(len(xs[0]), len(self.keys), self.action_dim)
+        mean = self.actor.forward_numpy(xs, self._acting)
         np.multiply(noise, self.std, out=actions)
         actions += mean
 
@@ -242,44 +292,86 @@ class FusedActorCritic:
 
     def step(self, mb: _Minibatch, coef: PPOCoefficients) -> None:
         """One PPO gradient step on the minibatch in `mb`: `mb.x` holds the inputs and `mb.aux`
-        the columns [actions (A), old log-prob, advantage, old value, return]."""
+        the columns [actions (A), old log-prob, advantage, old value, return]. The loss's
+        gradient with respect to the heads' outputs is computed in numpy (on 512 values, a numpy
+        call costs a fraction of a torch call)."""
         a_dim, rows = self.action_dim, mb.aux.shape[0]
-        actions = mb.aux[:, :a_dim]
-        old_log_prob, adv, old_value, ret = mb.aux[:, a_dim : a_dim + 4].unbind(1)
-        mean = self.actor.forward(mb.x, mb.actor)
-        value = self.critic.forward(mb.x, mb.critic)[:, 0]
+        aux = mb.aux.numpy()
+        actions = aux[:, :a_dim]
+        old_log_prob, adv, old_value, ret = aux[:, a_dim : a_dim + 4].T
+        mean = self.actor.forward(mb.x, mb.actor).numpy()
+        value = self.critic.forward(mb.x, mb.critic).numpy()[:, 0]
+        log_std = self.log_std.numpy()
 
         # Policy: log pi(a) = sum(-z^2 / 2 - log_std - log(2 pi) / 2), z = (a - mean) / std.
-        inv_std = torch.exp(-self.log_std)
-        z = (actions - mean).mul_(inv_std)
-        sq = z.square()
-        log_prob = sq.sum(1).mul_(-0.5).sub_(self.log_std.sum() + a_dim * _HALF_LOG_2PI)
-        ratio = (log_prob - old_log_prob).exp_()
+        inv_std = np.exp(-log_std)
+        z = np.subtract(actions, mean)
+        z *= inv_std
+        sq = np.square(z)
+        log_prob = np.add.reduce(sq, axis=1)
+        log_prob *= -0.5
+        log_prob -= np.float32(np.add.reduce(log_std) + a_dim * _HALF_LOG_2PI)
+        ratio = np.exp(np.subtract(log_prob, old_log_prob, out=log_prob), out=log_prob)
         surr = ratio * adv
-        clipped = ratio.clamp_(1.0 - coef.clip, 1.0 + coef.clip).mul_(adv)
+        clipped = np.minimum(np.maximum(ratio, 1.0 - coef.clip), 1.0 + coef.clip, out=ratio)
+        clipped *= adv
         # d(-mean(min(surr, clipped)))/d log_prob: the min passes the unclipped term's gradient
         # (ratio * adv) where it is the smaller or the two are equal (ratio inside the clip).
-        g_log_prob = surr.mul_(surr <= clipped).mul_(-1.0 / rows)
-        torch.mul(z, inv_std, out=mb.g_mean).mul_(g_log_prob[:, None])
+        g_log_prob = np.multiply(surr, surr <= clipped, out=surr)
+        g_log_prob *= -1.0 / rows
+        z *= inv_std
+        np.multiply(z, g_log_prob[:, None], out=mb.g_mean.numpy())
         # d log pi / d log_std = z^2 - 1; the entropy bonus is mean(log_std) + const.
-        torch.mv(sq.T, g_log_prob, out=self.g_log_std)
-        self.g_log_std.sub_(g_log_prob.sum() + coef.entropy_coef / a_dim)
+        g_log_std = np.matmul(g_log_prob, sq, out=self.g_log_std.numpy())
+        g_log_std -= np.float32(np.add.reduce(g_log_prob) + coef.entropy_coef / a_dim)
 
         # Value: 0.5 * mean(max((v - R)^2, (v_old + clip(v - v_old) - R)^2)), times value_coef.
         err = value - ret
-        clipped_err = (value - old_value).clamp_(-coef.value_clip, coef.value_clip)
-        clipped_err.add_(old_value).sub_(ret)
-        keep = err.square() >= clipped_err.square_()
-        torch.mul(err, keep, out=mb.g_value[:, 0]).mul_(coef.value_coef / rows)
+        clipped_err = np.subtract(value, old_value)
+        np.minimum(np.maximum(clipped_err, -coef.value_clip), coef.value_clip, out=clipped_err)
+        clipped_err += old_value
+        clipped_err -= ret
+        keep = np.square(err) >= np.square(clipped_err, out=clipped_err)
+        g_value = np.multiply(err, keep, out=mb.g_value.numpy()[:, 0])
+        g_value *= coef.value_coef / rows
 
         self.actor.backward(mb.x, mb.actor, mb.g_mean, mb.tmp)
         self.critic.backward(mb.x, mb.critic, mb.g_value, mb.tmp)
-        norm = float(torch.linalg.vector_norm(self.grad))
+        grad = self.grad.numpy()
+        norm = math.sqrt(float(np.dot(grad, grad)))
         scale = coef.max_grad_norm / (norm + 1e-6)  # clip_grad_norm_'s formula
         if scale < 1.0:
             self.grad.mul_(scale)
-        self.optimizer.step()
+        self.adam.step()
 
     def set_lr(self, lr: float) -> None:
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        self.adam.lr = lr
+
+
+class _Adam:
+    """Adam (torch's defaults: betas 0.9, 0.999, no weight decay) on one flat parameter vector,
+    by torch's fused CPU kernel: what `torch.optim.Adam(fused=True).step` runs, less its wrapper."""
+
+    def __init__(self, theta: torch.Tensor, grad: torch.Tensor, lr: float, eps: float) -> None:
+        self.lr, self.eps = lr, eps
+        self.params, self.grads = [theta], [grad]
+        self.exp_avgs, self.exp_avg_sqs = [torch.zeros_like(theta)], [torch.zeros_like(theta)]
+        self.steps = [torch.zeros(())]
+
+    def step(self) -> None:
+        self.steps[0] += 1
+        torch._fused_adam_(
+            self.params,
+            self.grads,
+            self.exp_avgs,
+            self.exp_avg_sqs,
+            [],
+            self.steps,
+            lr=self.lr,
+            beta1=0.9,
+            beta2=0.999,
+            weight_decay=0.0,
+            eps=self.eps,
+            amsgrad=False,
+            maximize=False,
+        )

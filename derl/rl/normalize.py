@@ -20,30 +20,33 @@ EPS = 1e-8
 
 
 class RunningMeanStd:
-    """Mean and (population) variance of everything seen so far, merged batch by batch."""
+    """Mean and (population) variance of everything seen so far, merged batch by batch; `std`
+    is kept current (it is read every step)."""
 
     def __init__(self, shape: tuple[int, ...]) -> None:
         self.mean = np.zeros(shape, np.float64)
         self.var = np.ones(shape, np.float64)
         self.count = 0.0
+        self.std = np.sqrt(self.var + EPS)
 
     def update(self, batch: np.ndarray) -> None:
-        """Merge a batch whose first axis indexes samples (Chan et al. parallel algorithm)."""
+        """Merge a batch whose first axis indexes samples (Chan et al. parallel algorithm), in a
+        few ufunc calls: this runs once per step."""
         n = batch.shape[0]
         if n == 0:
             return
-        b_mean = batch.mean(axis=0)
-        b_var = batch.var(axis=0)
+        b_mean = np.add.reduce(batch, axis=0, dtype=np.float64)
+        b_mean /= n
+        dev = np.subtract(batch, b_mean, dtype=np.float64)
+        m2 = np.add.reduce(np.square(dev, out=dev), axis=0)  # the batch's sum of squares
         total = self.count + n
         delta = b_mean - self.mean
-        m2 = self.var * self.count + b_var * n + delta**2 * self.count * n / total
-        self.mean = self.mean + delta * n / total
+        m2 += self.var * self.count
+        m2 += np.square(delta) * (self.count * n / total)
+        self.mean = self.mean + delta * (n / total)
         self.var = m2 / total
         self.count = total
-
-    @property
-    def std(self) -> np.ndarray:
-        return np.sqrt(self.var + EPS)
+        self.std = np.sqrt(self.var + EPS)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"mean": self.mean.copy(), "var": self.var.copy(), "count": np.array(self.count)}
@@ -52,6 +55,7 @@ class RunningMeanStd:
         self.mean = np.array(state["mean"], np.float64).reshape(self.mean.shape)
         self.var = np.array(state["var"], np.float64).reshape(self.var.shape)
         self.count = float(state["count"])
+        self.std = np.sqrt(self.var + EPS)
 
 
 NORMALIZED = "proprioception"
@@ -81,8 +85,10 @@ class ObsNormalizer:
             rms = self.stats.get(key)
             if rms is None:
                 out[key][...] = x
-            else:
-                np.clip((x - rms.mean) / rms.std, -self.clip, self.clip, out=out[key])
+            else:  # np.clip without its Python wrappers (this runs once per step)
+                z = np.subtract(x, rms.mean)
+                z /= rms.std
+                np.minimum(np.maximum(z, -self.clip, out=z), self.clip, out=out[key])
         return out
 
     def state_dict(self) -> dict[str, np.ndarray]:
@@ -108,10 +114,12 @@ class RewardScaler:
 
     def scale(self, reward: np.ndarray, done: np.ndarray) -> np.ndarray:
         """Update the statistics with this step and return the scaled rewards."""
-        self.returns = self.returns * self.gamma + reward
+        self.returns *= self.gamma
+        self.returns += reward
         self.stats.update(self.returns)
         self.returns[done] = 0.0
-        return np.clip(reward / self.stats.std, -self.clip, self.clip)
+        scaled = np.divide(reward, self.stats.std)
+        return np.minimum(np.maximum(scaled, -self.clip, out=scaled), self.clip, out=scaled)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return self.stats.state_dict()

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from derl.rl.checkpoint import Checkpoint
 from derl.rl.config import PPOConfig
@@ -128,9 +129,6 @@ class _Rollout:
         self.finals: list[tuple[int, np.ndarray, dict[str, np.ndarray]]] = []
         """(step, copies, normalised final observations) of the truncated episodes."""
 
-    def obs_at(self, t: int) -> dict[str, torch.Tensor]:
-        return {k: v[t] for k, v in self.obs_t.items()}
-
     def obs_rows(self, t: int) -> dict[str, np.ndarray]:
         return {k: v[t] for k, v in self.obs.items()}
 
@@ -178,7 +176,7 @@ class _Trainer:
         for t in range(self.config.rollout_steps):
             t0 = clock()
             self.rng.standard_normal(dtype=np.float32, out=buf.noise[t])
-            fused.act(buf.obs_at(t), buf.noise[t], buf.actions[t])
+            fused.act(buf.obs_rows(t), buf.noise[t], buf.actions[t])
             np.minimum(np.maximum(buf.actions[t], -1.0, out=buf.clipped), 1.0, out=buf.clipped)
             t1 = clock()
             step = self.env.step(buf.clipped)
@@ -269,23 +267,25 @@ def train(
     trainer = _Trainer(env, config)
     trainer.reset()
     curve: list[tuple[int, float]] = []
-    for iteration in range(config.iterations):
-        trainer.collect()
-        trainer.update(iteration)
-        recent = trainer.episodes.recent_mean()
-        if recent is not None:
-            curve.append((trainer.env_steps, recent))
-        if callback is not None:
-            elapsed = time.perf_counter() - start
-            callback(
-                Progress(
-                    iteration=iteration + 1,
-                    iterations=config.iterations,
-                    env_steps=trainer.env_steps,
-                    recent_return=recent,
-                    steps_per_second=trainer.env_steps / elapsed,
+    # numpy's BLAS (the sampling's products) on as many threads as torch's
+    with threadpool_limits(config.torch_threads, user_api="blas"):
+        for iteration in range(config.iterations):
+            trainer.collect()
+            trainer.update(iteration)
+            recent = trainer.episodes.recent_mean()
+            if recent is not None:
+                curve.append((trainer.env_steps, recent))
+            if callback is not None:
+                elapsed = time.perf_counter() - start
+                callback(
+                    Progress(
+                        iteration=iteration + 1,
+                        iterations=config.iterations,
+                        env_steps=trainer.env_steps,
+                        recent_return=recent,
+                        steps_per_second=trainer.env_steps / elapsed,
+                    )
                 )
-            )
     wall = time.perf_counter() - start
     fitness = trainer.episodes.fitness(
         trainer.env_steps, config.fitness_window_steps, config.recent_episodes
