@@ -104,8 +104,10 @@ def _released_loss(
     return pi_loss + coef.value_coef * value_loss - coef.entropy_coef * entropy
 
 
-def test_fused_network_matches_torch_and_autograd() -> None:
-    """Sampling, values and the hand-written PPO gradient equal torch's on the released loss."""
+@pytest.mark.parametrize("flat", [slice(None, None, 3), slice(None)], ids=["some", "all"])
+def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
+    """Sampling, values and the hand-written PPO gradient equal torch's on the released loss,
+    with some or all heightmap rows zero (flat ground, which the first layer skips)."""
     torch.manual_seed(0)
     rows, a = 64, 12
     net = ActorCritic(DERL_OBS, a)
@@ -115,6 +117,7 @@ def test_fused_network_matches_torch_and_autograd() -> None:
             p.add_(0.05 * torch.randn_like(p))
     fused = FusedActorCritic(net, lr=3e-4, adam_eps=1e-5)
     obs = {k: torch.randn(rows, d) for k, d in DERL_OBS.items()}
+    obs["heightmap"][flat] = 0.0
 
     noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
     actions = np.empty_like(noise)
@@ -152,9 +155,11 @@ def test_fused_network_matches_torch_and_autograd() -> None:
     net.zero_grad()
     _released_loss(net, obs, aux, coef).backward()
     mb = fused.minibatch(rows, [DERL_OBS[k] for k in fused.keys], aux.shape[1])
-    for x, key in zip(mb.x, fused.keys, strict=True):
-        x.copy_(obs[key])
-    mb.aux.copy_(aux)
+    sources = [obs[k] for k in fused.keys]
+    mb.gather(sources, fused.nonzero_rows(obs), aux, torch.randperm(rows, generator=gen))
+    flat_rows = len(range(rows)[flat])
+    assert [None if at is None else len(at) for at in mb.at] == [rows - flat_rows, None]
+    mb.gather(sources, fused.nonzero_rows(obs), aux, torch.arange(rows))
     fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
     flat = torch.cat(
         [
@@ -165,9 +170,15 @@ def test_fused_network_matches_torch_and_autograd() -> None:
         + [net.log_std.grad]
     )
     torch.testing.assert_close(fused.grad, flat, atol=2e-6, rtol=1e-4)
-    before = [p.detach().clone() for p in net.parameters()]
+    before = {name: p.detach().clone() for name, p in net.named_parameters()}
     fused.store_into_net()  # the step moved every parameter, and the net receives it
-    assert all(not torch.equal(b, p) for b, p in zip(before, net.parameters(), strict=True))
+    still = {name for name, p in net.named_parameters() if torch.equal(before[name], p)}
+    # (all rows flat: the heightmap's first weights have no gradient)
+    assert still == (
+        {f"{tower}.branches.heightmap.0.weight" for tower in ("actor", "critic")}
+        if flat_rows == rows
+        else set()
+    )
 
 
 def test_fused_adam_steps_as_torch_optim_adam() -> None:

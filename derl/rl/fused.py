@@ -34,8 +34,17 @@ from torch import nn
 from derl.rl.network import HIDDEN, ActorCritic, Encoder
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+SPARSE = "heightmap"
+"""The observation type whose rows are mostly all zero (a head over flat ground reads zeros;
+in VT trainings of the bench bodies 84-100% of rows): in the update and the values, the first
+layer of its branch multiplies only the other rows. A zero row's product is 0: its output is the
+bias, and it adds nothing to the weight's gradient, so this is the same arithmetic."""
 _tanh_backward = torch.ops.aten.tanh_backward.grad_input
 """grad_input = grad_output * (1 - output^2), one kernel."""
+
+
+_At = list[torch.Tensor | None]
+"""Per branch: the positions of the rows its input holds, or None where it holds every row."""
 
 
 class _Slab:
@@ -135,10 +144,19 @@ class _Tower:
     def activations(self, rows: int) -> _Activations:
         return _Activations.allocate(rows, len(self.branches), self.head.module.out_features)
 
-    def forward(self, xs: list[torch.Tensor], act: _Activations) -> torch.Tensor:
-        """(rows, out) head output for one (rows, dim) input per observation type."""
-        for (first, second), x, a1, a2 in zip(self.branches, xs, act.a1, act.a2, strict=True):
-            _tanh(torch.addmm(first.b, x, first.w, out=a1))
+    def forward(self, xs: list[torch.Tensor], at: _At, act: _Activations) -> torch.Tensor:
+        """(rows, out) head output for one input per observation type: (rows, dim), or where
+        `at` gives them, only the rows at those positions (the others are zero)."""
+        for (first, second), x, rows, a1, a2 in zip(
+            self.branches, xs, at, act.a1, act.a2, strict=True
+        ):
+            if rows is None:
+                torch.addmm(first.b, x, first.w, out=a1)
+            else:
+                a1.copy_(first.b)
+                if len(rows):
+                    a1.index_copy_(0, rows, torch.addmm(first.b, x, first.w))
+            _tanh(a1)
             _tanh(torch.addmm(second.b, a1, second.w, out=a2))
         torch.addmm(self.fuse.b, act.a2[0], self.fuse_w[0], out=act.f)
         for a2, w in zip(act.a2[1:], self.fuse_w[1:], strict=True):
@@ -162,6 +180,7 @@ class _Tower:
     def backward(
         self,
         xs: list[torch.Tensor],
+        at: _At,
         act: _Activations,
         g_y: torch.Tensor,
         tmp: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
@@ -174,8 +193,8 @@ class _Tower:
         torch.mm(g_y, self.head.w.T, out=g_act)
         _tanh_backward(g_act, act.f, grad_input=g_fuse)
         torch.sum(g_fuse, 0, out=self.fuse.gb)
-        for (first, second), x, a1, a2, w, gw in zip(
-            self.branches, xs, act.a1, act.a2, self.fuse_w, self.fuse_gw, strict=True
+        for (first, second), x, rows, a1, a2, w, gw in zip(
+            self.branches, xs, at, act.a1, act.a2, self.fuse_w, self.fuse_gw, strict=True
         ):
             torch.mm(a2.T, g_fuse, out=gw)
             torch.mm(g_fuse, w.T, out=g_act)
@@ -184,7 +203,12 @@ class _Tower:
             torch.sum(g_pre, 0, out=second.gb)
             torch.mm(g_pre, second.w.T, out=g_act)
             _tanh_backward(g_act, a1, grad_input=g_pre)
-            torch.mm(x.T, g_pre, out=first.gw)
+            if rows is None:
+                torch.mm(x.T, g_pre, out=first.gw)
+            elif len(rows):
+                torch.mm(x.T, g_pre.index_select(0, rows), out=first.gw)
+            else:
+                first.gw.zero_()
             torch.sum(g_pre, 0, out=first.gb)
 
 
@@ -216,13 +240,29 @@ class _Minibatch:
     """Buffers of one minibatch of `rows`: gathered inputs, activations and gradient scratch."""
 
     def __init__(self, net: FusedActorCritic, rows: int, dims: list[int], aux: int) -> None:
-        self.x = [torch.empty(rows, d) for d in dims]
+        self.full = [torch.empty(rows, d) for d in dims]
+        self.x = list(self.full)
+        self.at: _At = [None] * len(dims)
         self.aux = torch.empty(rows, aux)
         self.actor = net.actor.activations(rows)
         self.critic = net.critic.activations(rows)
         self.g_mean = torch.empty(rows, net.action_dim)
         self.g_value = torch.empty(rows, 1)
         self.tmp = (torch.empty(rows, HIDDEN), torch.empty(rows, HIDDEN), torch.empty(rows, HIDDEN))
+
+    def gather(
+        self, sources: list[torch.Tensor], nonzero: _At, aux: torch.Tensor, idx: torch.Tensor
+    ) -> None:
+        """Rows `idx` of every source (only the non-zero ones of a source with `nonzero` flags,
+        from `nonzero_rows`) and of `aux`."""
+        for i, (source, flags, full) in enumerate(zip(sources, nonzero, self.full, strict=True)):
+            if flags is None:
+                torch.index_select(source, 0, idx, out=full)
+                continue
+            at = flags[idx].nonzero().squeeze(1)
+            self.x[i], self.at[i] = full[: len(at)], at
+            torch.index_select(source, 0, idx[at], out=self.x[i])
+        torch.index_select(aux, 0, idx, out=self.aux)
 
 
 class FusedActorCritic:
@@ -274,15 +314,28 @@ class FusedActorCritic:
         const = float(self.log_std.sum()) + self.action_dim * _HALF_LOG_2PI
         return -0.5 * np.square(noise).sum(-1) - np.float32(const)
 
-    def values(self, obs: dict[str, torch.Tensor], cache: bool = True) -> np.ndarray:
-        """(rows,) critic values; `cache` keeps the buffers for the next call of the same size."""
-        xs = [obs[key] for key in self.keys]
+    def nonzero_rows(self, obs: dict[str, torch.Tensor]) -> _At:
+        """Per observation type: for `SPARSE`, which rows of `obs` are not all zero (bool);
+        None for the others."""
+        return [torch.any(obs[key] != 0, dim=1) if key == SPARSE else None for key in self.keys]
+
+    def values(
+        self, obs: dict[str, torch.Tensor], cache: bool = True, nonzero: _At | None = None
+    ) -> np.ndarray:
+        """(rows,) critic values; `cache` keeps the buffers for the next call of the same size;
+        `nonzero`: `nonzero_rows(obs)` where already known."""
+        nonzero = self.nonzero_rows(obs) if nonzero is None else nonzero
+        xs, at = [], []
+        for key, flags in zip(self.keys, nonzero, strict=True):
+            rows = None if flags is None else flags.nonzero().squeeze(1)
+            xs.append(obs[key] if rows is None else obs[key].index_select(0, rows))
+            at.append(rows)
         act = self._valuing
-        if act is None or act.f.shape[0] != len(xs[0]):
-            act = self.critic.activations(len(xs[0]))
+        if act is None or act.f.shape[0] != len(obs[self.keys[0]]):
+            act = self.critic.activations(len(obs[self.keys[0]]))
             if cache:
                 self._valuing = act
-        return self.critic.forward(xs, act)[:, 0].numpy().copy()
+        return self.critic.forward(xs, at, act)[:, 0].numpy().copy()
 
     def minibatch(self, rows: int, dims: list[int], aux: int) -> _Minibatch:
         """Buffers for `step` (allocated on the first call)."""
@@ -291,16 +344,17 @@ class FusedActorCritic:
         return self._minibatch
 
     def step(self, mb: _Minibatch, coef: PPOCoefficients) -> None:
-        """One PPO gradient step on the minibatch in `mb`: `mb.x` holds the inputs and `mb.aux`
-        the columns [actions (A), old log-prob, advantage, old value, return]. The loss's
+        """One PPO gradient step on the minibatch gathered in `mb` (`_Minibatch.gather`): its
+        inputs, and in `mb.aux` the columns [actions (A), old log-prob, advantage, old value,
+        return]. The loss's
         gradient with respect to the heads' outputs is computed in numpy (on 512 values, a numpy
         call costs a fraction of a torch call)."""
         a_dim, rows = self.action_dim, mb.aux.shape[0]
         aux = mb.aux.numpy()
         actions = aux[:, :a_dim]
         old_log_prob, adv, old_value, ret = aux[:, a_dim : a_dim + 4].T
-        mean = self.actor.forward(mb.x, mb.actor).numpy()
-        value = self.critic.forward(mb.x, mb.critic).numpy()[:, 0]
+        mean = self.actor.forward(mb.x, mb.at, mb.actor).numpy()
+        value = self.critic.forward(mb.x, mb.at, mb.critic).numpy()[:, 0]
         log_std = self.log_std.numpy()
 
         # Policy: log pi(a) = sum(-z^2 / 2 - log_std - log(2 pi) / 2), z = (a - mean) / std.
@@ -335,8 +389,8 @@ class FusedActorCritic:
         g_value = np.multiply(err, keep, out=mb.g_value.numpy()[:, 0])
         g_value *= coef.value_coef / rows
 
-        self.actor.backward(mb.x, mb.actor, mb.g_mean, mb.tmp)
-        self.critic.backward(mb.x, mb.critic, mb.g_value, mb.tmp)
+        self.actor.backward(mb.x, mb.at, mb.actor, mb.g_mean, mb.tmp)
+        self.critic.backward(mb.x, mb.at, mb.critic, mb.g_value, mb.tmp)
         grad = self.grad.numpy()
         norm = math.sqrt(float(np.dot(grad, grad)))
         scale = coef.max_grad_norm / (norm + 1e-6)  # clip_grad_norm_'s formula

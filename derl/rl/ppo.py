@@ -197,13 +197,12 @@ class _Trainer:
                 final = {k: v[boot] for k, v in step.final_obs.items()}
                 buf.finals.append((t, boot, self.obs_norm.normalize(final)))
 
-    def _values(self) -> None:
-        """V of every observation of the rollout and of the truncated episodes' final ones."""
+    def _values(self, obs: dict[str, torch.Tensor], nonzero: list[torch.Tensor | None]) -> None:
+        """V of every observation of the rollout (`obs`, one row per step and copy, with their
+        `nonzero` rows) and of the truncated episodes' final ones."""
         buf, fused = self.buf, self.fused
         t0 = time.perf_counter()
-        rows = buf.values.size
-        obs = {k: v.view(rows, -1) for k, v in buf.obs_t.items()}
-        buf.values.reshape(rows)[:] = fused.values(obs)
+        buf.values.reshape(-1)[:] = fused.values(obs, nonzero=nonzero)
         buf.final_values[:] = 0.0
         if buf.finals:
             final = {
@@ -220,7 +219,10 @@ class _Trainer:
     def update(self, iteration: int) -> None:
         """Values, GAE, then `epochs` passes of shuffled minibatches over the rollout."""
         config, buf, fused = self.config, self.buf, self.fused
-        self._values()
+        rows = buf.values.size
+        obs = {k: v.view(rows, -1) for k, v in buf.obs_t.items()}
+        nonzero = fused.nonzero_rows(obs)
+        self._values(obs, nonzero)
         t0 = time.perf_counter()
         fused.set_lr(config.lr * (1.0 - iteration / config.iterations))
         advantages, returns = compute_gae(
@@ -238,16 +240,13 @@ class _Trainer:
         buf.aux[..., a_dim + 2] = buf.values[:-1]
         buf.aux[..., a_dim + 3] = returns
         n, size = config.batch_size, config.minibatch_size
-        sources = [buf.obs_t[k][:-1].view(n, -1) for k in fused.keys]
+        sources = [obs[k][:n] for k in fused.keys]
         aux = torch.from_numpy(buf.aux.reshape(n, -1))
         mb = fused.minibatch(size, [s.shape[1] for s in sources], aux.shape[1])
         for _ in range(config.epochs):
             order = torch.from_numpy(self.rng.permutation(n))
             for start in range(0, n - size + 1, size):
-                idx = order[start : start + size]
-                for source, x in zip(sources, mb.x, strict=True):
-                    torch.index_select(source, 0, idx, out=x)
-                torch.index_select(aux, 0, idx, out=mb.aux)
+                mb.gather(sources, nonzero, aux, order[start : start + size])
                 fused.step(mb, self.coef)
         for rows in buf.obs.values():
             rows[0] = rows[-1]  # the last observation starts the next rollout
