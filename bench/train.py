@@ -6,7 +6,10 @@ training, the raw physics rate of the same body measured in the same run (the sa
 physics, observations/rewards/resets, inference and the PPO update. Also the **bound**: the
 end-to-end rate if everything but the physics and the update's arithmetic (its FLOPs at this
 core's best single-thread matrix rate, measured in the same run) were free, and the
-**efficiency** = end-to-end rate / bound. Then K trainings side by side in K processes (K = every
+**efficiency** = end-to-end rate / bound. On VT the update skips the first-layer products of
+heightmap rows that are all zero (flat ground; `derl.rl.fused.SPARSE`): the bench prints their
+share and, beside the bound of the full arithmetic, the bound and efficiency of the arithmetic
+actually done (`*_rows_done`). Then K trainings side by side in K processes (K = every
 core of the machine) against one alone: the share of single-training speed each keeps.
 Run: python bench/train.py [--iterations 20] [--repeats 3]
 """
@@ -32,6 +35,7 @@ from bodies import reference_body
 from derl.envs import make_env
 from derl.lifetime import learn, ppo_config
 from derl.rl import ActorCritic, PPOConfig
+from derl.rl.fused import SPARSE
 
 
 def raw_physics_rate(world: str, limbs: int, steps: int = 200) -> float:
@@ -61,25 +65,30 @@ def matrix_flops_per_s(repeats: int = 5) -> float:
     return rate
 
 
-def update_flops_per_step(world: str, limbs: int) -> float:
+def update_flops_per_step(world: str, limbs: int, flat_rows: float = 0.0) -> float:
     """The PPO update's multiply-add FLOPs per env step: every sample goes through the actor and
     the critic `epochs` times, forward (2 FLOPs per weight) and backward (2 per weight for the
-    weight's gradient, 2 more for the layer input's gradient, which the first layers skip)."""
+    weight's gradient, 2 more for the layer input's gradient, which the first layers skip).
+    `flat_rows`: the share of samples whose heightmap is all zero, for which the heightmap's
+    first layers (forward and weight gradient: 4 FLOPs per weight) are skipped."""
     env = make_env(reference_body(limbs), world, num_envs=1, seed=0)
     net = ActorCritic(env.obs_spaces, env.action_dim)
-    first = sum(
-        branch[0].weight.numel()
+    firsts = {
+        key: branch[0].weight.numel()
         for encoder in (net.actor, net.critic)
-        for branch in encoder.branches.values()
-    )
+        for key, branch in encoder.branches.items()
+    }
+    first = sum(firsts.values()) * 2  # both encoders have the same branches
     weights = sum(m.weight.numel() for m in net.modules() if isinstance(m, torch.nn.Linear))
-    return PPOConfig().epochs * (6.0 * weights - 2.0 * first)
+    skipped = flat_rows * 4.0 * 2 * firsts.get(SPARSE, 0)
+    return PPOConfig().epochs * (6.0 * weights - 2.0 * first - skipped)
 
 
 def training(world: str, limbs: int, iterations: int) -> dict[str, float]:
     config = ppo_config(world, iterations * 4096, seed=0)
-    summary, _ = learn(reference_body(limbs), world, config)
-    return {"steps_per_s": summary.steps_per_second, **summary.time_split}
+    summary, result = learn(reference_body(limbs), world, config)
+    flat = {} if result.flat_rows is None else {"flat_rows": result.flat_rows}
+    return {"steps_per_s": summary.steps_per_second, **summary.time_split, **flat}
 
 
 def bench_config(
@@ -93,6 +102,16 @@ def bench_config(
     update_flops = update_flops_per_step(world, limbs)
     bound = 1.0 / (1.0 / raw_rate + update_flops / flops)
     best = sorted(runs, key=lambda r: r["steps_per_s"])[len(runs) // 2]  # the median run
+    rows_done = {}
+    if "flat_rows" in best:
+        done_flops = update_flops_per_step(world, limbs, best["flat_rows"])
+        done_bound = 1.0 / (1.0 / raw_rate + done_flops / flops)
+        rows_done = {
+            "flat_heightmap_rows": round(best["flat_rows"], 3),
+            "update_mflop_per_step_rows_done": round(done_flops / 1e6, 2),
+            "bound_steps_per_s_rows_done": round(done_bound),
+            "efficiency_rows_done": round(best["steps_per_s"] / done_bound, 3),
+        }
     wall = sum(best[k] for k in ("env_s", "inference_s", "update_s", "other_s"))
     physics = iterations * 4096 / raw_rate
     return {
@@ -104,6 +123,7 @@ def bench_config(
         "update_mflop_per_step": round(update_flops / 1e6, 2),
         "bound_steps_per_s": round(bound),
         "efficiency": round(best["steps_per_s"] / bound, 3),
+        **rows_done,
         "share": {
             "physics": round(physics / wall, 3),
             "observations_rewards_resets": round((best["env_s"] - physics) / wall, 3),

@@ -140,6 +140,7 @@ class _Tower:
         self.fuse_w = [self.fuse.w[r : r + HIDDEN] for r in rows]
         self.fuse_gw = [self.fuse.gw[r : r + HIDDEN] for r in rows]
         self.fuse_w_np = [w.numpy() for w in self.fuse_w]
+        self.sparse = [key == SPARSE for key in encoder.keys]
 
     def activations(self, rows: int) -> _Activations:
         return _Activations.allocate(rows, len(self.branches), self.head.module.out_features)
@@ -165,9 +166,16 @@ class _Tower:
         return torch.addmm(self.head.b, act.f, self.head.w, out=act.y)
 
     def forward_numpy(self, xs: list[np.ndarray], act: _Sampling) -> np.ndarray:
-        """`forward` in numpy, for one batched step while sampling."""
-        for (first, second), x, a1, a2 in zip(self.branches, xs, act.a1, act.a2, strict=True):
-            _affine_tanh(x, first, a1)
+        """`forward` in numpy, for one batched step while sampling (a `SPARSE` input that is all
+        zero skips its first product)."""
+        for (first, second), x, sparse, a1, a2 in zip(
+            self.branches, xs, self.sparse, act.a1, act.a2, strict=True
+        ):
+            if sparse and not np.count_nonzero(x):
+                np.copyto(a1, first.b_np)
+                np.tanh(a1, out=a1)
+            else:
+                _affine_tanh(x, first, a1)
             _affine_tanh(a1, second, a2)
         np.matmul(act.a2[0], self.fuse_w_np[0], out=act.f)
         for a2, w in zip(act.a2[1:], self.fuse_w_np[1:], strict=True):
@@ -317,7 +325,12 @@ class FusedActorCritic:
     def nonzero_rows(self, obs: dict[str, torch.Tensor]) -> _At:
         """Per observation type: for `SPARSE`, which rows of `obs` are not all zero (bool);
         None for the others."""
-        return [torch.any(obs[key] != 0, dim=1) if key == SPARSE else None for key in self.keys]
+        return [
+            torch.from_numpy(np.logical_or.reduce(obs[key].numpy(), axis=1))  # 8x torch.any's
+            if key == SPARSE
+            else None
+            for key in self.keys
+        ]
 
     def values(
         self, obs: dict[str, torch.Tensor], cache: bool = True, nonzero: _At | None = None

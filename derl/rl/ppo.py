@@ -72,6 +72,9 @@ class TrainResult:
     steps_per_second: float
     time_split: TimeSplit
     checkpoint: Checkpoint
+    flat_rows: float | None
+    """Share of the heightmap rows that were all zero (flat ground), whose first-layer products
+    the update and the values skipped; None without a heightmap."""
 
     @property
     def num_episodes(self) -> int:
@@ -161,6 +164,7 @@ class _Trainer:
         self.buf = _Rollout(config.rollout_steps, env.num_envs, env.obs_spaces, env.action_dim)
         self.env_steps = 0
         self.env_s = self.inference_s = self.update_s = 0.0
+        self.sparse_rows = self.sparse_nonzero = 0
 
     def reset(self) -> None:
         raw = self.env.reset(self.config.seed)
@@ -222,6 +226,10 @@ class _Trainer:
         rows = buf.values.size
         obs = {k: v.view(rows, -1) for k, v in buf.obs_t.items()}
         nonzero = fused.nonzero_rows(obs)
+        for flags in nonzero:
+            if flags is not None:
+                self.sparse_rows += len(flags)
+                self.sparse_nonzero += int(flags.sum())
         self._values(obs, nonzero)
         t0 = time.perf_counter()
         fused.set_lr(config.lr * (1.0 - iteration / config.iterations))
@@ -306,4 +314,7 @@ def train(
             other_s=wall - trainer.env_s - trainer.inference_s - trainer.update_s,
         ),
         checkpoint=trainer.checkpoint(),
+        flat_rows=(
+            1.0 - trainer.sparse_nonzero / trainer.sparse_rows if trainer.sparse_rows else None
+        ),
     )
