@@ -19,13 +19,16 @@ Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed
 products are torch's (MKL; one thread under `torch.set_num_threads(1)`), the sampling's numpy's
 (OpenBLAS; the trainer limits it to as many threads), tanh is numpy's, in place on the same
 memory (torch 2.13's CPU tanh is ~10x slower than numpy's). Buffers are allocated once per batch
-size. The gradient equals autograd's on the released code's loss to float32 rounding.
+size. The gradient equals autograd's on the released code's loss to float32 rounding. Heightmap
+rows that are all zero skip their first-layer product (`SPARSE`): the same arithmetic.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 import torch
@@ -43,6 +46,7 @@ _tanh_backward = torch.ops.aten.tanh_backward.grad_input
 """grad_input = grad_output * (1 - output^2), one kernel."""
 
 
+_Buffer = TypeVar("_Buffer", torch.Tensor, np.ndarray)
 _At = list[torch.Tensor | None]
 """Per branch: the positions of the rows its input holds, or None where it holds every row."""
 
@@ -82,46 +86,29 @@ class _Linear:
 
 
 @dataclass
-class _Activations:
-    """Forward buffers of one tower for a batch of `rows`, as torch tensors."""
+class _Activations(Generic[_Buffer]):
+    """Forward buffers of one tower for a batch of `rows`: torch tensors (the update, the
+    values) or numpy arrays (sampling)."""
 
-    a1: list[torch.Tensor]
-    a2: list[torch.Tensor]
-    f: torch.Tensor
-    y: torch.Tensor
+    a1: list[_Buffer]
+    a2: list[_Buffer]
+    f: _Buffer
+    y: _Buffer
 
     @classmethod
-    def allocate(cls, rows: int, branches: int, out: int) -> _Activations:
+    def allocate(
+        cls, rows: int, branches: int, out: int, empty: Callable[[int, int], _Buffer]
+    ) -> _Activations[_Buffer]:
         return cls(
-            a1=[torch.empty(rows, HIDDEN) for _ in range(branches)],
-            a2=[torch.empty(rows, HIDDEN) for _ in range(branches)],
-            f=torch.empty(rows, HIDDEN),
-            y=torch.empty(rows, out),
+            a1=[empty(rows, HIDDEN) for _ in range(branches)],
+            a2=[empty(rows, HIDDEN) for _ in range(branches)],
+            f=empty(rows, HIDDEN),
+            y=empty(rows, out),
         )
 
 
-@dataclass
-class _Sampling:
-    """The actor's buffers for one batched step, as numpy arrays (`f2`: a fuse product)."""
-
-    a1: list[np.ndarray]
-    a2: list[np.ndarray]
-    f: np.ndarray
-    f2: np.ndarray
-    y: np.ndarray
-
-    @classmethod
-    def allocate(cls, rows: int, branches: int, out: int) -> _Sampling:
-        def empty(cols: int) -> np.ndarray:
-            return np.empty((rows, cols), np.float32)
-
-        return cls(
-            a1=[empty(HIDDEN) for _ in range(branches)],
-            a2=[empty(HIDDEN) for _ in range(branches)],
-            f=empty(HIDDEN),
-            f2=empty(HIDDEN),
-            y=empty(out),
-        )
+def _numpy_empty(rows: int, cols: int) -> np.ndarray:
+    return np.empty((rows, cols), np.float32)
 
 
 class _Tower:
@@ -142,10 +129,13 @@ class _Tower:
         self.fuse_w_np = [w.numpy() for w in self.fuse_w]
         self.sparse = [key == SPARSE for key in encoder.keys]
 
-    def activations(self, rows: int) -> _Activations:
-        return _Activations.allocate(rows, len(self.branches), self.head.module.out_features)
+    def activations(self, rows: int) -> _Activations[torch.Tensor]:
+        out = self.head.module.out_features
+        return _Activations.allocate(rows, len(self.branches), out, torch.empty)
 
-    def forward(self, xs: list[torch.Tensor], at: _At, act: _Activations) -> torch.Tensor:
+    def forward(
+        self, xs: list[torch.Tensor], at: _At, act: _Activations[torch.Tensor]
+    ) -> torch.Tensor:
         """(rows, out) head output for one input per observation type: (rows, dim), or where
         `at` gives them, only the rows at those positions (the others are zero)."""
         for (first, second), x, rows, a1, a2 in zip(
@@ -165,7 +155,7 @@ class _Tower:
         _tanh(act.f)
         return torch.addmm(self.head.b, act.f, self.head.w, out=act.y)
 
-    def forward_numpy(self, xs: list[np.ndarray], act: _Sampling) -> np.ndarray:
+    def forward_numpy(self, xs: list[np.ndarray], act: _Activations[np.ndarray]) -> np.ndarray:
         """`forward` in numpy, for one batched step while sampling (a `SPARSE` input that is all
         zero skips its first product)."""
         for (first, second), x, sparse, a1, a2 in zip(
@@ -178,8 +168,8 @@ class _Tower:
                 _affine_tanh(x, first, a1)
             _affine_tanh(a1, second, a2)
         np.matmul(act.a2[0], self.fuse_w_np[0], out=act.f)
-        for a2, w in zip(act.a2[1:], self.fuse_w_np[1:], strict=True):
-            np.add(act.f, np.matmul(a2, w, out=act.f2), out=act.f)
+        for a1, a2, w in zip(act.a1[1:], act.a2[1:], self.fuse_w_np[1:], strict=True):
+            np.add(act.f, np.matmul(a2, w, out=a1), out=act.f)  # a1: free by now
         np.add(act.f, self.fuse.b_np, out=act.f)
         np.tanh(act.f, out=act.f)
         np.matmul(act.f, self.head.w_np, out=act.y)
@@ -189,7 +179,7 @@ class _Tower:
         self,
         xs: list[torch.Tensor],
         at: _At,
-        act: _Activations,
+        act: _Activations[torch.Tensor],
         g_y: torch.Tensor,
         tmp: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> None:
@@ -287,8 +277,8 @@ class FusedActorCritic:
         self.theta, self.grad = slab.theta, slab.grad
         self.load_from_net()
         self.adam = _Adam(self.theta, self.grad, lr, adam_eps)
-        self._acting: _Sampling | None = None
-        self._valuing: _Activations | None = None
+        self._acting: _Activations[np.ndarray] | None = None
+        self._valuing: _Activations[torch.Tensor] | None = None
         self._minibatch: _Minibatch | None = None
 
     def load_from_net(self) -> None:
@@ -308,7 +298,9 @@ class FusedActorCritic:
         standard normal draws, `actions` receives the result."""
         xs = [obs[key] for key in self.keys]
         if self._acting is None or self._acting.f.shape[0] != len(xs[0]):
-            self._acting = _Sampling.allocate(len(xs[0]), len(self.keys), self.action_dim)
+            self._acting = _Activations.allocate(
+                len(xs[0]), len(self.keys), self.action_dim, _numpy_empty
+            )
         mean = self.actor.forward_numpy(xs, self._acting)
         np.multiply(noise, self.std, out=actions)
         actions += mean
