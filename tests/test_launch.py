@@ -341,13 +341,13 @@ def test_slurm_script_starts_one_trainer_per_task(tmp_path: Path) -> None:
 # --- real launches -------------------------------------------------------------------------
 
 
-def _local_launch(tmp: Path, trainers: int, total: int) -> tuple[Path, Path]:
+def _local_launch(tmp: Path, trainers: int, total: int, **profile: object) -> tuple[Path, Path]:
     port = free_port(span=1 + trainers)
     run_dir = tmp / "run"
     launch = {
         "run": run_id(),
         "run_dir": str(run_dir),
-        "profile": str(write_profile(tmp / "profile.yaml", total=total)),
+        "profile": str(write_profile(tmp / "profile.yaml", total=total, **profile)),
         "topology": {"kind": "peer_mesh", "seed": f"tcp/127.0.0.1:{port}"},
         "hosts": [{"name": "local", "listen": f"tcp/127.0.0.1:{port}", "nodes": [
             {"role": "coordinator", "restart": "never"},
@@ -368,24 +368,27 @@ def _pids(launcher_log: str) -> dict[str, list[int]]:
 
 @pytest.mark.slow
 def test_launch_runs_to_the_end_and_restarts_a_killed_trainer(tmp_path: Path) -> None:
-    path, run_dir = _local_launch(tmp_path, trainers=2, total=3)
+    # Trainings of ~2 s (20 PPO iterations), so the run is still going when a trainer dies: with
+    # the tiny profile's 0.3 s ones, one trainer could take all three bodies before the other
+    # was ready, and the run could end before the kill. The victim is whichever trainer got the
+    # first job.
+    path, run_dir = _local_launch(tmp_path, trainers=2, total=3, train_steps=40960)
     processes = Processes(tmp_path / "test-logs")
     try:
         launcher = processes.start("launcher", derl_argv("launch", str(path)))
-        wait_for(lambda: any(j.node == "local-trainer-0" for j in jobs(run_dir)), 90,
-                 "a job for local-trainer-0")  # fmt: skip
-        victim = _pids(processes.log("launcher"))["local-trainer-0"][0]
+        first = wait_for(lambda: jobs(run_dir), 90, "the first job")[0].node
+        victim = _pids(processes.log("launcher"))[first][0]
         os.killpg(victim, signal.SIGKILL)
-        wait_for(lambda: "local-trainer-0 exited with -9: restart 1/2" in processes.log("launcher"),
+        wait_for(lambda: f"{first} exited with -9: restart 1/2" in processes.log("launcher"),
                  10, "the launcher noticing the kill")  # fmt: skip
         wait_for(lambda: launcher.poll() is not None, 150, "the launcher to finish the run")
         log = processes.log("launcher")
         assert launcher.returncode == 0, log
         assert "the coordinator finished the run" in log
-        assert len(_pids(log)["local-trainer-0"]) == 2  # started again
+        assert len(_pids(log)[first]) == 2  # started again
         assert_born_once(run_dir, 3)
-        node_log = (run_dir / "logs" / "local-trainer-0.log").read_text()
-        assert "--name local-trainer-0.r1" in node_log  # the restart has a new node id
+        node_log = (run_dir / "logs" / f"{first}.log").read_text()
+        assert f"--name {first}.r1" in node_log  # the restart has a new node id
         assert {p.name for p in (run_dir / "logs").iterdir()} == {
             "local-coordinator-0.log", "local-trainer-0.log", "local-trainer-1.log"}  # fmt: skip
         assert not [pid for pids in _pids(log).values() for pid in pids if pid_alive(pid)]

@@ -152,7 +152,8 @@ def _launch_file(tmp: Path, net: Network) -> Path:
     launch = {
         "run": run_id(),
         "run_dir": str(tmp / "run"),
-        "profile": str(write_profile(tmp / "profile.yaml", total=4)),
+        # ~2 s trainings: hostA's trainers still hold their jobs when the test cuts them off
+        "profile": str(write_profile(tmp / "profile.yaml", total=4, train_steps=40960)),
         "topology": {"kind": "peer_mesh", "seed": f"tcp/{net.address('coord')}:{PORT}"},
         "hosts": [
             host("coord", [{"role": "coordinator", "restart": "on-failure"}]),
