@@ -69,15 +69,22 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
     progress: list[TrainProgress] = []
     try:
         procs.start("coordinator", coordinator)
-        for name in ("a", "b"):
-            procs.start(name, derl_argv("trainer", "--run", run, "--connect", endpoint,
-                                        "--name", name))  # fmt: skip
-        monitor = [sys.executable, "examples/fitness_monitor.py", run, endpoint]
-        procs.start("monitor", monitor)
+        wait_for(lambda: "replayed" in procs.log("coordinator"), 60, "the coordinator")
+        # the test hears progress before any training starts: the forged reports must reach the
+        # coordinator while their job is still in flight (a born child's reports are only acked)
         with open_session(ZenohOptions(connect=(endpoint,))) as session:
             bus = Bus(session, run)
             bus.subscribe(bus.keys.all("progress"), progress.append, (TrainProgress,))
-            first = wait_for(lambda: progress and progress[0], 180, "a training in progress")
+            for name in ("a", "b"):
+                procs.start(name, derl_argv("trainer", "--run", run, "--connect", endpoint,
+                                            "--name", name))  # fmt: skip
+            monitor = [sys.executable, "examples/fitness_monitor.py", run, endpoint]
+            procs.start("monitor", monitor)
+            first = wait_for(
+                lambda: next((p for p in progress if 2 * p.env_steps <= p.total_steps), None),
+                180,
+                "a training in its first half",
+            )
             _forge(bus, first, run_dir)
             wait_for(lambda: len(_births(run_dir)) >= 2, 240, "two births")
             procs.kill("coordinator")
