@@ -351,9 +351,8 @@ class FusedActorCritic:
     def step(self, mb: _Minibatch, coef: PPOCoefficients) -> None:
         """One PPO gradient step on the minibatch gathered in `mb` (`_Minibatch.gather`): its
         inputs, and in `mb.aux` the columns [actions (A), old log-prob, advantage, old value,
-        return]. The loss's
-        gradient with respect to the heads' outputs is computed in numpy (on 512 values, a numpy
-        call costs a fraction of a torch call)."""
+        return]. The loss's gradient with respect to the heads' outputs is computed in numpy (on
+        512 values, a numpy call costs a fraction of a torch call)."""
         a_dim, rows = self.action_dim, mb.aux.shape[0]
         aux = mb.aux.numpy()
         actions = aux[:, :a_dim]

@@ -223,8 +223,8 @@ class _Trainer:
     def update(self, iteration: int) -> None:
         """Values, GAE, then `epochs` passes of shuffled minibatches over the rollout."""
         config, buf, fused = self.config, self.buf, self.fused
-        rows = buf.values.size
-        obs = {k: v.view(rows, -1) for k, v in buf.obs_t.items()}
+        count = buf.values.size  # rows: every step of every copy, and the next observation
+        obs = {k: v.view(count, -1) for k, v in buf.obs_t.items()}
         nonzero = fused.nonzero_rows(obs)
         for flags in nonzero:
             if flags is not None:
