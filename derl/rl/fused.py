@@ -319,9 +319,9 @@ class FusedActorCritic:
         None for the others."""
         return [
             torch.from_numpy(np.logical_or.reduce(obs[key].numpy(), axis=1))  # 8x torch.any's
-            if key == SPARSE
+            if sparse
             else None
-            for key in self.keys
+            for key, sparse in zip(self.keys, self.actor.sparse, strict=True)
         ]
 
     def values(
