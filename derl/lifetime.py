@@ -11,13 +11,17 @@ body's mass, r its selection reward (undefined, NaN, when r <= 0).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from derl.envs import EnvConfig, UnimalEnv, make_task
-from derl.rl import PPOConfig, Progress, TrainResult, train
+from derl.rl.config import PPOConfig
 from derl.unimal import Genome
+
+if TYPE_CHECKING:
+    from derl.rl.ppo import Progress, TrainResult
 
 GRAVITY = 9.81
 PAPER_WINDOW = 100_000
@@ -66,6 +70,8 @@ def learn(
     nthread: int = 1,
 ) -> tuple[LifetimeResult, TrainResult]:
     """Train a fresh controller for `genome` in `task`; returns the summary and the full result."""
+    from derl.rl.ppo import train  # torch: imported by trainings only, not by every config user
+
     env = UnimalEnv(
         genome,
         make_task(task),
