@@ -218,9 +218,15 @@ def _affine_tanh(x: np.ndarray, layer: _Linear, out: np.ndarray) -> None:
 
 
 def _tanh(x: torch.Tensor) -> None:
-    """In-place tanh through numpy's (vectorised) float32 kernel on the tensor's memory."""
+    """In-place tanh(x) = 2 sigmoid(2x) - 1: torch's vectorised sigmoid, the scalings in numpy on
+    the tensor's memory. On a 512 x 64 minibatch activation it takes 43 us where np.tanh takes
+    114 and torch.tanh 112 (scalar kernels on this CPU: tanh cost more than the layer's matrix
+    product); it differs from tanh by at most 2e-7."""
     view = x.numpy()
-    np.tanh(view, out=view)
+    np.add(view, view, out=view)
+    x.sigmoid_()
+    np.add(view, view, out=view)
+    np.subtract(view, 1.0, out=view)
 
 
 @dataclass(frozen=True)
