@@ -8,13 +8,16 @@ import importlib
 from collections.abc import Callable
 
 
-def exports(package: str, homes: dict[str, str]) -> Callable[[str], object]:
-    """The module ``__getattr__`` of `package` whose names live in its submodules: `homes` maps
-    each exported name to its submodule."""
+def exports(
+    package: str, modules: dict[str, tuple[str, ...]]
+) -> tuple[Callable[[str], object], list[str]]:
+    """The module ``__getattr__`` and ``__all__`` of `package`, whose names live in its
+    submodules: `modules` maps each submodule to the names it exports."""
+    homes = {name: module for module, names in modules.items() for name in names}
 
     def __getattr__(name: str) -> object:
         if name not in homes:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
         return getattr(importlib.import_module(f"{package}.{homes[name]}"), name)
 
-    return __getattr__
+    return __getattr__, sorted(homes)
