@@ -105,11 +105,12 @@ class Outbox:
         if self.failure is not None:
             self._count(-len(replies))
             return
-        now = [(msg, data) for msg, data, after in replies if after is None]
+        # the group's own replies first: a checkpoint written already runs its callback at once,
+        # and its Ack must not overtake the Birth journaled before it
+        self._publishable([(msg, data) for msg, data, after in replies if after is None])
         for msg, data, after in replies:
             if after is not None:
                 after.add_done_callback(lambda done, m=msg, d=data: self._written(done, m, d))
-        self._publishable(now)
 
     def _written(self, done: Future[None], msg: MessageBase, data: bytes) -> None:
         """A reply's checkpoint write is over: released, or dropped if it failed."""
