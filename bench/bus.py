@@ -5,9 +5,10 @@
    TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
    simulated worker sends WorkerReady (again every second while idle, like a real one), and
    answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (an initial child
-   with its job's body, a tournament child with its parent's body and a mutation's name:
-   breeding is the trainers' work, off the coordinator; env steps within the job's PPO budget; a
-   fitness within the world's bound). Every Reject it gets is counted. For W = 100, 1,000,
+   with its job's body, a tournament child with its parent's body and a mutation's name: the
+   generator shares the cores with the coordinator and does not breed, so no child is a repeat
+   here (section 2 has them); env steps within the job's PPO budget; a fitness within the
+   world's bound). Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
    once, i.e. the most assignments/s the coordinator gives; (c) `half_capacity`: each simulated
    job lasts W / R s with R = half of (a); (b) `paced`: each job lasts W / R s less the round
@@ -16,9 +17,11 @@
    p50/p99/max (from the moment a worker became idle until its job arrived), and the CPU use
    of the coordinator and of the load generator (on a small machine they share the cores).
 2. `coordinator_profile`: the coordinator's own code (no bus, no network) driven in this process
-   with K jobs in flight: CPU ms of its loop's thread per assignment (what bounds its rate; the
-   checkpoint files are written by another thread) and the top functions (cProfile), to show where
-   the time goes.
+   with K jobs in flight, each report carrying the child its trainer would have bred (so a child
+   whose body is born already is born as a repeat, without training, as in a run; their share
+   is printed): CPU ms of its loop's thread per assignment, decoding the report included (what
+   bounds its rate; the checkpoint files are written by another thread) and the top functions
+   (cProfile), to show where the time goes.
 3. `journal`: write and replay rates of the MCAP journal (`nodes.journal.segments`) for its real mix
    (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack), flushed
    after every message and after groups of 4 and 16 (the coordinator's group commit).
@@ -62,6 +65,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from derl.evolution import EvolutionConfig, load_profile
+from derl.evolution.population import breed
 from derl.unimal import Genome, sample_population
 from messages import (
     Curve,
@@ -72,6 +76,7 @@ from messages import (
     TrainJob,
     TrainProgress,
     WorkerReady,
+    decode,
     encode,
 )
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -85,7 +90,7 @@ SCALE_PROFILE = {
     "eval_tasks": [],
 }
 GOAL_RATE = 1000.0
-BODIES = 16  # distinct sampled bodies, cycled to fill the initial population
+BODIES = 16  # sampled bodies; the initial population is them and children of them
 
 
 def _free_port() -> int:
@@ -122,11 +127,15 @@ def bodies() -> list[Genome]:
 
 
 def seed_run_dir(run_dir: Path, population: int) -> None:
-    """The initial population a coordinator would draw, written ahead (sampling 576 bodies
-    takes about a minute and is not what is measured)."""
+    """An initial population written ahead (sampling 576 bodies takes about a minute and is
+    not what is measured): the sampled bodies and one-mutation children of them, as many
+    distinct bodies as a drawn population has (few of a run's children are then repeats)."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    genomes = [bodies()[k % BODIES].model_dump() for k in range(population)]
-    (run_dir / "initial_population.json").write_text(json.dumps(genomes))
+    sampled = bodies()
+    genomes = sampled + [breed(sampled[k % BODIES], k)[0] for k in range(population - BODIES)]
+    (run_dir / "initial_population.json").write_text(
+        json.dumps([genome.model_dump() for genome in genomes[:population]])
+    )
 
 
 # --- 1. the load generator -----------------------------------------------------------------
@@ -396,11 +405,15 @@ def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
 
 
 def _report(run: str, job: TrainJob, fitness: float) -> FitnessReport:
-    """A fake result for `job`: a tournament child is reported with its parent's body (nothing
-    is bred here: breeding is the trainers' work, not the coordinator's)."""
-    mutation = None if job.mutation_seed is None else "gear"
+    """A fake result for `job` with the body a trainer reports: a tournament child is bred
+    here, as its trainer would (so children whose body is born already take the coordinator's
+    repeat path, as in a run)."""
+    genome, mutation = job.genome, None
+    if job.mutation_seed is not None:
+        genome, bred = breed(job.genome, job.mutation_seed)
+        mutation = bred.op
     return FitnessReport(
-        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome,
+        run=run, child=job.child, job=job.job, node=job.node, genome=genome,
         mutation=mutation, fitness=fitness,
         fitness_source="window", fitness_episodes=10,
         curve=Curve(env_steps=tuple(range(4096, 4096 * 101, 4096)),
@@ -435,9 +448,10 @@ class Driver:
         return None if job is None else job.order
 
     def run(self, births: int) -> list[float]:
-        """`births` more births; the CPU seconds of this thread each assignment took (a fitness
-        report and the worker's next WorkerReady, each one a group of its own: the most journal
-        flushes; the checkpoint files are written by the coordinator's other thread)."""
+        """`births` more births; the CPU seconds of this thread each assignment took (decoding a
+        fitness report, handling it and the worker's next WorkerReady, each one a group of its
+        own: the most journal flushes; the checkpoint files are written by the coordinator's
+        other thread; breeding the reported child is the trainer's part, not timed)."""
         coordinator = self.coordinator
         times: list[float] = []
         target = coordinator.born + births
@@ -453,8 +467,9 @@ class Driver:
                     raise RuntimeError("the coordinator gives no work")
                 continue
             job = self.busy.popleft()
+            data = encode(_report(coordinator.run, job, self.rng.uniform(0, 100)))
             start = time.thread_time()
-            coordinator._fitness(_report(coordinator.run, job, self.rng.uniform(0, 100)))
+            coordinator._fitness(decode(data))  # the coordinator's part: decoding on
             coordinator._flush()
             coordinator._publish_released()
             following = self._ready(job.node)
@@ -465,6 +480,7 @@ class Driver:
 
 BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
     "tournament (drawing contestants)": ("evolution/population.py", "tournament"),
+    "repeat lookup (first drafts; a repeat's mutation)": ("evolution/population.py", "repeat"),
     "journal writes": ("nodes/journal/segments.py", "write"),
     "journal flushes (the fsync is on the outbox thread)": ("nodes/journal/segments.py", "flush"),
     "checkpoint hand-off (a thread writes the file)": ("nodes/runtime/checkpoints.py", "save"),
@@ -486,7 +502,10 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
         driver.run(config.population)  # the initial bodies, then K tournament jobs in flight
         driver.run(20)
         assert len(coordinator.state.jobs) == k, len(coordinator.state.jobs)
+        born = len(coordinator.state.births)
         times = driver.run(births)
+        window = coordinator.state.births[born:]
+        repeats = sum(1 for birth in window if birth.repeat_of) / len(window)
         profiler = cProfile.Profile(time.thread_time)
         profiler.enable()
         profiled = driver.run(births)
@@ -509,6 +528,7 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
         out.append({
             "in_flight": k,
             "assignments": len(times),
+            "births_as_repeats_share": round(repeats, 3),
             "ms_per_assignment_p50": _ms(statistics.median(times)),
             "ms_per_assignment_mean": _ms(statistics.fmean(times)),
             "assignments_per_s_ceiling": round(len(times) / sum(times), 1),

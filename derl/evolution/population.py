@@ -13,8 +13,8 @@ child is trained, as in the original DERL where every worker mutated its own chi
 deterministic within a run, so a child whose body equals one already born (`repeat`, by
 `body_hash`: the same body whatever its limb numbering) is born as a repeat with that body's
 result instead of being trained again; where it is decided, only the child's first draft (the
-first body breeding tries, before the validity check that is most of its cost) is looked up,
-and the child is bred only if that draft is a born body.
+first body breeding tries, before the validity check that is most of its cost) is made and
+looked up: a draft that is a born body is the child if valid, checked once per born body.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from derl.unimal import (
     MutationFailed,
     body_hash,
     check_body,
+    is_valid,
     mutate,
     sample_population,
 )
@@ -77,23 +78,14 @@ def breed(
     raise MutationFailed("every drawn operator", MAX_DRAWS, reason)
 
 
-class _Drafted(Exception):
-    def __init__(self, genome: Genome) -> None:
-        self.genome = genome
+def _unchecked(genome: Genome) -> None:
+    """No validity check (`first_draft`)."""
 
 
-def _stop_at(genome: Genome) -> None:
-    raise _Drafted(genome)
-
-
-def first_draft(parent: Genome, seed: int) -> Genome:
-    """The first body `breed(parent, seed)` tries, before its validity check (MuJoCo's compile,
-    most of breeding's cost): the child itself whenever that body is valid, as any born body is."""
-    try:
-        breed(parent, seed, check=_stop_at)
-    except _Drafted as drafted:
-        return drafted.genome
-    raise AssertionError("breed returned without checking a body")
+def first_draft(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
+    """The first body `breed(parent, seed)` tries and its mutation, before the validity check
+    (MuJoCo's compile, most of breeding's cost): the child itself whenever that body is valid."""
+    return breed(parent, seed, check=_unchecked)
 
 
 class Evolution:
@@ -118,8 +110,8 @@ class Evolution:
         self.given_up: set[str] = set()  # children whose trainings kept failing: never born
         self.bodies: dict[str, str] = {}  # body_hash -> the first agent born with that body
         self.drafts: dict[str, str | None] = {}  # child -> body_hash of its first draft
-        self.bred: dict[str, tuple[Genome, Mutation] | None] = {}  # child -> bred here once (None:
-        # it cannot be bred), for the children whose first draft is a born body
+        self.drafted: dict[str, tuple[Genome, Mutation]] = {}  # that draft, until it is born
+        self.valid: dict[str, bool] = {}  # body_hash of a born body -> it passes `check_body`
         self.iterations = 0
 
     @property
@@ -181,6 +173,7 @@ class Evolution:
         """`child` will never be born (its trainings failed); the run goes on without it."""
         if child in self.parents and child not in self.fitness:
             self.given_up.add(child)
+            self.drafted.pop(child, None)
             self.unborn_initial.discard(child)
 
     def repeat_of(self, genome: Genome) -> str | None:
@@ -192,35 +185,30 @@ class Evolution:
         one that cannot be bred); the child's own when the draft is valid."""
         if child not in self.drafts:
             parent_body, seed = self.to_train(child)
-            try:
-                key = None if seed is None else body_hash(first_draft(parent_body, seed))
-            except MutationFailed:  # its trainer fails the same way, and the child is given up
-                key = None
+            key = None
+            if seed is not None:
+                try:
+                    self.drafted[child] = first_draft(parent_body, seed)
+                    key = body_hash(self.drafted[child][0])
+                except MutationFailed:  # its trainer fails the same way: the child is given up
+                    pass
             self.drafts[child] = key
         return self.drafts[child]
 
     def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
         """If tournament child `child` will have a body born already: that agent, the body and
-        its mutation. Its first draft is looked up first (cheap); only one whose draft is born
-        is bred. A child whose draft is invalid and whose body is born is missed (rare: trained)."""
+        its mutation. The child's first draft is looked up: one that is a born body and valid is
+        the child (`check_body` depends on the body, not on its limbs' numbering, so it runs once
+        per born body, not once per repeat). A child whose draft is invalid and whose body is
+        born is missed (rare: trained)."""
         key = self.draft(child)
-        if key is None or key not in self.bodies or self.to_train(child)[1] is None:
+        earlier = self.bodies.get(key)
+        if earlier is None or child not in self.drafted:
             return None
-        bred = self._breed(child)
-        if bred is None:  # its trainer fails the same way, and the child is given up
-            return None
-        earlier = self.repeat_of(bred[0])
-        return None if earlier is None else (earlier, *bred)
-
-    def _breed(self, child: str) -> tuple[Genome, Mutation] | None:
-        """Tournament child `child` bred here, once (None: it cannot be bred)."""
-        if child not in self.bred:
-            parent_body, seed = self.to_train(child)
-            try:
-                self.bred[child] = breed(parent_body, seed)
-            except MutationFailed:
-                self.bred[child] = None
-        return self.bred[child]
+        genome, mutation = self.drafted[child]
+        if key not in self.valid:
+            self.valid[key] = is_valid(genome)
+        return (earlier, genome, mutation) if self.valid[key] else None
 
     def birth(
         self, agent: str, fitness: float, genome: Genome, repeat_of: str | None = None
@@ -232,6 +220,7 @@ class Evolution:
         self.genomes.setdefault(agent, genome)
         self.bodies.setdefault(body_hash(genome), agent)
         member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
+        self.drafted.pop(agent, None)
         self.born.append(member)
         self.fitness[agent] = fitness
         self.unborn_initial.discard(agent)
