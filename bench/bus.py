@@ -3,7 +3,7 @@
 1. `assignments`: a real `derl coordinator` process (paper population P=576, T=4, a budget of
    bodies that never runs out, lease 1 h) on loopback, driven by `LoadGenerator`: a LOAD-TEST
    TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
-   simulated worker sends WorkerReady (again every second while idle, like a real one), and
+   simulated worker sends WorkerReady (again while idle, as often as a real one), and
    answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (an initial child
    with its job's body, a tournament child with its parent's body and a mutation's name: the
    generator shares the cores with the coordinator and does not breed, so no child is a repeat
@@ -80,6 +80,7 @@ from messages import (
     encode,
 )
 from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.worker.node import ready_wait
 
 SCALE_PROFILE = {
     "profile": "paper",
@@ -145,7 +146,7 @@ class LoadGenerator:
     """LOAD-TEST TOOL: W simulated workers on one Zenoh session; they never train.
 
     Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker.node` minus the
-    training: it announces WorkerReady, re-sends it every second while idle, answers each new
+    training: it announces WorkerReady, re-sends it while idle (`ready_wait`), answers each new
     TrainJob after `job_s` (0: at once) with a fake FitnessReport on its own key
     (``fitness/<node>/<child>``: random fitness, a two-point curve within the job's budget, no
     checkpoint), and asks for work again once the report is acknowledged, or rejected (counted:
@@ -157,7 +158,7 @@ class LoadGenerator:
         self.session = zenoh.open(_peer_config(endpoint))
         self.lock = threading.Lock()
         self.idle_since: dict[str, float] = {}  # node -> when it became idle
-        self.last_ready: dict[str, float] = {}
+        self.last_ready: dict[str, tuple[float, int]] = {}  # node -> (when, asks unanswered)
         self.received: list[tuple[float, float, str]] = []  # (time, latency, child)
         self.seen: set[str] = set()  # job ids received
         self.repeated = 0
@@ -201,7 +202,8 @@ class LoadGenerator:
     def _ready(self, node: str, now: float) -> None:
         with self.lock:
             self.idle_since.setdefault(node, now)
-            self.last_ready[node] = now
+            asks = self.last_ready[node][1] + 1 if node in self.last_ready else 0
+            self.last_ready[node] = (now, asks)
         ready = WorkerReady(run=self.run, node=node, role="trainer", host="loadgen", pid=1)
         self._put(self.keys.ready(node), encode(ready))
 
@@ -275,12 +277,13 @@ class LoadGenerator:
             self.answers.put((node, "", "", None, False, 0))
 
     def _resend(self) -> None:
-        """Idle simulated workers repeat WorkerReady every second, as real ones do."""
+        """Idle simulated workers repeat WorkerReady as real ones do (`ready_wait`)."""
         while not self.stop.is_set():
             time.sleep(0.2)
             now = time.perf_counter()
             with self.lock:
-                stale = [n for n, t in self.last_ready.items() if now - t >= 1.0]
+                stale = [n for n, (t, asks) in self.last_ready.items()
+                         if now - t >= ready_wait(asks)]  # fmt: skip
             for node in stale:
                 self._ready(node, now)
 

@@ -6,9 +6,11 @@ that child is born)."""
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import shutil
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -304,3 +306,39 @@ def test_a_job_goes_out_again_for_a_worker_that_asks_only_after_a_while(
     _ready(coordinator, "w1")
     coordinator.settle()
     assert heard.get(timeout=10) == job
+
+
+def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_some(
+    tmp_path: Path,
+) -> None:
+    """Three trainers ask once each for a run of two initial bodies: the third gets nothing
+    until both are born, then the first tournament's child without asking again (an idle worker
+    asks again only after 1, 2, 4, then every 8 s: 10,000 idle workers asking every second
+    drowned the coordinator)."""
+    run, endpoint = run_id(), f"tcp/127.0.0.1:{free_port()}"
+    config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
+    initial = sample_population(2, np.random.default_rng(3))
+    (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
+    coordinator = Coordinator(run, tmp_path, config)
+    serving = threading.Thread(target=coordinator.serve, args=(ZenohOptions(listen=(endpoint,)),))
+    serving.start()
+    jobs: queue.Queue[TrainJob] = queue.Queue()
+    try:
+        with open_session(ZenohOptions(connect=(endpoint,))) as session:
+            bus = Bus(session, run)
+            bus.subscribe(bus.keys.all("job"), jobs.put, (TrainJob,))
+            time.sleep(1.0)  # the subscriptions are known on both sides
+            for worker in ("w1", "w2", "w3"):
+                bus.publish(WorkerReady(run=run, node=worker, role="trainer", host="h", pid=1))
+            first, second = jobs.get(timeout=10), jobs.get(timeout=10)
+            assert {first.node, second.node} == {"w1", "w2"}
+            with pytest.raises(queue.Empty):  # no tournament before the initial bodies are born
+                jobs.get(timeout=QUIET_S)
+            for job in (first, second):
+                bus.publish(_report(job, b"weights"))
+            third = jobs.get(timeout=10)
+            assert (third.node, third.child) == ("w3", "c00000")
+    finally:
+        coordinator.stop.set()
+        serving.join(timeout=30)
+    assert not serving.is_alive()

@@ -120,6 +120,8 @@ class Coordinator:
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.ordered: dict[str, float] = {}  # node -> when its job's order last went out
         self.alive: dict[str, str] = {}  # node -> role
+        # role -> the workers that asked and got no work, first asked first (`_assign_idle`)
+        self.idle: dict[str, dict[str, None]] = {"trainer": {}, "evaluator": {}}
         self.trainers = 0  # of them, trainers (counted, not scanned: one count per assignment)
         self.rates: dict[str, float] = {}  # node -> steps/s
         self.rejected = 0
@@ -221,6 +223,8 @@ class Coordinator:
             idle_s = IDLE_S[0]
             while not self.stop.is_set():
                 took = self._take_group(inlets, changes)
+                if took:
+                    self._assign_idle()
                 self._flush()
                 self.sender.released.clear()
                 if self._publish_released() or took:
@@ -237,6 +241,7 @@ class Coordinator:
                     gc.freeze()
                     self._log_births()
                     self._check_leases(now)
+                    self._assign_idle()
                     self._say(self._status())
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:
@@ -364,10 +369,29 @@ class Coordinator:
                 # publish, once made a 10,000-worker run collapse (3 re-sends per assignment)
                 self.ordered[ready.node] = now
                 self.outbox.append((current.order, encode(current.order), None))
-        elif ready.role == "trainer":
-            self._assign_training(ready.node)
+            return
+        self._assign(ready.node, ready.role)
+
+    def _assign(self, node: str, role: str) -> bool:
+        """The next job of `role` for `node`, if there is one (whether it got one); else it
+        waits among the idle workers (keeping its place if it waited already)."""
+        if role == "trainer":
+            self._assign_training(node)
         else:
-            self._assign_evaluation(ready.node)
+            self._assign_evaluation(node)
+        if self.state.job_of(node) is None:
+            self.idle[role][node] = None
+            return False
+        self.idle[role].pop(node, None)
+        return True
+
+    def _assign_idle(self) -> None:
+        """Work for the workers that asked and got none, as soon as there is some (a birth, a
+        job taken back), first asked first: they need not ask again for it."""
+        for role, waiting in self.idle.items():
+            for node in list(waiting):
+                if not self._assign(node, role):
+                    break
 
     def _assign_training(self, node: str) -> None:
         """The next child to train for `node`; children whose body is born already are born as
@@ -629,7 +653,10 @@ class Coordinator:
         self.trainers += role == "trainer"
 
     def _leave(self, node: str) -> None:
-        self.trainers -= self.alive.pop(node, None) == "trainer"
+        role = self.alive.pop(node, None)
+        self.trainers -= role == "trainer"
+        if role is not None:
+            self.idle[role].pop(node, None)
 
     def _liveliness(self, role: str, node: str, up: bool) -> None:
         if up:

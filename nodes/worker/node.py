@@ -1,15 +1,16 @@
 """Trainer and evaluator nodes: announce themselves, take a job, learn, deliver until acknowledged.
 
-A worker holds a liveliness token for its whole life, publishes WorkerReady every second while
-idle (the first one once the coordinator's subscription is known here: one sent before is lost,
-and a neighbour may take the job meanwhile), trains one job at a time with `derl.lifetime` and
-the job's own PPO configuration (one training per process; a tournament's child is first bred
-from its parent's body with `derl.evolution.breed`), reports progress every second (the
-coordinator's lease on the job), and re-sends its result every second until the coordinator
-acknowledges it, so a coordinator restart loses nothing. A Reject makes it drop the result, a
-Cancel of its job stops the training, and a training that raises is reported as JobFailed; each
-time it asks for work again. Every key it publishes on carries its node id. It stops on SIGTERM
-or SIGINT, or when the run is done.
+A worker holds a liveliness token for its whole life and publishes WorkerReady when idle, again
+after 1, 2, 4, then every 8 s while no job comes (`ready_wait`: the coordinator sends a job to an
+idle worker that asked as soon as there is one). The first ask goes out once the coordinator's
+subscription is known here: one sent before is lost, and a neighbour may take the job meanwhile.
+It trains one job at a time with `derl.lifetime` and the job's own PPO configuration (one training
+per process; a tournament's child is first bred from its parent's body with
+`derl.evolution.breed`), reports progress every second (the coordinator's lease on the job), and
+re-sends its result every second until the coordinator acknowledges it, so a coordinator restart
+loses nothing. A Reject makes it drop the result, a Cancel of its job stops the training, and a
+training that raises is reported as JobFailed; each time it asks for work again. Every key it
+publishes on carries its node id. It stops on SIGTERM or SIGINT, or when the run is done.
 """
 
 from __future__ import annotations
@@ -46,7 +47,17 @@ from nodes.runtime.bus import Bus, ZenohOptions, open_session
 
 log = logging.getLogger("derl.worker")
 
-READY_PERIOD_S = 1.0
+READY_PERIOD_S = (1.0, 8.0)  # the wait after the first ask while idle, doubled up to the last
+
+
+def ready_wait(asks: int) -> float:
+    """How long an idle worker waits for a job after its `asks`-th unanswered WorkerReady (0 the
+    first) before it asks again: the coordinator sends a job to a worker that asked as soon as
+    there is one, so asking again only recovers from a lost message or a restarted coordinator,
+    and 10,000 idle workers no longer ask 10,000 times a second."""
+    return min(READY_PERIOD_S[0] * 2.0**asks, READY_PERIOD_S[1])
+
+
 HEARD_POLL_S = 0.01  # how often a worker looks whether its WorkerReady would be heard
 PROGRESS_PERIOD_S = 1.0
 RESEND_PERIOD_S = 1.0
@@ -82,8 +93,10 @@ class Worker:
             bus.subscribe(bus.keys.status(), self._status, (RunStatus,))
             self.asking = session.declare_publisher(bus.keys.ready(self.node))
             log.info("%s %s ready for run %s", self.role, self.node, self.run)
+            asks = 0  # WorkerReady sent since the last job
             while not self._over(max_jobs):
-                job = self._next_job(jobs)
+                job = self._next_job(jobs, ready_wait(asks))
+                asks = asks + 1 if job is None else 0
                 if job is None:
                     continue
                 try:
@@ -120,7 +133,9 @@ class Worker:
         if status.done:
             self.run_finished.set()
 
-    def _next_job(self, jobs: queue.Queue) -> TrainJob | EvalJob | None:
+    def _next_job(self, jobs: queue.Queue, wait_s: float) -> TrainJob | EvalJob | None:
+        """Ask for work, then wait up to `wait_s` for a job (None: none came, or the worker
+        stops)."""
         ready = WorkerReady(
             run=self.run,
             node=self.node,
@@ -129,14 +144,20 @@ class Worker:
             pid=os.getpid(),
             nthread=self.nthread,
         )
-        deadline = time.monotonic() + READY_PERIOD_S
+        deadline = time.monotonic() + READY_PERIOD_S[0]
         while not self.asking.matching_status.matching and time.monotonic() < deadline:
             time.sleep(HEARD_POLL_S)  # no coordinator would hear it yet
         self.bus.publish(ready)
-        try:
-            job = jobs.get(timeout=READY_PERIOD_S)
-        except queue.Empty:
-            return None
+        deadline = time.monotonic() + wait_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self.stop.is_set() or self.run_finished.is_set():
+                return None
+            try:  # in slices, so that a stop or the run's end is seen within one
+                job = jobs.get(timeout=min(remaining, READY_PERIOD_S[0]))
+                break
+            except queue.Empty:
+                continue
         if job.job in self.finished_jobs or job.job in self.cancelled:
             log.info("%s: %s was sent again after it was done: ignored", self.node, job.job)
             return None
