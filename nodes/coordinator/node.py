@@ -223,8 +223,7 @@ class Coordinator:
             idle_s = IDLE_S[0]
             while not self.stop.is_set():
                 took = self._take_group(inlets, changes)
-                if took:
-                    self._assign_idle()
+                self._assign_idle()
                 self._flush()
                 self.sender.released.clear()
                 if self._publish_released() or took:
@@ -241,7 +240,6 @@ class Coordinator:
                     gc.freeze()
                     self._log_births()
                     self._check_leases(now)
-                    self._assign_idle()
                     self._say(self._status())
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:
@@ -387,11 +385,14 @@ class Coordinator:
 
     def _assign_idle(self) -> None:
         """Work for the workers that asked and got none, as soon as there is some (a birth, a
-        job taken back), first asked first: they need not ask again for it."""
+        job taken back), first asked first: they need not ask again for it. At most `GROUP_S`
+        of it per turn of the loop: thousands of workers idle until the initial bodies are born
+        would otherwise hold the loop for seconds."""
+        until = time.monotonic() + GROUP_S
         for role, waiting in self.idle.items():
-            for node in list(waiting):
-                if not self._assign(node, role):
-                    break
+            while waiting and time.monotonic() < until:
+                if not self._assign(next(iter(waiting)), role):
+                    break  # no work for this role now
 
     def _assign_training(self, node: str) -> None:
         """The next child to train for `node`; children whose body is born already are born as
