@@ -10,7 +10,7 @@ import time
 
 from messages import KeySpace
 from nodes.runtime.bus import ZenohOptions, open_session
-from nodes.worker.node import Worker
+from nodes.worker.node import Worker, ready_wait
 from tests.nodes_fixtures import free_port, run_id
 
 
@@ -39,3 +39,9 @@ def test_a_worker_asks_for_work_as_soon_as_a_coordinator_would_hear_it() -> None
             if subscriber is not None:
                 subscriber.undeclare()
         assert not thread.is_alive()
+
+
+def test_an_idle_worker_asks_less_and_less_often() -> None:
+    """After 1, 2, 4, then every 8 s: the coordinator sends a job to a worker that asked as soon
+    as there is one, so asking again only recovers from a lost message or a restart."""
+    assert [ready_wait(asks) for asks in range(6)] == [1.0, 2.0, 4.0, 8.0, 8.0, 8.0]

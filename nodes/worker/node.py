@@ -48,6 +48,9 @@ from nodes.runtime.bus import Bus, ZenohOptions, open_session
 log = logging.getLogger("derl.worker")
 
 READY_PERIOD_S = (1.0, 8.0)  # the wait after the first ask while idle, doubled up to the last
+HEARD_POLL_S = 0.01  # how often a worker looks whether its WorkerReady would be heard
+PROGRESS_PERIOD_S = 1.0
+RESEND_PERIOD_S = 1.0
 
 
 def ready_wait(asks: int) -> float:
@@ -56,11 +59,6 @@ def ready_wait(asks: int) -> float:
     there is one, so asking again only recovers from a lost message or a restarted coordinator,
     and 10,000 idle workers no longer ask 10,000 times a second."""
     return min(READY_PERIOD_S[0] * 2.0**asks, READY_PERIOD_S[1])
-
-
-HEARD_POLL_S = 0.01  # how often a worker looks whether its WorkerReady would be heard
-PROGRESS_PERIOD_S = 1.0
-RESEND_PERIOD_S = 1.0
 
 
 class Stopped(Exception):
