@@ -472,7 +472,7 @@ class Driver:
             job = self.busy.popleft()
             data = encode(_report(coordinator.run, job, self.rng.uniform(0, 100)))
             start = time.thread_time()
-            coordinator._fitness(decode(data))  # the coordinator's part: decoding on
+            coordinator._fitness(decode(data))  # decoding is the coordinator's part
             coordinator._flush()
             coordinator._publish_released()
             following = self._ready(job.node)

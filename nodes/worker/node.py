@@ -149,7 +149,7 @@ class Worker:
         deadline = time.monotonic() + wait_s
         while True:
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or self.stop.is_set() or self.run_finished.is_set():
+            if remaining <= 0 or self._over(None):
                 return None
             try:  # in slices, so that a stop or the run's end is seen within one
                 job = jobs.get(timeout=min(remaining, READY_PERIOD_S[0]))
