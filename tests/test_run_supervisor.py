@@ -22,6 +22,9 @@ from nodes_fixtures import (
     wait_for,
 )
 
+from messages import RunStatus
+from nodes.cli.run import TrainingRate
+
 
 def _pids(log: str) -> dict[str, list[int]]:
     started: dict[str, list[int]] = {}
@@ -55,10 +58,29 @@ def test_run_restarts_a_killed_trainer_and_a_killed_coordinator(tmp_path: Path) 
         assert len(pids["coordinator"]) == 2 and len(pids[first]) == 2, pids
         assert len(pids[other]) == 1 and len(pids["evaluator-0"]) == 1, pids  # untouched
         assert_born_once(run_dir, 8)
-        assert "done: 8 bodies" in log  # the progress view heard the restarted coordinator
+        # the progress view heard the restarted coordinator; the rate is the run's mean, not 0
+        assert re.search(r"done: 8 bodies, best i\d+ \(.+\), [1-9][\d,]* env steps/s", log), log
         assert f"tcp/127.0.0.1:{port}" in log
         coordinator_log = (run_dir / "logs" / "coordinator.log").read_text()
         assert "journaled messages replayed" in coordinator_log.split("start 1:")[-1]
         assert not [pid for ps in pids.values() for pid in ps if pid_alive(pid)]
     finally:
         processes.close()
+
+
+def test_the_rate_shown_once_the_run_is_done_is_the_mean_while_it_trained() -> None:
+    """While the run goes on the current rate; when done (nothing trains: 0) the mean of the
+    rates shown while something trained, each status counted once however often shown."""
+    rate = TrainingRate()
+
+    def status(steps_per_s: float, done: bool = False) -> RunStatus:
+        return RunStatus(run="r", born=1, target=2, in_flight=1, workers_alive=2,
+                         steps_per_s=steps_per_s, done=done)  # fmt: skip
+
+    first = status(1000.0)
+    assert rate.shown(first).steps_per_s == 1000.0
+    assert rate.shown(first).steps_per_s == 1000.0  # shown again before the next status
+    assert rate.shown(status(0.0)).steps_per_s == 0.0  # nothing trains for a moment
+    assert rate.shown(status(4000.0)).steps_per_s == 4000.0
+    assert rate.shown(status(0.0, done=True)).steps_per_s == 2500.0
+    assert TrainingRate().shown(status(0.0, done=True)).steps_per_s == 0.0

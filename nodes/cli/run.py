@@ -16,6 +16,7 @@ import argparse
 import re
 import signal
 import socket
+import statistics
 from pathlib import Path
 
 from rich.console import Console
@@ -101,7 +102,10 @@ def _run(args: argparse.Namespace) -> int:
     if status is not None and status.best_agent:
         best = f"{status.best_agent} ({status.best_fitness:.1f})"
     born = status.born if status is not None else config.total
-    console.print(f"done: {born} bodies, best {best}; results in {run_dir}")
+    rate = ""
+    if status is not None and status.steps_per_s:
+        rate = f", {status.steps_per_s:,.0f} env steps/s on average"
+    console.print(f"done: {born} bodies, best {best}{rate}; results in {run_dir}")
     return 0
 
 
@@ -146,8 +150,9 @@ def supervise(
     supervisor: Supervisor, run: str, endpoint: str, total: int
 ) -> tuple[int, RunStatus | None]:
     """Supervise the nodes until the run is over, showing its status; the supervisor's exit
-    code and the last status seen."""
+    code and the last status seen (once the run is done, its rate is `TrainingRate`'s mean)."""
     latest: list[RunStatus] = []
+    rate = TrainingRate()
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -169,7 +174,7 @@ def supervise(
         def show() -> None:
             if not latest:
                 return
-            s = latest[-1]
+            s = rate.shown(latest[-1])
             del latest[:-1]
             study = s.target == 0  # a study's progress is its evaluations
             bar.update(
@@ -184,4 +189,23 @@ def supervise(
             )
 
         code = supervisor.run(poll_s=0.5, tick=show)
-    return code, latest[-1] if latest else None
+    return code, rate.shown(latest[-1]) if latest else None
+
+
+class TrainingRate:
+    """The rate `derl run` shows: the trainers' current env steps/s while the run goes on, and
+    once it is done (nothing trains any more, so the current rate is 0) the mean of the rates
+    it showed while some worker trained."""
+
+    def __init__(self) -> None:
+        self.seen: list[float] = []
+        self.last: RunStatus | None = None
+
+    def shown(self, status: RunStatus) -> RunStatus:
+        """`status` as shown (each status counts once, however often it is shown)."""
+        if status is not self.last and status.steps_per_s > 0:
+            self.seen.append(status.steps_per_s)
+        self.last = status
+        if not status.done or not self.seen:
+            return status
+        return status.model_copy(update={"steps_per_s": statistics.fmean(self.seen)})
