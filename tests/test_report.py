@@ -311,7 +311,7 @@ def derl(*args: str) -> subprocess.CompletedProcess[str]:
 @pytest.mark.slow
 def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
     run_dir = tmp_path / "smoke-ft"
-    derl("run", "--profile", "smoke", "--env", "ft", "--run-dir", str(run_dir))
+    derl("run", "--profile", "smoke", "--env", "ft", "--run-dir", str(run_dir), "--port", "0")
     out = tmp_path / "report"
     printed = derl("report", str(run_dir), "--out", str(out)).stdout
     assert f"wrote {out / 'index.html'}" in printed.replace("\n", "")
