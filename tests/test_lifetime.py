@@ -70,7 +70,8 @@ def test_train_and_rollout_commands(quadruped: Genome, tmp_path: Path) -> None:
     assert rows[0] == ["env_steps", "mean_return"] and len(rows) > 1
     video = tmp_path / "episode.gif"
     shown = subprocess.run(
-        [*command, "rollout", str(out), "--episodes", "2", "--video", str(video)],
+        [*command, "rollout", str(out), "--episodes", "2", "--episode-steps", "100",
+         "--video", str(video)],
         check=True, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert shown.stdout.count("episode ") == 2 and video.stat().st_size > 1000
