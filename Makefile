@@ -34,4 +34,4 @@ lint: install-test
 # Two test processes (pytest-xdist): most tests are one process's CPU, many wait on nodes;
 # on 2 cores the suite takes three quarters of its serial time (`pytest` alone runs it serially).
 test: lint
-	$(BIN)/python -m pytest -n 2 --dist worksteal
+	$(BIN)/python -m pytest -n 2 --dist load

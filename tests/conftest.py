@@ -1,4 +1,5 @@
-"""Shared fixtures: small hand-made bodies with known geometry, and a test's node processes."""
+"""Shared fixtures (small hand-made bodies with known geometry, a test's node processes) and the
+suite's order: the tests marked slow first."""
 
 from __future__ import annotations
 
@@ -35,3 +36,10 @@ def procs(tmp_path: Path) -> Iterator[Processes]:
         yield processes
     finally:
         processes.close()
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests marked slow first (otherwise in file order): under `make test`'s two processes
+    (`-n 2 --dist load`) they start at once on both and the short ones fill the end, instead of a
+    long test running alone last."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from derl.evolution import Child, Evolution, breed, load_profile
+from derl.evolution import Child, Evolution, breed, load_profile, population
 from derl.evolution.population import first_draft
 from derl.unimal import Genome, Joint, Limb, body_hash, check_body, is_valid, sample_population
 from derl.unimal.mutations import OPERATORS, MutationFailed
@@ -199,11 +199,13 @@ def test_replicates_differ_by_their_seed_alone() -> None:
     assert one[1] != two[1]
 
 
-def test_a_child_that_cannot_be_bred_is_no_repeat() -> None:
+def test_a_child_that_cannot_be_bred_is_no_repeat(monkeypatch: pytest.MonkeyPatch) -> None:
     """A child whose first draft is a born body but that cannot be bred at all (its parent, not
     a valid body, has three limbs in one place: no single mutation fixes that) is no repeat:
     `repeat` says so instead of raising (the coordinator's lookup raised on every WorkerReady
-    that drew the child); its trainer fails the same way and the child is given up."""
+    that drew the child); its trainer fails the same way and the child is given up. (Breeding
+    gives up after 5 draws here, not 100: 19 s of MuJoCo compiles for the same outcome.)"""
+    monkeypatch.setattr(population, "MAX_DRAWS", 5)
     joint = Joint(axis="x", range=(-30, 60), gear=200)
     limb = Limb(id=0, paired=False, length=0.3, theta=0, phi=90, joints=(joint,))
     limbs = tuple(limb.model_copy(update={"id": k}) for k in range(3))
