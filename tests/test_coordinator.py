@@ -308,6 +308,48 @@ def test_a_job_goes_out_again_for_a_worker_that_asks_only_after_a_while(
     assert heard.get(timeout=10) == job
 
 
+def test_an_ask_that_waited_in_a_backlog_does_not_send_the_job_again(
+    coordinator: tuple[Coordinator, queue.Queue[MessageBase]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A WorkerReady handled long after the job went out, but that came in before (it waited in
+    the coordinator's queue behind others: its inlet was not seen empty since), does not send
+    the job again; one that came in RESEND_AFTER_S after the job went out does. Real Zenoh: the
+    asks come into the coordinator's inlet through its session."""
+    monkeypatch.setattr(node, "RESEND_AFTER_S", 0.5)
+    coordinator, heard = coordinator
+    bus = coordinator.bus
+    coordinator.ready_inlet = inlet = bus.inlet(bus.keys.all("ready"), (WorkerReady,))
+    changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
+    job = _job_for(coordinator, "w1")
+    assert heard.get(timeout=10) == job
+    ask = WorkerReady(run=coordinator.run, node="w1", role="trainer", host="h", pid=1)
+    bus.publish(ask)  # sent before the job could reach w1 ...
+    time.sleep(1.0)  # ... and handled after RESEND_AFTER_S, as behind a backlog
+    assert coordinator._take_group([inlet], changes)
+    coordinator.settle()
+    assert not _orders_heard(heard), "the job sent again for an ask that came in before it"
+    time.sleep(0.5)  # the inlet was seen empty RESEND_AFTER_S after the job went out
+    bus.publish(ask)
+    time.sleep(0.2)
+    assert coordinator._take_group([inlet], changes)
+    coordinator.settle()
+    assert _orders_heard(heard) == [job]
+
+
+def _orders_heard(heard: queue.Queue[MessageBase]) -> list[MessageBase]:
+    """The job orders heard within QUIET_S (the asks, heard too, left out)."""
+    orders = []
+    deadline = time.monotonic() + QUIET_S
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            msg = heard.get(timeout=left)
+        except queue.Empty:
+            break
+        if not isinstance(msg, WorkerReady):
+            orders.append(msg)
+    return orders
+
+
 def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_some(
     tmp_path: Path,
 ) -> None:

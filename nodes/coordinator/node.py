@@ -81,7 +81,8 @@ DONE_ANNOUNCEMENTS = 5
 GROUP_S = 0.001  # the longest a group is handled before its journal flush (measured at 1,000
 # simulated workers: 5 ms groups held replies back so long that the loop idled; 1 ms: +30%)
 TAKE = 64  # messages taken from one inlet before the next one's turn
-RESEND_AFTER_S = 2.0  # a job order is sent again for a WorkerReady only this long after the last
+RESEND_AFTER_S = 2.0  # a job order is sent again for a WorkerReady that came in this long after
+# the last (`_ready`)
 IDLE_S = (0.0005, 0.01)  # the wait when nothing came: the first, doubled up to the last
 RECENT_BIRTHS = 1000  # births a late monitor gets by query
 PROFILE_FILE = "profile.json"
@@ -119,6 +120,8 @@ class Coordinator:
         now = time.monotonic()
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.ordered: dict[str, float] = {}  # node -> when its job's order last went out
+        self.ready_inlet: Inlet | None = None  # where WorkerReady comes in (None: handlers
+        # called directly, each message just arrived)
         self.alive: dict[str, str] = {}  # node -> role
         # role -> the workers that asked and got no work, first asked first (`_assign_idle`)
         self.idle: dict[str, dict[str, None]] = {"trainer": {}, "evaluator": {}}
@@ -211,6 +214,7 @@ class Coordinator:
                     ("failure", (JobFailed,)),
                 )
             ]
+            self.ready_inlet = inlets[0]
             changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
             bus.watch_alive(lambda role, node, up: changes.put((role, node, up)))
             queryables = [
@@ -361,11 +365,15 @@ class Coordinator:
             self._join(ready.node, ready.role)
         current = self.state.job_of(ready.node)
         if current is not None:  # it missed its job (e.g. the coordinator restarted) ...
-            now = time.monotonic()
-            if now - self.ordered.get(ready.node, -math.inf) >= RESEND_AFTER_S:
-                # ... or asked before the job reached it: a backlog of those re-sends, each a
-                # publish, once made a 10,000-worker run collapse (3 re-sends per assignment)
-                self.ordered[ready.node] = now
+            # ... or asked before the job reached it: sent again only if the ask came in at
+            # least RESEND_AFTER_S after the job went out. Under a backlog an ask waits in the
+            # inlet for seconds, so when it is handled says nothing; it came in after the inlet
+            # was last seen empty (at 10,000 workers, counting from when it was handled sent
+            # five copies per assignment of jobs that had reached their workers long before)
+            last = self.ordered.get(ready.node)
+            came = time.monotonic() if self.ready_inlet is None else self.ready_inlet.arrived_after
+            if last is None or came - last >= RESEND_AFTER_S:
+                self.ordered[ready.node] = time.monotonic()
                 self.outbox.append((current.order, encode(current.order), None))
             return
         self._assign(ready.node, ready.role)

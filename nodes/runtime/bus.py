@@ -16,6 +16,7 @@ import os
 import queue
 import re
 import socket
+import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -199,19 +200,26 @@ class Bus:
 class Inlet:
     """Samples of one subscription, held in Zenoh's own queue until taken: no Python callback
     thread, so a busy single-threaded reader (the coordinator) does not hand the interpreter
-    lock to a callback for every sample (measured: each hand-over costs more than decoding)."""
+    lock to a callback for every sample (measured: each hand-over costs more than decoding).
+
+    `arrived_after` bounds how long the last `take`'s messages waited: each came in after that
+    moment (`time.monotonic()`), when the queue was last seen empty. Under a backlog it lies
+    seconds back; otherwise it is the previous take's."""
 
     def __init__(
         self, bus: Bus, subscriber: zenoh.Subscriber, kinds: tuple[type[MessageBase], ...]
     ) -> None:
         self.bus, self.subscriber, self.kinds = bus, subscriber, kinds
+        self.empty_at = self.arrived_after = time.monotonic()
 
     def take(self, limit: int) -> list[MessageBase]:
         """Up to `limit` valid messages that are waiting (checked as `Bus.check`), oldest first."""
+        self.arrived_after = self.empty_at
         taken: list[MessageBase] = []
         for _ in range(limit):
             sample = self.subscriber.try_recv()
             if sample is None:
+                self.empty_at = time.monotonic()
                 break
             message = self.bus.check(sample.payload.to_bytes(), str(sample.key_expr), self.kinds)
             if message is not None:
