@@ -32,6 +32,6 @@ lint: install-test
 	$(BIN)/ruff format --check .
 
 # Two test processes (pytest-xdist): most tests are one process's CPU, many wait on nodes;
-# on 2 cores the suite takes three quarters of its serial time (`pytest` alone runs it serially).
+# on 2 cores the suite takes about 70% of its serial time (`pytest` alone runs it serially).
 test: lint
 	$(BIN)/python -m pytest -n 2 --dist load
