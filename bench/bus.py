@@ -5,10 +5,12 @@
    TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
    simulated worker sends WorkerReady (again while idle, as often as a real one), and
    answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (an initial child
-   with its job's body, a tournament child with its parent's body and a mutation's name: the
-   generator shares the cores with the coordinator and does not breed, so no child is a repeat
-   here (section 2 has them); env steps within the job's PPO budget; a fitness within the
-   world's bound). Every Reject it gets is counted. For W = 100, 1,000,
+   with its job's body, a tournament child with its first draft, `first_draft`: the child itself
+   whenever that body is valid, without the validity check's MuJoCo compile, which the generator,
+   sharing the cores with the coordinator, could not afford; env steps within the job's PPO
+   budget; a fitness within the world's bound). So children have bodies of their own, and a
+   child whose body is born already, or drafted like a child in training, takes the
+   coordinator's repeat path as in a run. Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
    once, i.e. the most assignments/s the coordinator gives; (c) `half_capacity`: each simulated
    job lasts W / R s with R = half of (a); (b) `paced`: each job lasts W / R s less the round
@@ -65,8 +67,9 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from derl.evolution import EvolutionConfig, load_profile
-from derl.evolution.population import breed
+from derl.evolution.population import breed, first_draft
 from derl.unimal import Genome, sample_population
+from derl.unimal.mutations import MutationFailed
 from messages import (
     Curve,
     FitnessReport,
@@ -148,9 +151,10 @@ class LoadGenerator:
     Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker.node` minus the
     training: it announces WorkerReady, re-sends it while idle (`ready_wait`), answers each new
     TrainJob after `job_s` (0: at once) with a fake FitnessReport on its own key
-    (``fitness/<node>/<child>``: random fitness, a two-point curve within the job's budget, no
-    checkpoint), and asks for work again once the report is acknowledged, or rejected (counted:
-    the coordinator must accept every report of this generator)."""
+    (``fitness/<node>/<child>``: a tournament child's first draft, random fitness, a two-point
+    curve within the job's budget, no checkpoint), and asks for work again once the report is
+    acknowledged, or rejected (counted: the coordinator must accept every report of this
+    generator)."""
 
     def __init__(self, run: str, endpoint: str, workers: int) -> None:
         self.run, self.keys = run, KeySpace(run)
@@ -166,9 +170,11 @@ class LoadGenerator:
         self.cancelled = 0
         self.job_s = 0.0
         self.jitter = random.Random(0)
-        # answers to send: (node, job, child, the job's genome, bred, its step budget); job ""
-        # asks for work
-        self.answers: queue.Queue[tuple[str, str, str, dict | None, bool, int]] = queue.Queue()
+        # answers to send: (node, job, child, the job's genome, its mutation seed, its step
+        # budget); job "" asks for work
+        self.answers: queue.Queue[tuple[str, str, str, dict | None, int | None, int]] = (
+            queue.Queue()
+        )
         self.due: list[tuple[float, int, tuple]] = []  # heap of (when, order, answer)
         self.stop = threading.Event()
         self.sequence = 0
@@ -224,7 +230,7 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 self.received.append((now, now - since, job["child"]))
-        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"] is not None,
+        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"],
                   job["ppo"]["total_steps"])  # fmt: skip
         if self.job_s <= 0:
             self.answers.put(answer)
@@ -246,15 +252,22 @@ class LoadGenerator:
         curve = Curve(env_steps=(1, 2), returns=(0.0, 1.0))
         while not self.stop.is_set():
             try:
-                node, job, child, genome, bred, budget = self.answers.get(timeout=0.1)
+                node, job, child, genome, seed, budget = self.answers.get(timeout=0.1)
             except queue.Empty:
                 continue
             if not job:  # acknowledged: ask for the next job
                 self._ready(node, time.perf_counter())
                 continue
+            mutation = None
+            if seed is not None:
+                try:
+                    drafted, bred = first_draft(Genome.model_validate(genome), seed)
+                    genome, mutation = drafted.model_dump(), bred.op
+                except MutationFailed:  # (a drawn body no operator applies to): the parent's
+                    mutation = "gear"
             report = FitnessReport(
                 run=self.run, child=child, job=job, node=node, genome=genome,
-                mutation="gear" if bred else None,
+                mutation=mutation,
                 fitness=self.jitter.uniform(0, 100), fitness_source="window",
                 fitness_episodes=1, curve=curve, energy=1.0, cost_of_work=1.0, mass=1.0,
                 episodes=1, env_steps=min(2, budget), wall_s=0.0, steps_per_s=0.0,
