@@ -287,7 +287,7 @@ class LoadGenerator:
             if ack["type"] == "Reject":
                 self.rejected[ack["reason"][:80]] += 1
         if node is not None:
-            self.answers.put((node, "", "", None, False, 0))
+            self.answers.put((node, "", "", None, None, 0))
 
     def _resend(self) -> None:
         """Idle simulated workers repeat WorkerReady as real ones do (`ready_wait`)."""

@@ -370,10 +370,10 @@ class Coordinator:
             # inlet for seconds, so when it is handled says nothing; it came in after the inlet
             # was last seen empty (at 10,000 workers, counting from when it was handled sent
             # five copies per assignment of jobs that had reached their workers long before)
-            last = self.ordered.get(ready.node)
-            came = time.monotonic() if self.ready_inlet is None else self.ready_inlet.arrived_after
+            last, now = self.ordered.get(ready.node), time.monotonic()
+            came = now if self.ready_inlet is None else self.ready_inlet.arrived_after
             if last is None or came - last >= RESEND_AFTER_S:
-                self.ordered[ready.node] = time.monotonic()
+                self.ordered[ready.node] = now
                 self.outbox.append((current.order, encode(current.order), None))
             return
         self._assign(ready.node, ready.role)
