@@ -63,6 +63,47 @@ def test_a_child_whose_body_is_born_is_known_as_a_repeat(initial: list[Genome]) 
     assert evolution.repeat("i0000") is None  # an initial body is trained
 
 
+def test_only_an_initial_body_is_checked_when_a_child_repeats_it(
+    initial: list[Genome], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A tournament child's body was checked by its trainer (`breed`), so a repeat of it costs
+    the coordinator no MuJoCo compile (it was a sixth of the coordinator's loop at 1,000
+    workers); an initial body, which may be given by hand, is checked once."""
+    checked: list[str] = []
+
+    def counting(genome: Genome) -> bool:
+        checked.append(body_hash(genome))
+        return is_valid(genome)
+
+    monkeypatch.setattr(population, "is_valid", counting)
+    evolution = _evolution(initial)
+    for k, child in enumerate(evolution.initial):
+        evolution.birth(child.name, float(k), initial[k])
+    decided = evolution.tournament()
+    evolution.record(decided)
+    body, mutation = breed(*evolution.to_train(decided.name))
+    evolution.birth(decided.name, 7.0, body)
+    for seed in (decided.mutation_seed, decided.mutation_seed):  # twice: a repeat each time
+        again = evolution.tournament()
+        evolution.record(replace(again, parent=decided.parent, mutation_seed=seed))
+        assert evolution.repeat(again.name) == (decided.name, body, mutation)
+    assert checked == []
+    # a child whose first draft is an initial body: that body is checked, once
+    parent = int(decided.parent[1:])
+    other = (parent + 1) % len(initial)
+    draft = first_draft(initial[parent], decided.mutation_seed)[0]
+    founders = [draft if k == other else body for k, body in enumerate(initial)]
+    evolution = _evolution(founders)
+    for k, child in enumerate(evolution.initial):
+        evolution.birth(child.name, float(k), founders[k])
+    again = evolution.tournament()  # the same parent and seed: they depend on fitness only
+    evolution.record(again)
+    assert (again.parent, again.mutation_seed) == (decided.parent, decided.mutation_seed)
+    evolution.repeat(again.name)
+    evolution.repeat(again.name)
+    assert checked == [body_hash(draft)]
+
+
 def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body(
     initial: list[Genome],
 ) -> None:

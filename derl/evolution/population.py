@@ -198,9 +198,10 @@ class Evolution:
     def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
         """If tournament child `child` will have a body born already: that agent, the body and
         its mutation. The child's first draft is looked up: one that is a born body and valid is
-        the child (`check_body` depends on the body, not on its limbs' numbering, so it runs once
-        per born body, not once per repeat). A child whose draft is invalid and whose body is
-        born is missed (rare: trained)."""
+        the child. A tournament child's body is valid (its trainer bred it with `check_body`);
+        an initial body, which may be given by hand, is checked once, at its first lookup
+        (`check_body` depends on the body, not on its limbs' numbering). A child whose draft is
+        invalid and whose body is born is missed (rare: trained)."""
         key = self.draft(child)
         earlier = self.bodies.get(key)
         if earlier is None or child not in self.drafted:
@@ -218,7 +219,10 @@ class Evolution:
         if agent in self.fitness or agent not in self.parents:
             return None
         self.genomes.setdefault(agent, genome)
-        self.bodies.setdefault(body_hash(genome), agent)
+        key = body_hash(genome)
+        self.bodies.setdefault(key, agent)
+        if self.seeds[agent] is not None:  # bred, so checked, by its trainer (`breed`)
+            self.valid[key] = True
         member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
         self.drafted.pop(agent, None)
         self.born.append(member)
