@@ -182,7 +182,9 @@ class LoadGenerator:
             self.session.declare_subscriber(self.keys.all("job"), self._on_job),
             self.session.declare_subscriber(self.keys.all("ack"), self._on_ack),
         ]
-        self.unacked: dict[str, str] = {}  # job -> node: answered, not yet acknowledged
+        # job -> (node, when): answered, not yet acknowledged
+        self.unacked: dict[str, tuple[str, float]] = {}
+        self.acked: list[tuple[float, float]] = []  # (time, wait of a report for its Ack)
         self.threads = [threading.Thread(target=f, daemon=True)
                         for f in (self._answer, self._resend, self._scheduler)]  # fmt: skip
 
@@ -274,7 +276,7 @@ class LoadGenerator:
                 checkpoint=b"",
             )  # fmt: skip
             with self.lock:
-                self.unacked[job] = node
+                self.unacked[job] = (node, time.perf_counter())
             self._put(self.keys.fitness(node, child), encode(report))
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
@@ -282,10 +284,13 @@ class LoadGenerator:
         Ack, then asks for work; it re-sends its report every second until then, which this
         generator does not)."""
         ack = msgpack.unpackb(sample.payload.to_bytes())
+        now = time.perf_counter()
         with self.lock:
-            node = self.unacked.pop(ack["job"], None)
+            node, sent = self.unacked.pop(ack["job"], (None, now))
             if ack["type"] == "Reject":
                 self.rejected[ack["reason"][:80]] += 1
+            elif node is not None:
+                self.acked.append((now, now - sent))
         if node is not None:
             self.answers.put((node, "", "", None, None, 0))
 
@@ -303,6 +308,7 @@ class LoadGenerator:
     def window(self, start: float, end: float) -> dict[str, object]:
         with self.lock:
             inside = [(t, lat) for t, lat, _ in self.received if start <= t < end]
+            acks = [wait for t, wait in self.acked if start <= t < end]
             repeated, self.repeated = self.repeated, 0
             rejected, self.rejected = dict(self.rejected), Counter()
             cancelled, self.cancelled = self.cancelled, 0
@@ -312,6 +318,9 @@ class LoadGenerator:
             "latency_p50_ms": _ms(_percentile(latencies, 50)),
             "latency_p99_ms": _ms(_percentile(latencies, 99)),
             "latency_max_ms": _ms(max(latencies, default=None)),
+            # a report's wait for its Ack: its journal entry and checkpoint file on the disk
+            "ack_p50_ms": _ms(_percentile(acks, 50)),
+            "ack_p99_ms": _ms(_percentile(acks, 99)),
             "assignments": len(inside),
             "jobs_sent_again": repeated,  # a worker that re-sent WorkerReady before its job came
             "reports_rejected": rejected,  # reason -> count; none expected

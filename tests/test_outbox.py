@@ -1,42 +1,68 @@
-"""The coordinator's disk side: checkpoint files written in batches (one syncfs, or one fsync per
-file where there is none; a repeat's link to a file of the same batch; one bad file fails alone)
+"""The coordinator's disk side: checkpoint files written in batches by a writer process (one
+syncfs, or one fsync per file where there is none; a repeat's link to a file of the same batch;
+one bad file fails alone; a writer process that dies fails its batch, the next starts another)
 and the outbox (replies released once the journal is synced, an Ack only once its checkpoint is
 on disk and never if the write failed, jobs and births not held behind it)."""
 
 from __future__ import annotations
 
+import errno
 from concurrent.futures import Future
 from pathlib import Path
-
-import pytest
 
 from messages import Ack, RunStatus
 from nodes.coordinator.outbox import Outbox
 from nodes.journal.segments import Journal, read_segment
-from nodes.runtime import checkpoints
+from nodes.runtime.checkpoint_writer import write_batch
 from nodes.runtime.checkpoints import CheckpointFiles
 
 
-@pytest.mark.parametrize("syncfs", [True, False], ids=["syncfs", "fsync-per-file"])
 def test_a_batch_of_checkpoints_is_written_whole_and_links_share_its_files(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, syncfs: bool
+    tmp_path: Path,
 ) -> None:
-    if not syncfs:
-        monkeypatch.setattr(checkpoints, "_syncfs", None)
-    elif checkpoints._syncfs is None:
-        pytest.skip("no syncfs on this platform")
     files = CheckpointFiles(tmp_path)
     saved = {f"a{k}": files.save(f"a{k}", f"weights-{k}".encode()) for k in range(20)}
     linked = files.link("r0", "a19")  # a file that may be in the same batch
     bad = files.save("missing/a", b"x")  # its folder does not exist: fails alone
     for future in [*saved.values(), linked]:
         assert future.result(timeout=10) is None
-    assert isinstance(bad.exception(timeout=10), OSError)
+    error = bad.exception(timeout=10)
+    assert isinstance(error, OSError) and error.errno == errno.ENOENT
+    assert "missing/a.pt.tmp" in str(error)
+    writer = files._process.process
     files.close()
+    assert writer is not None and writer.poll() == 0  # the writer process ended with it
     for k in range(20):
         assert files.path(f"a{k}").read_bytes() == f"weights-{k}".encode()
     assert files.path("r0").stat().st_ino == files.path("a19").stat().st_ino
     assert not list(files.folder.glob("*.tmp"))
+
+
+def test_without_syncfs_each_file_is_fsynced(tmp_path: Path) -> None:
+    """Where there is no syncfs (not Linux), the same batch with one fsync per file."""
+    batch = {"a0": b"w0", "r0": "a0", "missing/a": b"x", "big": bytes(3 << 20)}
+    failures = write_batch(tmp_path, batch, syncfs=None)
+    assert isinstance(failures.pop("missing/a"), OSError)
+    assert failures == {"a0": None, "r0": None, "big": None}
+    assert (tmp_path / "big.pt").stat().st_size == 3 << 20
+    assert (tmp_path / "r0.pt").stat().st_ino == (tmp_path / "a0.pt").stat().st_ino
+
+
+def test_a_writer_process_that_dies_fails_its_batch_and_the_next_starts_another(
+    tmp_path: Path,
+) -> None:
+    files = CheckpointFiles(tmp_path)
+    assert files.save("a0", b"w0").result(timeout=10) is None
+    first = files._process.process
+    assert first is not None
+    first.kill()
+    first.wait()
+    lost = files.save("a1", b"w1").exception(timeout=10)
+    assert isinstance(lost, OSError) and "checkpoint writer process ended" in str(lost)
+    assert files.save("a1", b"w1").result(timeout=10) is None  # the trainer's re-sent report
+    assert files._process.process not in (None, first)
+    files.close()
+    assert files.path("a1").read_bytes() == b"w1"
 
 
 def _status(run: str, born: int) -> RunStatus:

@@ -219,12 +219,12 @@ class Evolution:
         if agent in self.fitness or agent not in self.parents:
             return None
         self.genomes.setdefault(agent, genome)
-        key = body_hash(genome)
+        drafted = self.drafted.pop(agent, None)  # the draft's hash, if it is the body born
+        key = self.drafts[agent] if drafted and drafted[0] == genome else body_hash(genome)
         self.bodies.setdefault(key, agent)
         if self.seeds[agent] is not None:  # bred, so checked, by its trainer (`breed`)
             self.valid[key] = True
         member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
-        self.drafted.pop(agent, None)
         self.born.append(member)
         self.fitness[agent] = fitness
         self.unborn_initial.discard(agent)

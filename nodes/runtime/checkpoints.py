@@ -1,32 +1,30 @@
 """The coordinator's checkpoint files (`<run dir>/checkpoints/<agent>.pt`), written beside its loop.
 
-A born agent's policy comes inside its FitnessReport. A writer thread writes it to a temporary
-file, puts it on the disk, renames it into place and syncs the folder, so a file that exists is
-whole and a file whose future has completed survives a power loss. `save` returns that future;
-the coordinator acknowledges a report only once it is done.
+A born agent's policy comes inside its FitnessReport. `save` hands it to a writer thread and
+returns a future that completes once the file is whole on the disk (the coordinator acknowledges
+a report only then). A body born as a repeat of an earlier one (the same body, so the same
+training) gets the earlier one's file as its own, a hard link made after the batch's files are in
+place (`link`), so `checkpoints/<agent>.pt` holds every born agent's policy.
 
-A body born as a repeat of an earlier one (the same body, so the same training) gets the earlier
-one's file as its own, a hard link made by the same writer after the batch's files are in place
-(`link`), so `checkpoints/<agent>.pt` holds every born agent's policy.
-
-Group commit, as the journal's: the writer takes every checkpoint waiting for it as one batch,
-writes the files, puts them on the disk with one `syncfs` of the file system (Linux; elsewhere
-one fsync per file), renames them and fsyncs the folder once. So a batch costs two waits for the
-disk whatever its size, and few system calls: each one hands the interpreter lock over, and at a
-thousand births a second those hand-overs, not the disk, were what slowed the coordinator
-(measured with `bench/bus.py`: 8 threads fsyncing one file each kept it near 800 assignments/s).
+Group commit, as the journal's: the writer thread takes every checkpoint waiting as one batch and
+sends it to a writer process (`checkpoint_writer`: temporary files, one `syncfs`, renames, one
+fsync of the folder), so a batch costs two waits for the disk whatever its size and two system
+calls of this process: each one hands the interpreter lock over, and at a thousand births a
+second those hand-overs, not the disk, held the Acks back. The process starts with the first
+batch; if it dies, that batch's futures fail (a report is acknowledged once its file is written
+from the trainer's re-sent report) and the next batch starts a new one.
 """
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import os
 import queue
+import subprocess
+import sys
 import threading
-from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
+
+from nodes.runtime import checkpoint_writer
 
 FOLDER = "checkpoints"
 
@@ -41,11 +39,12 @@ class CheckpointFiles:
         self._waiting: queue.SimpleQueue[Item | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._closed = False
+        self._process = WriterProcess(self.folder)
         self._writer = threading.Thread(target=self._run, name="checkpoints", daemon=True)
         self._writer.start()
 
     def path(self, agent: str) -> Path:
-        return self.folder / f"{agent}.pt"
+        return checkpoint_writer.path(self.folder, agent)
 
     def save(self, agent: str, checkpoint: bytes) -> Future[None]:
         """Write `agent`'s checkpoint in the background; the future says when it is on disk
@@ -94,108 +93,70 @@ class CheckpointFiles:
                 for _, _, future in batch:
                     if not future.done():
                         future.set_exception(error)
+        self._process.close()
 
     def _write(self, batch: list[Item]) -> None:
-        """One batch: the files' data onto the disk before their renames, the links once the
-        renames are made, and the folder's entries onto the disk before any future completes."""
-        data: dict[str, bytes] = {}
-        sources: dict[str, str] = {}
+        """One batch, each agent once (its report re-sent while the file was written)."""
+        items: checkpoint_writer.Batch = {}
         waiting: dict[str, list[Future[None]]] = {}
         for agent, what, future in batch:
-            if not future.set_running_or_notify_cancel():
-                continue
-            # the same agent twice (its report re-sent while the file was written): once
-            if agent in waiting:
-                pass
-            elif isinstance(what, bytes):
-                data[agent] = what
-            else:
-                sources[agent] = what
-            waiting.setdefault(agent, []).append(future)
+            if future.set_running_or_notify_cancel():
+                items.setdefault(agent, what)
+                waiting.setdefault(agent, []).append(future)
         if not waiting:
             return
-        failures = {agent: self._write_file(agent, data[agent]) for agent in data}
-        complete = [agent for agent in data if failures[agent] is None]
-        try:
-            self._sync([self._tmp(agent) for agent in complete])
-        except OSError as error:
-            failures |= dict.fromkeys(complete, error)
-        written: dict[str, list[Future[None]]] = {}
-        for agent in [*data, *sources]:  # links once the files they share are in place
-            failed = failures[agent] if agent in data else self._link_file(agent, sources[agent])
-            if failed is None:
-                try:
-                    self._tmp(agent).replace(self.path(agent))
-                except OSError as error:
-                    failed = error
-            if failed is None:
-                written[agent] = waiting[agent]
-            else:
-                for future in waiting[agent]:
-                    future.set_exception(failed)
-        if not written:
-            return
-        try:
-            _fsync(self.folder)
-        except OSError as error:
-            for futures in written.values():
-                for future in futures:
-                    future.set_exception(error)
-            return
-        for futures in written.values():
+        failures = self._process.write(items)
+        for agent, futures in waiting.items():
             for future in futures:
-                future.set_result(None)
+                if failures[agent] is None:
+                    future.set_result(None)
+                else:
+                    future.set_exception(failures[agent])
 
-    def _sync(self, files: list[Path]) -> None:
-        """`files` (written, not yet renamed) onto the disk: one syncfs, or one fsync each."""
-        if not files:
-            return
-        if _syncfs is None:
-            for file in files:
-                _fsync(file)
-            return
-        folder = os.open(self.folder, os.O_RDONLY | os.O_DIRECTORY)
+
+class WriterProcess:
+    """The `checkpoint_writer` process of one folder, started when first needed."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.process: subprocess.Popen | None = None
+
+    def write(self, batch: checkpoint_writer.Batch) -> dict[str, OSError | None]:
+        """Each agent's error, or None; raises OSError if the process failed (it is ended, the
+        next call starts another)."""
+        if self.process is None:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", checkpoint_writer.__name__, str(self.folder)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+            )
+            self.answers = checkpoint_writer.messages(self.process.stdout.fileno())
         try:
-            if _syncfs(folder) != 0:
-                error = ctypes.get_errno()
-                raise OSError(error, os.strerror(error), str(self.folder))
-        finally:
-            os.close(folder)
+            checkpoint_writer.send(self.process.stdin.fileno(), batch)
+            answer = next(self.answers)
+        except (OSError, StopIteration):
+            code = self.close()
+            raise OSError(f"the checkpoint writer process ended (exit code {code})") from None
+        return {agent: _error(answer[agent]) for agent in batch}
 
-    def _tmp(self, agent: str) -> Path:
-        return self.folder / f"{agent}.pt.tmp"
-
-    def _write_file(self, agent: str, checkpoint: bytes) -> OSError | None:
-        """The temporary file of `agent` (not yet synced); the error, if any."""
+    def close(self, timeout: float = 30.0) -> int | None:
+        """End the process once it has written what it was given; its exit code."""
+        process, self.process = self.process, None
+        if process is None:
+            return None
+        process.stdin.close()
         try:
-            self._tmp(agent).write_bytes(checkpoint)
-        except OSError as error:
-            return error
+            code = process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            code = process.wait()
+        process.stdout.close()
+        return code
+
+
+def _error(answer: list | None) -> OSError | None:
+    if answer is None:
         return None
-
-    def _link_file(self, agent: str, source: str) -> OSError | None:
-        """The temporary file of `agent`, a link to `source`'s file; the error, if any."""
-        try:
-            self._tmp(agent).unlink(missing_ok=True)
-            self._tmp(agent).hardlink_to(self.path(source))
-        except OSError as error:
-            return error
-        return None
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _find_syncfs() -> Callable[[int], int] | None:
-    """Linux's syncfs(2) (every dirty file of one file system onto the disk), if there is one."""
-    name = ctypes.util.find_library("c")
-    libc = ctypes.CDLL(name, use_errno=True) if name else None
-    return getattr(libc, "syncfs", None)
-
-
-_syncfs = _find_syncfs()
+    error = OSError(answer[1])
+    error.errno = answer[0]
+    return error
