@@ -133,6 +133,11 @@ def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body
     assert member is not None and member.parent == decided.parent
     assert evolution.to_train(decided.name) == (child_body, None)
     assert [m.agent for m in evolution.population] == ["i0001", "i0002", "i0003", decided.name]
+    assert evolution.best() == member  # the fittest born, aged out of the population or not
+    again = evolution.tournament()
+    evolution.record(again)
+    evolution.birth(again.name, 50.0, breed(*evolution.to_train(again.name))[0])
+    assert evolution.best() == member  # the first born of equals
 
 
 def test_replaying_decisions_and_births_rebuilds_the_state(initial: list[Genome]) -> None:

@@ -113,6 +113,7 @@ class Evolution:
         self.drafted: dict[str, tuple[Genome, Mutation]] = {}  # that draft, until it is born
         self.valid: dict[str, bool] = {}  # body_hash of a born body -> it passes `check_body`
         self.iterations = 0
+        self._best: Member | None = None
 
     @property
     def population(self) -> list[Member]:
@@ -134,7 +135,8 @@ class Evolution:
         return self.settled >= self.config.total
 
     def best(self) -> Member | None:
-        return max(self.born, key=lambda m: m.fitness, default=None)
+        """The fittest agent born (the first born of equals)."""
+        return self._best
 
     def tournament(self) -> Child:
         """Decide the next child (call `record` with it to make it part of the state)."""
@@ -226,6 +228,8 @@ class Evolution:
             self.valid[key] = True
         member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
         self.born.append(member)
+        if self._best is None or fitness > self._best.fitness:
+            self._best = member
         self.fitness[agent] = fitness
         self.unborn_initial.discard(agent)
         return member

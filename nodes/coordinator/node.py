@@ -716,7 +716,7 @@ class Coordinator:
             evaluated=self.state.evaluated,
             eval_target=self.state.eval_target,
             failed=len(self.state.failed),
-            repeats=sum(b.repeat_of is not None for b in self.state.births),
+            repeats=self.state.repeats,
             rejected=self.rejected,
             steps_per_s=sum(self.rates.values()),
             done=self.state.finished,

@@ -47,6 +47,7 @@ class RunHistory:
         self.issued: dict[str, str] = {}  # every job ever sent -> its node
         self.births: list[Birth] = []  # in birth order
         self.born: dict[str, Birth] = {}
+        self.repeats = 0  # births with the result of an earlier body's (`Birth.repeat_of`)
         self.reports: dict[str, FitnessReport] = {}  # child -> the report it was born from
         self.failed: dict[str, ChildFailed] = {}
         self.failures: dict[str, list[JobFailed]] = {}  # subject -> its failed jobs
@@ -86,8 +87,9 @@ class RunHistory:
         self.births.append(msg)
         self.born[msg.child] = msg
         report = self._accepted.pop(msg.job, None)
-        if report is None and msg.repeat_of is not None:
-            report = self.reports.get(msg.repeat_of)
+        if msg.repeat_of is not None:
+            self.repeats += 1
+            report = report or self.reports.get(msg.repeat_of)
         if report is not None:
             self.reports[msg.child] = report
 
