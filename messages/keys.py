@@ -7,6 +7,7 @@ empty chunk. `KeySpace.key_for` routes a message to its key; `parse` takes a rec
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 from typing import Final, NamedTuple
@@ -82,9 +83,15 @@ class InvalidKey(ValueError):
 
 def check_segment(value: str) -> str:
     """`value` if it is a safe key segment, else InvalidKey."""
-    if not isinstance(value, str) or re.fullmatch(ID_PATTERN, value) is None:
+    if not isinstance(value, str) or not _safe(value):
         raise InvalidKey(f"{value!r} is not a safe key segment ([A-Za-z0-9_.-], 1 to 128)")
     return value
+
+
+@functools.lru_cache(maxsize=1 << 14)
+def _safe(value: str) -> bool:
+    """Matches `ID_PATTERN` (cached: a node's or a child's name recurs in many keys)."""
+    return re.fullmatch(ID_PATTERN, value) is not None
 
 
 class ParsedKey(NamedTuple):

@@ -113,6 +113,7 @@ class Coordinator:
         # the group's replies: published once it is on disk (an Ack, once its checkpoint is)
         self.outbox: list[Reply] = []
         self.sender = Outbox(self.journal.sync)
+        self.keys = KeySpace(run)
         self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
         self.recent_lock = threading.Lock()
         for birth in self.state.births[-RECENT_BIRTHS:]:
@@ -689,7 +690,7 @@ class Coordinator:
 
     def _remember(self, msg: Birth | ChildFailed, data: bytes) -> None:
         with self.recent_lock:
-            self.recent.append((KeySpace(self.run).key_for(msg), data))
+            self.recent.append((self.keys.key_for(msg), data))
 
     def _answer_births(self, query: zenoh.Query) -> None:
         """A monitor's query on ``births/*``: the latest births and failed children, oldest

@@ -10,6 +10,7 @@ the command line override it, and multicast stays off unless ``--multicast`` is 
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -41,6 +42,12 @@ INLET_CAPACITY = 1 << 20  # samples an `Inlet` holds (allocated as they come): a
 DROPPABLE: Final = frozenset({"TrainProgress", "PopulationSnapshot", "RunStatus"})
 """Periodic message types, each replaced by the next: dropped rather than waited for when the
 link is congested. Every other type is control plane and never dropped."""
+
+
+@functools.cache
+def _encoding(message_type: str) -> zenoh.Encoding:
+    """msgpack with the message's type as its schema (one object per type)."""
+    return MSGPACK.with_schema(message_type)
 
 
 def congestion_control(message_type: str) -> zenoh.CongestionControl:
@@ -114,7 +121,7 @@ class Bus:
         self.session.put(
             self.keys.key_for(msg),
             encode(msg) if data is None else data,
-            encoding=MSGPACK.with_schema(msg.type),
+            encoding=_encoding(msg.type),
             congestion_control=congestion_control(msg.type),
         )
 
