@@ -8,11 +8,12 @@ place (`link`), so `checkpoints/<agent>.pt` holds every born agent's policy.
 
 Group commit, as the journal's: the writer thread takes every checkpoint waiting as one batch and
 sends it to a writer process (`checkpoint_writer`: temporary files, one `syncfs`, renames, one
-fsync of the folder), so a batch costs two waits for the disk whatever its size and two system
-calls of this process: each one hands the interpreter lock over, and at a thousand births a
-second those hand-overs, not the disk, held the Acks back. The process starts with the first
-batch; if it dies, that batch's futures fail (a report is acknowledged once its file is written
-from the trainer's re-sent report) and the next batch starts a new one.
+fsync of the folder), so a batch costs two waits for the disk whatever its size and few system
+calls of this process (a pipe takes up to 64 KiB a call): each one hands the interpreter lock
+over, and at a thousand births a second those hand-overs, not the disk, held the Acks back.
+The process starts with the first batch; if it dies, that batch's futures fail (a report is
+acknowledged once its file is written from the trainer's re-sent report) and the next batch
+starts a new one.
 """
 
 from __future__ import annotations
