@@ -89,7 +89,8 @@ class RunHistory:
         report = self._accepted.pop(msg.job, None)
         if msg.repeat_of is not None:
             self.repeats += 1
-            report = report or self.reports.get(msg.repeat_of)
+            if report is None:
+                report = self.reports.get(msg.repeat_of)
         if report is not None:
             self.reports[msg.child] = report
 

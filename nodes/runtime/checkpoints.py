@@ -22,6 +22,7 @@ import queue
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from concurrent.futures import Future
 from pathlib import Path
 
@@ -121,6 +122,7 @@ class WriterProcess:
     def __init__(self, folder: Path) -> None:
         self.folder = folder
         self.process: subprocess.Popen | None = None
+        self.answers: Iterator[object] = iter(())  # the process's answers, one per batch
 
     def write(self, batch: checkpoint_writer.Batch) -> dict[str, OSError | None]:
         """Each agent's error, or None; raises OSError if the process failed (it is ended, the
