@@ -2,8 +2,12 @@
 
 For FT and VT with a 6- and a 10-limb body, on one core: end-to-end env steps/s of a short
 training, the raw physics rate of the same body measured in the same run (the same
-`mujoco.batch.Batch` stepping alone: the ceiling), their ratio, and the share of wall time in
-physics, observations/rewards/resets, inference and the PPO update. Also the **bound**: the
+`mujoco.batch.Batch` stepping alone: the ceiling), their ratio, and where the wall time went, as
+shares and in microseconds per env step: physics (MuJoCo's time inside the training, which the
+environment counts: its steps and the forward passes of reset copies), the environment's own
+work (observations, rewards, resets), inference, the PPO update and the rest; beside them the
+physics at the raw rate and the update's arithmetic at the matrix rate, the bound's two terms.
+Also the **bound**: the
 end-to-end rate if everything but the physics and the update's arithmetic (its FLOPs at this
 core's best single-thread matrix rate, measured in the same run) were free, and the
 **efficiency** = end-to-end rate / bound. On VT the update skips the first-layer products of
@@ -113,7 +117,14 @@ def bench_config(
             "efficiency_rows_done": round(best["steps_per_s"] / done_bound, 3),
         }
     wall = sum(best[k] for k in ("env_s", "inference_s", "update_s", "other_s"))
-    physics = iterations * 4096 / raw_rate
+    steps = iterations * 4096
+    parts = {  # seconds of the median run, by where they went
+        "physics": best["physics_s"],
+        "observations_rewards_resets": best["env_s"] - best["physics_s"],
+        "inference": best["inference_s"],
+        "update": best["update_s"],
+        "other": best["other_s"],
+    }
     return {
         "world": world,
         "limbs": limbs,
@@ -124,12 +135,11 @@ def bench_config(
         "bound_steps_per_s": round(bound),
         "efficiency": round(best["steps_per_s"] / bound, 3),
         **rows_done,
-        "share": {
-            "physics": round(physics / wall, 3),
-            "observations_rewards_resets": round((best["env_s"] - physics) / wall, 3),
-            "inference": round(best["inference_s"] / wall, 3),
-            "update": round(best["update_s"] / wall, 3),
-            "other": round(best["other_s"] / wall, 3),
+        "share": {name: round(seconds / wall, 3) for name, seconds in parts.items()},
+        "us_per_env_step": {
+            **{name: round(seconds / steps * 1e6, 2) for name, seconds in parts.items()},
+            "physics_at_raw_rate": round(1e6 / raw_rate, 2),
+            "update_arithmetic_at_matrix_rate": round(update_flops / flops * 1e6, 2),
         },
     }
 

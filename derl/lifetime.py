@@ -103,6 +103,6 @@ def learn(
         wall_time_s=result.wall_time_s,
         steps_per_second=result.steps_per_second,
         unstable_steps=env.unstable_count,
-        time_split={k: round(v, 3) for k, v in vars(result.time_split).items()},
+        time_split={k: round(v, 3) for k, v in vars(result.time_split).items() if v is not None},
     )
     return summary, result

@@ -47,7 +47,9 @@ def test_short_training_reports_everything(quadruped: Genome) -> None:
     assert math.isfinite(summary.fitness) and summary.mass == pytest.approx(13.77, abs=0.01)
     assert summary.energy > 0
     assert len(summary.curve_steps) == len(summary.curve_returns) > 0
-    assert set(summary.time_split) == {"env_s", "inference_s", "update_s", "other_s"}
+    split = summary.time_split
+    assert set(split) == {"env_s", "inference_s", "update_s", "other_s", "physics_s"}
+    assert 0 < split["physics_s"] < split["env_s"]  # MuJoCo's share of the environment's time
     again, _ = learn(quadruped, "vt", config)
     assert again.curve_returns == summary.curve_returns  # reproducible
 

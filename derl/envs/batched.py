@@ -13,6 +13,7 @@ Finished copies reset themselves inside `step`, which satisfies `derl.rl.Batched
 from __future__ import annotations
 
 import operator
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import reduce
@@ -87,6 +88,8 @@ class UnimalEnv:
         self.arena_inside = np.array(task.arena.half) - ARENA_MARGIN  # head beyond: off the arena
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self.unstable_count = 0
+        self.physics_s = 0.0
+        """Seconds spent in MuJoCo (the steps, and the forward passes of copies reset)."""
         self._obs_spaces = {"proprioception": self._proprioception(self.all).shape[1]}
         self._obs_spaces.update(task.obs_spaces())
 
@@ -117,10 +120,12 @@ class UnimalEnv:
         np.copyto(self.prev_head, self.head_pos)
         warnings_before = np.add.reduce(self._warning_counts, axis=1)
         failed = None
+        start = time.perf_counter()
         try:
             self.batch.step(nstep=self.config.frame_skip, stage=mujoco.mjtStage.mjSTAGE_VEL)
         except mujoco.batch.SimulationError as error:
             failed = error.ids
+        self.physics_s += time.perf_counter() - start
         unstable = self._unstable(warnings_before, failed)
         unstable_count = np.count_nonzero(unstable)
         self.unstable_count += unstable_count
@@ -277,7 +282,9 @@ class UnimalEnv:
         # the initial state has zero qvel and ctrl
         qvel_noise = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
         self.qvel[ids[:, None], self.agent_dofs] = qvel_noise
+        start = time.perf_counter()
         batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
+        self.physics_s += time.perf_counter() - start
         self.steps[ids] = 0
         self.prev_head[ids] = self.head_pos[ids]
         self.task.placed(self, ids)

@@ -50,6 +50,9 @@ class TimeSplit:
     """GAE and the gradient updates."""
     other_s: float
     """Normalisation, buffer writes, episode bookkeeping, callbacks."""
+    physics_s: float | None = None
+    """The part of `env_s` inside the physics engine, where the environment counts it (its
+    `physics_s` attribute, seconds; `derl.envs.UnimalEnv` does); None where it does not."""
 
 
 @dataclass(frozen=True)
@@ -272,6 +275,7 @@ def train(
 ) -> TrainResult:
     """Train a fresh actor-critic on `env` with PPO; same env, config and seed give the same run."""
     start = time.perf_counter()
+    physics_before = getattr(env, "physics_s", 0.0)
     trainer = _Trainer(env, config)
     trainer.reset()
     curve: list[tuple[int, float]] = []
@@ -295,6 +299,7 @@ def train(
                     )
                 )
     wall = time.perf_counter() - start
+    physics_s = getattr(env, "physics_s", None)
     fitness = trainer.episodes.fitness(
         trainer.env_steps, config.fitness_window_steps, config.recent_episodes
     )
@@ -312,6 +317,7 @@ def train(
             inference_s=trainer.inference_s,
             update_s=trainer.update_s,
             other_s=wall - trainer.env_s - trainer.inference_s - trainer.update_s,
+            physics_s=None if physics_s is None else physics_s - physics_before,
         ),
         checkpoint=trainer.checkpoint(),
         flat_rows=(
