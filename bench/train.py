@@ -7,14 +7,14 @@ shares and in microseconds per env step: physics (MuJoCo's time inside the train
 environment counts: its steps and the forward passes of reset copies), the environment's own
 work (observations, rewards, resets), inference, the PPO update and the rest; beside them the
 physics at the raw rate and the update's arithmetic at the matrix rate, the bound's two terms.
-Also the **bound**: the
-end-to-end rate if everything but the physics and the update's arithmetic (its FLOPs at this
-core's best single-thread matrix rate, measured in the same run) were free, and the
-**efficiency** = end-to-end rate / bound. On VT the update skips the first-layer products of
-heightmap rows that are all zero (flat ground; `derl.rl.fused.SPARSE`): the bench prints their
-share and, beside the bound of the full arithmetic, the bound and efficiency of the arithmetic
-actually done (`*_rows_done`). Then K trainings side by side in K processes (K = every
-core of the machine) against one alone: the share of single-training speed each keeps.
+Also the **bound**: the end-to-end rate if everything but the physics and the update's
+arithmetic (its FLOPs at this core's best single-thread matrix rate, measured in the same run)
+were free, and the **efficiency** = end-to-end rate / bound. On VT the update skips the
+first-layer products of heightmap rows that are all zero (flat ground; `derl.rl.fused.SPARSE`):
+the bench prints their share and, beside the bound of the full arithmetic, the bound and
+efficiency of the arithmetic actually done (`*_rows_done`). Then K trainings side by side in K
+processes (K = every core of the machine) against one alone: the share of single-training speed
+each keeps.
 Run: python bench/train.py [--iterations 20] [--repeats 3]
 """
 

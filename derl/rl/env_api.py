@@ -2,7 +2,8 @@
 
 N copies of one environment are stepped together with numpy arrays in and out. Finished copies
 reset themselves inside `step`. Environment classes conform structurally (`typing.Protocol`), so
-they never import this package.
+they never import this package. An environment may also count the seconds it spends in its
+physics engine in a `physics_s` attribute; the trainer then reports them (`TimeSplit.physics_s`).
 """
 
 from __future__ import annotations
