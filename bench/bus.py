@@ -815,7 +815,7 @@ def file_creation(work: Path, files: int = 500) -> dict[str, float]:
     """The cost of creating a file in the runs' folder: the coordinator creates one per birth
     (its checkpoint, in `checkpoint_writer`'s process), so at a thousand births a second a
     folder whose file system takes a millisecond of CPU per file costs a core (measured on one
-    machine: ~0.9 ms under /tmp, 21 µs elsewhere on the same ext4 disk)."""
+    machine: ~0.9 ms under /tmp, 20 µs elsewhere on the same ext4 disk)."""
     folder = work / "file-creation"
     folder.mkdir()
     wall, cpu = time.perf_counter(), time.process_time()
