@@ -2,13 +2,18 @@
 syncfs, or one fsync per file where there is none; a repeat's link to a file of the same batch;
 one bad file fails alone; a writer process that dies fails its batch, the next starts another)
 and the outbox (replies released once the journal is synced, an Ack only once its checkpoint is
-on disk and never if the write failed, jobs and births not held behind it)."""
+on disk and never if the write failed, jobs and births not held behind it; a failed sync or a
+fault of its own stops the coordinator instead of stalling it)."""
 
 from __future__ import annotations
 
 import errno
+import threading
+import time
 from concurrent.futures import Future
 from pathlib import Path
+
+import pytest
 
 from messages import Ack, RunStatus
 from nodes.coordinator.outbox import Outbox
@@ -100,3 +105,31 @@ def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
     assert [data for _, data in outbox.take()] == [b"ack"]  # the lost one is never sent
     outbox.close()
     journal.close()
+
+
+@pytest.mark.parametrize("fault", [OSError(errno.EIO, "I/O error"), RuntimeError("a bug")])
+def test_an_outbox_that_fails_stops_the_coordinator_instead_of_stalling_it(
+    fault: Exception,
+) -> None:
+    """Nothing is released once the sync fails, or the outbox thread meets a fault of its own:
+    `send` raises it from then on (the coordinator's loop stops on it and its supervisor
+    restarts it from the journal) and `drain` returns; a thread that just died would leave the
+    loop running with every worker waiting for ever."""
+
+    def sync() -> None:
+        raise fault
+
+    outbox = Outbox(sync)
+    status = _status("r", 1)
+    outbox.send([(status, b"first", None)])
+    deadline = time.monotonic() + 5
+    while outbox.failure is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(type(fault)):
+        outbox.send([(status, b"second", None)])
+    drained = threading.Thread(target=outbox.drain, daemon=True)
+    drained.start()
+    drained.join(5)
+    assert not drained.is_alive(), "drain waits for ever"
+    assert outbox.take() == []
+    outbox.close()

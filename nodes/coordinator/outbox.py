@@ -14,7 +14,9 @@ So nothing is seen that a crash, even a power loss, could forget, the loop never
 disk, and the loop alone touches the bus: a publish hands the interpreter lock over, which costs
 little when no other thread wants it (measured at 1,000 simulated workers: fsync and checkpoint
 waits were a quarter of the loop's time; publishing from a second thread made each publish wait
-~0.3 ms for the lock). A failed fsync stops the coordinator: `send` raises it.
+~0.3 ms for the lock). A failed fsync, or any fault of the thread's own, stops the coordinator:
+`send` raises it from then on (a thread that died instead would leave the loop running with
+nothing ever released: workers waiting for ever), and `drain` no longer waits.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ class Outbox:
         self._released: queue.SimpleQueue[list[tuple[MessageBase, bytes]]] = queue.SimpleQueue()
         self._idle = threading.Condition()
         self._pending = 0  # replies handed over, neither released nor dropped yet
-        self.failure: OSError | None = None
+        self.failure: Exception | None = None
         self.released = threading.Event()
         """Set when replies are released (the loop may wait on it instead of sleeping)."""
         self._thread = threading.Thread(target=self._run, name="outbox", daemon=True)
@@ -64,7 +66,7 @@ class Outbox:
     def drain(self) -> None:
         """Wait until every reply handed over is released or dropped."""
         with self._idle:
-            self._idle.wait_for(lambda: self._pending == 0)
+            self._idle.wait_for(lambda: self._pending <= 0)
 
     def close(self) -> None:
         """Release what is waiting, then stop the thread; closing twice is harmless."""
@@ -84,12 +86,24 @@ class Outbox:
             if batch[-1] is None:
                 batch.pop()
                 done = True
-            self._release(batch)
+            try:
+                self._release(batch)
+            except Exception as error:  # stop the coordinator rather than stall it
+                log.critical("the outbox failed: %r", error)
+                self._fail(error)
+
+    def _fail(self, error: Exception) -> None:
+        """Nothing more is released: `send` raises `error` from now on, and `drain` returns."""
+        if self.failure is None:
+            self.failure = error
+        with self._idle:
+            self._pending = 0
+            self._idle.notify_all()
 
     def _count(self, change: int) -> None:
         with self._idle:
             self._pending += change
-            if self._pending == 0:
+            if self._pending <= 0:
                 self._idle.notify_all()
 
     def _release(self, batch: list[list[Reply]]) -> None:
@@ -101,7 +115,7 @@ class Outbox:
                 self._sync()
             except OSError as error:  # nothing may be seen: the loop stops on it
                 log.critical("the journal could not be synced to the disk: %s", error)
-                self.failure = error
+                self._fail(error)
         if self.failure is not None:
             self._count(-len(replies))
             return
