@@ -98,7 +98,6 @@ SCALE_PROFILE = {
 }
 GOAL_RATE = 1000.0
 SLOW_FILE_S = 100e-6  # creating a file slower than this is worth a warning
-PARENTS_KEPT = 1000  # the load generator's parsed parent bodies (the population is 576)
 BODIES = 16  # sampled bodies; the initial population is them and children of them
 
 
@@ -175,17 +174,15 @@ class LoadGenerator:
         self.cancelled = 0
         self.job_s = 0.0
         self.jitter = random.Random(0)
-        # answers to send: (node, job, child, the job's genome, its parent, its mutation seed,
-        # its step budget); job "" asks for work
-        self.answers: queue.Queue[
-            tuple[str, str, str, dict | None, str | None, int | None, int]
-        ] = queue.Queue()
+        # answers to send: (node, job, child, the job's genome, its mutation seed, its step
+        # budget); job "" asks for work
+        self.answers: queue.Queue[tuple[str, str, str, dict | None, int | None, int]] = (
+            queue.Queue()
+        )
         # The generator shares the cores with the coordinator, so it does no more than a worker
-        # must: each node's WorkerReady is encoded once, a parent's body validated once, and a
-        # report is a template's fields filled in, encoded as `encode` would (its bytes are
-        # the same), without validating again what the generator itself made
+        # must: each node's WorkerReady is encoded once, and a report is a template's fields
+        # filled in and packed as `encode` packs it, not validated again
         self.ready_payload: dict[str, bytes] = {}
-        self.parent_bodies: dict[str, Genome] = {}
         self.report = FitnessReport(
             run=run, child="c", job="j", node="n", genome=bodies()[0], fitness=0.0,
             fitness_source="window", fitness_episodes=1,
@@ -252,8 +249,8 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 self.received.append((now, now - since, job["child"]))
-        answer = (node, job["job"], job["child"], job["genome"], job["parent"],
-                  job["mutation_seed"], job["ppo"]["total_steps"])  # fmt: skip
+        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"],
+                  job["ppo"]["total_steps"])  # fmt: skip
         if self.job_s <= 0:
             self.answers.put(answer)
         else:
@@ -273,21 +270,16 @@ class LoadGenerator:
     def _answer(self) -> None:
         while not self.stop.is_set():
             try:
-                node, job, child, genome, parent, seed, budget = self.answers.get(timeout=0.1)
+                node, job, child, genome, seed, budget = self.answers.get(timeout=0.1)
             except queue.Empty:
                 continue
             if not job:  # acknowledged: ask for the next job
                 self._ready(node, time.perf_counter())
                 continue
             mutation = None
-            if seed is not None and parent is not None:
-                body = self.parent_bodies.get(parent)
-                if body is None:
-                    if len(self.parent_bodies) >= PARENTS_KEPT:  # a larger heap's GC stalls
-                        self.parent_bodies.clear()  # the generator (measured: ~70 ms)
-                    body = self.parent_bodies[parent] = Genome.model_validate(genome)
+            if seed is not None:
                 try:
-                    drafted, bred = first_draft(body, seed)
+                    drafted, bred = first_draft(Genome.model_validate(genome), seed)
                     genome, mutation = drafted.model_dump(), bred.op
                 except MutationFailed:  # (a drawn body no operator applies to): the parent's
                     mutation = "gear"
@@ -311,7 +303,7 @@ class LoadGenerator:
             elif node is not None:
                 self.acked.append((now, now - sent))
         if node is not None:
-            self.answers.put((node, "", "", None, None, None, 0))
+            self.answers.put((node, "", "", None, None, 0))
 
     def _resend(self) -> None:
         """Idle simulated workers repeat WorkerReady as real ones do (`ready_wait`)."""
