@@ -88,8 +88,9 @@ class Outbox:
                 done = True
             try:
                 self._release(batch)
-            except Exception as error:  # stop the coordinator rather than stall it
-                log.critical("the outbox failed: %r", error)
+            except Exception as error:  # a failed fsync or a fault of its own: nothing may be
+                # seen, and the loop stops on it (`send`) rather than stall
+                log.critical("the outbox failed (nothing more is published): %r", error)
                 self._fail(error)
 
     def _fail(self, error: Exception) -> None:
@@ -108,17 +109,9 @@ class Outbox:
 
     def _release(self, batch: list[list[Reply]]) -> None:
         replies = [reply for group in batch for reply in group]
-        if not replies:
-            return
-        if self.failure is None:
-            try:
-                self._sync()
-            except OSError as error:  # nothing may be seen: the loop stops on it
-                log.critical("the journal could not be synced to the disk: %s", error)
-                self._fail(error)
-        if self.failure is not None:
-            self._count(-len(replies))
-            return
+        if not replies or self.failure is not None:
+            return  # after a failure, dropped (`_fail` let `drain` return)
+        self._sync()
         # the group's own replies first: a checkpoint written already runs its callback at once,
         # and its Ack must not overtake the Birth journaled before it
         self._publishable([(msg, data) for msg, data, after in replies if after is None])
