@@ -13,9 +13,10 @@
    coordinator's repeat path as in a run. Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
    once, i.e. the most assignments/s the coordinator gives; (c) `half_capacity`: each simulated
-   job lasts W / R s with R = half of (a); (b) `paced`: each job lasts W / R s less the round
-   trip measured in (c), so the workers offer about R = 1,000 assignments/s (the goal's load),
-   run after (c). For each: assignments/s, ready-to-job latency
+   worker's cycle (ask, job, report, Ack: its round trips included) lasts W / R s with R = half
+   of (a), so the workers offer R assignments/s; (b) `paced`: the same with R = 1,000/s (the
+   goal's load), run after (c); each window opens once the previous pace's jobs are over. For
+   each: assignments/s, ready-to-job latency
    p50/p99/max (from the moment a worker became idle until its job arrived), and the CPU use
    of the coordinator and of the load generator (on a small machine they share the cores).
    `work` gives what creating a file costs in the runs' folder (`--work`): the coordinator
@@ -97,6 +98,7 @@ SCALE_PROFILE = {
     "eval_tasks": [],
 }
 GOAL_RATE = 1000.0
+MAX_SETTLE_S = 10.0  # the longest a phase settles before its window opens
 SLOW_FILE_S = 100e-6  # creating a file slower than this is worth a warning
 BODIES = 16  # sampled bodies; the initial population is them and children of them
 
@@ -154,11 +156,13 @@ class LoadGenerator:
 
     Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker.node` minus the
     training: it announces WorkerReady, re-sends it while idle (`ready_wait`), answers each new
-    TrainJob after `job_s` (0: at once) with a fake FitnessReport on its own key
+    TrainJob with a fake FitnessReport on its own key
     (``fitness/<node>/<child>``: a tournament child's first draft, random fitness, a two-point
     curve within the job's budget, no checkpoint), and asks for work again once the report is
     acknowledged, or rejected (counted: the coordinator must accept every report of this
-    generator)."""
+    generator). With `cycle_s` set, a worker's cycle (ask, job, report, Ack) lasts `cycle_s`
+    times a jitter of 0.5-1.5, its round trips included, so W workers offer W / `cycle_s`
+    assignments a second; else (0) it answers at once."""
 
     def __init__(self, run: str, endpoint: str, workers: int) -> None:
         self.run, self.keys = run, KeySpace(run)
@@ -168,11 +172,12 @@ class LoadGenerator:
         self.idle_since: dict[str, float] = {}  # node -> when it became idle
         self.last_ready: dict[str, tuple[float, int]] = {}  # node -> (when, asks unanswered)
         self.received: list[tuple[float, float, str]] = []  # (time, latency, child)
+        self.ack_wait: dict[str, float] = {}  # node -> its last report's wait for the Ack
         self.seen: set[str] = set()  # job ids received
         self.repeated = 0
         self.rejected: Counter[str] = Counter()  # Reject reasons (none expected)
         self.cancelled = 0
-        self.job_s = 0.0
+        self.cycle_s = 0.0
         self.jitter = random.Random(0)
         # answers to send: (node, job, child, the job's genome, its mutation seed, its step
         # budget); job "" asks for work
@@ -249,12 +254,16 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 self.received.append((now, now - since, job["child"]))
+            # the job lasts what is left of the worker's cycle (cycle_s, jittered) once its
+            # round trips (this job's, its last report's Ack) are taken out: so W workers offer
+            # W / cycle_s assignments a second whatever the round trips take
+            spent = (now - since if since is not None else 0.0) + self.ack_wait.get(node, 0.0)
         answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"],
                   job["ppo"]["total_steps"])  # fmt: skip
-        if self.job_s <= 0:
+        delay = self.cycle_s * self.jitter.uniform(0.5, 1.5) - spent if self.cycle_s > 0 else 0.0
+        if delay <= 0:
             self.answers.put(answer)
         else:
-            delay = self.job_s * self.jitter.uniform(0.5, 1.5)
             with self.lock:
                 self.sequence += 1
                 heapq.heappush(self.due, (now + delay, self.sequence, answer))
@@ -302,6 +311,7 @@ class LoadGenerator:
                 self.rejected[ack["reason"][:80]] += 1
             elif node is not None:
                 self.acked.append((now, now - sent))
+                self.ack_wait[node] = now - sent
         if node is not None:
             self.answers.put((node, "", "", None, None, 0))
 
@@ -375,14 +385,19 @@ def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, ob
             saturated = _phase(generator, coordinator.pid, 0.0, duration)
             result["saturated"] = saturated
             capacity = max(float(saturated["assignments_per_s"]), 1.0)
-            overhead = 0.0  # a simulated worker's cycle beyond its job: the round trips
+            before = 0.0  # the previous phase's cycle
             for name, rate in (("half_capacity", capacity / 2), ("paced_1000_per_s", GOAL_RATE)):
-                job_s = max(workers / rate - overhead, 0.01)
-                phase = _phase(generator, coordinator.pid, job_s, duration, settle=job_s * 1.5)
-                result[name] = {"offered_per_s": round(rate, 1), "job_s": round(job_s, 3),
+                cycle_s = workers / rate
+                # the window opens once every job given at the previous pace is answered and
+                # the new pace has run a whole cycle (one lasts up to 1.5 times cycle_s): while
+                # both paces' jobs end together the offered rate overshoots the new one (from
+                # half capacity to 1,000/s, measured: the p99 of a window opened 1.5 cycles
+                # after the change was 46-65 ms, every job over 50 ms in its first half second)
+                phase = _phase(generator, coordinator.pid, cycle_s, duration,
+                               settle=1.5 * (before + cycle_s))  # fmt: skip
+                before = cycle_s
+                result[name] = {"offered_per_s": round(rate, 1), "cycle_s": round(cycle_s, 3),
                                 **phase}  # fmt: skip
-                served = max(float(phase["assignments_per_s"]), 1.0)
-                overhead = max(workers / served - job_s, 0.0)  # the next phase's job is shorter
         finally:
             generator.close()
     finally:
@@ -391,10 +406,10 @@ def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, ob
 
 
 def _phase(
-    generator: LoadGenerator, pid: int, job_s: float, duration: float, settle: float = 1.0
+    generator: LoadGenerator, pid: int, cycle_s: float, duration: float, settle: float = 1.0
 ) -> dict[str, object]:
-    generator.job_s = job_s
-    time.sleep(min(settle, 10.0))
+    generator.cycle_s = cycle_s
+    time.sleep(min(settle, MAX_SETTLE_S))
     own = os.getpid()
     cpu0, generator0, start = _cpu_s(pid), _cpu_s(own), time.perf_counter()
     time.sleep(duration)
@@ -404,9 +419,11 @@ def _phase(
     # the load generator shares the machine's cores with the coordinator
     out["load_generator_cpu_share"] = round((_cpu_s(own) - generator0) / (end - start), 2)
     # every simulated worker went through a few jobs before the window (Little's law: one
-    # cycle lasts W / rate): else the latencies still hold the start's queue
+    # cycle lasts W / rate): else the latencies still hold the start's queue; and the phase
+    # settled as long as its paces need (not at 10,000 workers: their cycles are too long)
     rate = max(float(out["assignments_per_s"]), 1e-9)
-    out["steady_state"] = start - generator.started >= 2 * len(generator.nodes) / rate
+    cycles = start - generator.started >= 2 * len(generator.nodes) / rate
+    out["steady_state"] = cycles and settle <= MAX_SETTLE_S
     return out
 
 
