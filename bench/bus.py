@@ -500,11 +500,12 @@ class Driver:
         job = state.job_of(node)
         return None if job is None else job.order
 
-    def run(self, births: int) -> list[float]:
+    def run(self, births: int, profiler: cProfile.Profile | None = None) -> list[float]:
         """`births` more births; the CPU seconds of this thread each assignment took (decoding a
         fitness report, handling it and the worker's next WorkerReady, each one a group of its
         own: the most journal flushes; the checkpoint files are written by the coordinator's
-        other thread; breeding the reported child is the trainer's part, not timed)."""
+        other thread; breeding the reported child is the trainer's part, neither timed nor
+        profiled)."""
         coordinator = self.coordinator
         times: list[float] = []
         target = coordinator.born + births
@@ -521,12 +522,16 @@ class Driver:
                 continue
             job = self.busy.popleft()
             data = encode(_report(coordinator.run, job, self.rng.uniform(0, 100)))
+            if profiler is not None:
+                profiler.enable()
             start = time.thread_time()
             coordinator._fitness(decode(data))  # decoding is the coordinator's part
             coordinator._flush()
             coordinator._publish_released()
             following = self._ready(job.node)
             times.append(time.thread_time() - start)
+            if profiler is not None:
+                profiler.disable()
             self.busy.append(following) if following else self.idle.append(job.node)
         return times
 
@@ -560,9 +565,7 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
         window = coordinator.state.births[born:]
         repeats = sum(1 for birth in window if birth.repeat_of) / len(window)
         profiler = cProfile.Profile(time.thread_time)
-        profiler.enable()
-        profiled = driver.run(births)
-        profiler.disable()
+        profiled = driver.run(births, profiler)
         coordinator.close()
         stats = pstats.Stats(profiler, stream=io.StringIO()).stats
         total = sum(profiled)
