@@ -4,21 +4,20 @@ For FT and VT with a 6- and a 10-limb body, on one core: end-to-end env steps/s 
 training, the raw physics rate of the same body measured in the same run (the same
 `mujoco.batch.Batch` stepping alone: the ceiling), their ratio, and where the wall time went, as
 shares and in microseconds per env step: physics (MuJoCo's time inside the training, which the
-environment counts: its steps and the forward passes of reset copies), the environment's own
-work (observations, rewards, resets), inference, the PPO update and the rest; beside them the
-physics at the raw rate and the update's arithmetic at the matrix rate, the bound's two terms.
-Also the **bound**: the end-to-end rate if everything but the physics and the update's
-arithmetic (its FLOPs at this core's best single-thread matrix rate, measured in the same run)
-were free, and the **efficiency** = end-to-end rate / bound. The bound's physics is MuJoCo's
-time for the median training's very steps replayed alone (`replayed_physics_s`: the same body,
-seed and actions give the same states; no network in between), so that states that cost more or
-less than the raw rate's (random actions from a standing start) move the bound, not the
-efficiency; the bound from the raw rate is printed beside it (`*_at_raw_physics`). On VT the update skips the
-first-layer products of heightmap rows that are all zero (flat ground; `derl.rl.fused.SPARSE`):
-the bench prints their share and, beside the bound of the full arithmetic, the bound and
-efficiency of the arithmetic actually done (`*_rows_done`). Then K trainings side by side in K
-processes (K = every core of the machine) against one alone: the share of single-training speed
-each keeps.
+environment counts: its steps and the forward passes of reset copies), the environment's own work
+(observations, rewards, resets), inference, the PPO update and the rest; beside them the physics at
+the raw rate and the update's arithmetic at the matrix rate, the bound's two terms. Also the
+**bound**: the end-to-end rate if everything but the physics and the update's arithmetic (its FLOPs
+at this core's best single-thread matrix rate, measured in the same run) were free, and the
+**efficiency** = end-to-end rate / bound. The bound's physics is MuJoCo's time for the median
+training's very steps replayed alone (`replayed_physics_s`: the same body, seed and actions give
+the same states; no network in between), so that states that cost more or less than the raw rate's
+(random actions from a standing start) move the bound, not the efficiency; the bound from the raw
+rate is printed beside it (`*_at_raw_physics`). On VT the update skips the first-layer products of
+heightmap rows that are all zero (flat ground; `derl.rl.fused.SPARSE`): the bench prints their
+share and, beside the bound of the full arithmetic, the bound and efficiency of the arithmetic
+actually done (`*_rows_done`). Then K trainings side by side in K processes (K = every core of the
+machine) against one alone: the share of single-training speed each keeps.
 Run: python bench/train.py [--iterations 20] [--repeats 3]
 """
 
@@ -121,6 +120,7 @@ def training(world: str, limbs: int, iterations: int) -> dict[str, object]:
         "steps_per_s": result.steps_per_second,
         **{k: v for k, v in vars(result.time_split).items() if v is not None},
         **flat,
+        "config": config,
         "actions": env.actions,
         "final_qpos": env.env.qpos.copy(),
     }
@@ -131,14 +131,14 @@ def replayed_physics_s(world: str, limbs: int, run: dict[str, object]) -> float:
     and actions give the same states, resets included (checked on the final state), without
     the network's work in between. This is the bound's physics term: the raw rate steps other
     states (random actions from a standing start), which cost less or more than a training's."""
-    config = ppo_config(world, 4096, seed=0)
+    config = run["config"]
     env = make_env(reference_body(limbs), world, config.num_envs, config.seed)
     env.reset(config.seed)
     before = env.physics_s
     for actions in run["actions"]:
         env.step(actions)
     if not np.array_equal(env.qpos, run["final_qpos"]):
-        raise RuntimeError(f"the replay of {world}-{limbs} left another state than its training")
+        raise RuntimeError(f"the replay of {world}-{limbs} did not end in its training's state")
     return env.physics_s - before
 
 

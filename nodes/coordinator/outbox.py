@@ -14,13 +14,12 @@ So nothing is seen that a crash, even a power loss, could forget, the loop never
 disk, and the loop alone touches the bus: a publish hands the interpreter lock over, which costs
 little when no other thread wants it (measured at 1,000 simulated workers: fsync and checkpoint
 waits were a quarter of the loop's time; publishing from a second thread made each publish wait
-~0.3 ms for the lock). This thread pays that price itself: after each fsync it waits for the
-lock behind the busy loop, a switch interval (5 ms) or more when other threads wait too
-(measured: the fsync takes p99 0.5 ms on the disk and 13-14 ms as this thread sees it; a
-shorter interval moved the wait to the loop).
-A failed fsync, or any fault of the thread's own, stops the coordinator:
-`send` raises it from then on (a thread that died instead would leave the loop running with
-nothing ever released: workers waiting for ever), and `drain` no longer waits.
+~0.3 ms for the lock). This thread pays that price itself: after each fsync it waits for the lock
+behind the busy loop, a switch interval (5 ms) or more when other threads wait too (measured: the
+fsync takes p99 0.5 ms on the disk and 13-14 ms as this thread sees it; a shorter interval moved
+the wait to the loop). A failed fsync, or any fault of the thread's own, stops the coordinator:
+`send` raises it from then on (a thread that died instead would leave the loop running with nothing
+ever released: workers waiting for ever), and `drain` no longer waits.
 """
 
 from __future__ import annotations
