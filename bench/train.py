@@ -110,10 +110,15 @@ class Recorded:
         return self.env.step(actions)
 
 
+def _training_env(world: str, limbs: int, config: PPOConfig) -> UnimalEnv:
+    """The environment a training with `config` runs in (as `derl.lifetime.learn` makes it)."""
+    return make_env(reference_body(limbs), world, config.num_envs, config.seed)
+
+
 def training(world: str, limbs: int, iterations: int) -> dict[str, object]:
     """A short training (as `derl.lifetime.learn` runs it), with its actions and final state."""
     config = ppo_config(world, iterations * 4096, seed=0)
-    env = Recorded(make_env(reference_body(limbs), world, config.num_envs, config.seed))
+    env = Recorded(_training_env(world, limbs, config))
     result = train(env, config)
     flat = {} if result.flat_rows is None else {"flat_rows": result.flat_rows}
     return {
@@ -132,7 +137,7 @@ def replayed_physics_s(world: str, limbs: int, run: dict[str, object]) -> float:
     the network's work in between. This is the bound's physics term: the raw rate steps other
     states (random actions from a standing start), which cost less or more than a training's."""
     config = run["config"]
-    env = make_env(reference_body(limbs), world, config.num_envs, config.seed)
+    env = _training_env(world, limbs, config)
     env.reset(config.seed)
     before = env.physics_s
     for actions in run["actions"]:
