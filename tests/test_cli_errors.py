@@ -1,8 +1,9 @@
 """Bad input on the command line gets one clear line and a non-zero exit, never a traceback or a
 hang: one row per mistake a user makes (a budget below one rollout, zero workers or copies, a
 port in use, a missing run directory or log, a run directory that is a file, a misspelt key in a
-profile or a launch file, an unknown message type, a folder with no trained body, a study with
-no runs, of a missing run or not made yet, a run directory of another run id)."""
+profile or a launch file, a job's own setting among a profile's PPO hyperparameters, an unknown
+message type, a folder with no trained body, a study with no runs, of a missing run or not made
+yet, a run directory of another run id)."""
 
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ def busy_port() -> Iterator[int]:
 def _files(tmp: Path, genome: Genome) -> None:
     (tmp / GENOME).write_text(genome.model_dump_json())
     (tmp / "typo.yaml").write_text(yaml.safe_dump({"profile": "smoke", "populaton": 3}))
+    # a job's own setting under `ppo`: each job's copies come from the profile's `num_envs`
+    (tmp / "job-key.yaml").write_text(yaml.safe_dump({"profile": "smoke", "ppo": {"num_envs": 64}}))
     launch = {"run": "r", "run_dir": "runs/r", "topology": {"kind": "peer_mesh",
               "seed": "tcp/127.0.0.1:7447"}, "hosts": [{"name": "h", "nodes": [{"role":
               "trainer", "cont": 2}]}]}  # fmt: skip
@@ -52,6 +55,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "zero workers": (["run", "--workers", "0"], 2, "--workers: must be at least 1, not 0"),
     "misspelt profile key": (["run", "--profile", "typo.yaml"], 1,
                              "unknown key 'populaton'; valid keys: name, world, population"),
+    "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,
+                                  "unknown key 'ppo.num_envs'; valid keys: rollout_steps, gamma"),
     "misspelt launch key": (["launch", "launch.yaml", "--dry-run"], 1,
                             "unknown key 'hosts.0.nodes.0.cont'; valid keys: role, count"),
     "run directory is a file": (["run", "--run-dir", "a-file"], 1, "a-file is a file"),

@@ -21,6 +21,7 @@ import pytest
 
 from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
 from derl.evolution.population import first_draft
+from derl.rl import PPOConfig, PPOHyperparameters
 from derl.unimal import Genome, sample_population
 from messages import (
     Ack,
@@ -384,3 +385,24 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
         coordinator.stop.set()
         serving.join(timeout=30)
     assert not serving.is_alive()
+
+
+def test_a_run_saved_when_ppo_held_every_ppoconfig_field_resumes_as_it_ran(tmp_path: Path) -> None:
+    """Until 2026-12-03 a run's `profile.json` held every `PPOConfig` field under `ppo`, each
+    job's copies, budget and seed included, which no job used (theirs came from the profile's
+    own fields, as now): such a run resumes with its saved hyperparameters, and its jobs train
+    as they did; in a profile, the same keys are an error (tests/test_cli_errors.py)."""
+    config = load_profile("smoke")
+    saved = config.model_dump(mode="json")
+    saved["ppo"] = PPOConfig(num_envs=64, total_steps=10**7, seed=5, lr=1e-4).model_dump()
+    (tmp_path / node.PROFILE_FILE).write_text(json.dumps(saved))
+    initial = sample_population(config.population, np.random.default_rng(3))
+    (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
+    coordinator = Coordinator(run_id(), tmp_path, config)
+    try:
+        assert coordinator.config.ppo == PPOHyperparameters(lr=1e-4)
+        ppo = coordinator.config.training_ppo()
+        assert (ppo.num_envs, ppo.total_steps, ppo.seed, ppo.lr) == (
+            config.num_envs, config.train_steps, config.training_seed, 1e-4)  # fmt: skip
+    finally:
+        coordinator.close()

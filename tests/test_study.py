@@ -15,9 +15,10 @@ from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for,
 
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
+from derl.rl import PPOConfig
 from derl.unimal import Genome
 from messages import Curve, EvalJob, EvalResult, JobFailed
-from nodes.coordinator.study import StudyState, read_plan
+from nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
 
 CONFIG = StudyConfig(
     per_lineage=2,
@@ -203,3 +204,14 @@ def test_a_study_of_two_worlds_from_runs_to_figure_4(tmp_path: Path, procs: Proc
     rows = (out / "tests.csv").read_text().splitlines()
     assert "steps" in rows[0].split(",") and len(rows) == 1 + len(tests)
     assert (out / "tests.png").stat().st_size > 10_000
+
+
+def test_a_study_saved_when_ppo_held_every_ppoconfig_field_reads_back(tmp_path: Path) -> None:
+    """A `study.json` written before 2026-12-03 holds every `PPOConfig` field under the
+    settings' `ppo`, each training's copies, budget and seed included, which no training used:
+    it reads back as the study it was."""
+    setup = StudySetup(config=STUDY_PROFILES["smoke"], runs=(tmp_path / "run",))
+    saved = setup.model_dump(mode="json")
+    saved["config"]["ppo"] = PPOConfig(num_envs=64, total_steps=10**7, seed=5).model_dump()
+    (tmp_path / SETUP_FILE).write_text(json.dumps(saved))
+    assert read_setup(tmp_path) == setup

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from derl.envs.registry import TASKS, TEST_TASKS, WORLDS
 from derl.evolution.config import MAX_LEASE_S, job_ppo, load_settings
-from derl.rl import PPOConfig
+from derl.rl import PPOConfig, PPOHyperparameters
 
 
 class StudyConfig(BaseModel):
@@ -39,7 +39,9 @@ class StudyConfig(BaseModel):
         (5_000_000, 1_000_000), min_length=1, description="env steps of a test (figs. 4b, 4c)"
     )
     num_envs: int = Field(32, ge=1, description="environment copies of every training")
-    ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters")
+    ppo: PPOHyperparameters = Field(
+        default_factory=PPOHyperparameters, description="PPO hyperparameters"
+    )
     lease_s: float = Field(
         60.0, gt=0, le=MAX_LEASE_S, description="a job without progress this long is reassigned"
     )

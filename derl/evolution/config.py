@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from derl.envs.registry import TASKS, TEST_TASKS, make_task
 from derl.lifetime import ppo_config
-from derl.rl import PPOConfig
+from derl.rl import PPOConfig, PPOHyperparameters
 
 CONTROL_DT = 0.02  # s per control step
 EPISODE_STEPS = 1000
@@ -62,7 +62,9 @@ class EvolutionConfig(BaseModel):
     eval_tasks: tuple[str, ...] = Field((), description="test tasks of the final evaluations")
     eval_seeds: int = Field(1, ge=1, description="evaluations of each body per test task (seeds)")
     eval_steps: int = Field(1_000_000, ge=1, description="PPO env steps per evaluation")
-    ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters")
+    ppo: PPOHyperparameters = Field(
+        default_factory=PPOHyperparameters, description="PPO hyperparameters"
+    )
 
     def training_ppo(self) -> PPOConfig:
         """The PPO of every training of this run's evolution."""
@@ -99,12 +101,13 @@ class EvolutionConfig(BaseModel):
         return self
 
 
-def job_ppo(task: str, steps: int, seed: int, num_envs: int, hyper: PPOConfig) -> PPOConfig:
+def job_ppo(
+    task: str, steps: int, seed: int, num_envs: int, hyper: PPOHyperparameters
+) -> PPOConfig:
     """The PPO of one job: `hyper`'s hyperparameters with the job's budget, seed and copies and
     the task's fitness settings; ValueError saying why when the budget does not fit them."""
-    per_job = {"total_steps", "seed", "num_envs", "fitness_component", "fitness_window_steps"}
     try:
-        return ppo_config(task, steps, seed, num_envs=num_envs, **hyper.model_dump(exclude=per_job))
+        return ppo_config(task, steps, seed, num_envs=num_envs, **hyper.model_dump())
     except ValidationError as error:
         reasons = "; ".join(e["msg"].removeprefix("Value error, ") for e in error.errors())
         raise ValueError(f"PPO of {task} with {steps} steps: {reasons}") from None

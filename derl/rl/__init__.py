@@ -12,7 +12,7 @@ __getattr__, __all__ = exports(
     __name__,
     {
         "checkpoint": ("Checkpoint", "Policy"),
-        "config": ("PPOConfig",),
+        "config": ("PPOConfig", "PPOHyperparameters"),
         "env_api": ("BatchedEnv", "Obs", "StepResult"),
         "episodes": ("EpisodeLog",),
         "gym_adapter": ("GymBatchedEnv",),

@@ -42,6 +42,7 @@ import zenoh
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
+from derl.rl.config import SAVED
 from derl.unimal import Genome, to_mjcf
 from messages import (
     Ack,
@@ -168,7 +169,7 @@ class Coordinator:
             write_atomic(path, given.model_dump_json(indent=2) + "\n")
             return given
         try:
-            saved = EvolutionConfig.model_validate_json(path.read_text())
+            saved = EvolutionConfig.model_validate_json(path.read_text(), context=SAVED)
         except ValidationError as error:
             raise SystemExit(f"derl: {path} is not a valid run configuration:\n{error}") from None
         if (saved.name, saved.world, saved.seed) != (given.name, given.world, given.seed):

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from derl.analysis.selection import RetrainJob, RetrainPlan, by_mean_fitness
 from derl.analysis.study import StudyConfig
 from derl.rl import PPOConfig
+from derl.rl.config import SAVED
 from derl.unimal import Genome
 from messages import PopulationSnapshot, RunStatus
 from nodes.coordinator.node import Coordinator, serve
@@ -221,16 +222,16 @@ class StudyCoordinator(Coordinator):
 
 
 def read_setup(study_dir: Path) -> StudySetup:
-    return _read(study_dir / SETUP_FILE, StudySetup)
+    return _read(study_dir / SETUP_FILE, StudySetup, context=SAVED)
 
 
 def read_plan(study_dir: Path) -> RetrainPlan:
     return _read(study_dir / PLAN_FILE, RetrainPlan)
 
 
-def _read(path: Path, model: type[M]) -> M:
+def _read(path: Path, model: type[M], context: dict[str, object] | None = None) -> M:
     try:
-        return model.model_validate_json(path.read_text())
+        return model.model_validate_json(path.read_text(), context=context)
     except FileNotFoundError:
         raise SystemExit(f"derl: {path.parent} is not a study (no {path.name}): start it with "
                          "`derl study RUN_DIR... --study-dir DIR`") from None  # fmt: skip

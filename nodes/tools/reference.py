@@ -24,7 +24,7 @@ import messages.schema
 import messages.types
 from derl.analysis.study import STUDY_PROFILES, StudyConfig
 from derl.evolution.config import PROFILES, EvolutionConfig
-from derl.rl.config import PPOConfig
+from derl.rl.config import PPOConfig, PPOHyperparameters
 from derl.unimal.genome import Genome, Joint, Limb
 from messages import MESSAGE_TYPES, SCHEMA_VERSION, Curve, KeySpace, Member, MessageBase
 from messages.examples import examples
@@ -34,7 +34,8 @@ from nodes.launch.model import HostSpec, LaunchFile, NodeSpec, PeerMesh, RouterT
 from nodes.runtime.bus import congestion_control
 from nodes.tools.logs import base64_text, json_form
 
-PPO_ANCHOR: Final = "#ppo-ppoconfig"
+PPO_ANCHOR: Final = "#ppoconfig"
+HYPER_ANCHOR: Final = "#ppo-ppohyperparameters"
 NESTED: Final = (Curve, Member, Genome, Limb, Joint)
 LAUNCH_MODELS: Final = (LaunchFile, HostSpec, NodeSpec, PeerMesh, RouterTopology)
 
@@ -148,6 +149,7 @@ def configuration() -> str:
     study's), the launch file."""
     links = {m.__name__: f"#{m.__name__.lower()}" for m in LAUNCH_MODELS}
     links[PPOConfig.__name__] = PPO_ANCHOR
+    links[PPOHyperparameters.__name__] = HYPER_ANCHOR
     lines = _header("Configuration", "configuration")
     lines += [
         *_profiles(
@@ -159,18 +161,23 @@ def configuration() -> str:
             _profile_values(lambda p: p),
             links,
         ),
-        "## ppo: PPOConfig",
+        "## ppo: PPOHyperparameters",
         "",
-        _markdown(inspect.getdoc(PPOConfig)),
+        _markdown(inspect.getdoc(PPOHyperparameters)),
         "",
-        *_fields_table(PPOConfig, links, "key", _profile_values(lambda p: p.ppo)),
+        *_fields_table(PPOHyperparameters, links, "key", _profile_values(lambda p: p.ppo)),
+        "## PPOConfig",
+        "",
+        _markdown(inspect.getdoc(PPOConfig)) + " Every job carries one (`TrainJob`, `EvalJob`).",
+        "",
+        *_fields_table(PPOConfig, links, "field"),
         *_profiles(
             "Study profiles",
             derl.analysis.study,
             StudyConfig,
             "`derl study --profile NAME|FILE.yaml` chooses one (an unknown key is an error that "
-            "names the valid ones); its `ppo` is a [PPOConfig](#ppo-ppoconfig). The built-in "
-            "study profiles:",
+            f"names the valid ones); its `ppo` is a [PPOHyperparameters]({HYPER_ANCHOR}). The "
+            "built-in study profiles:",
             dict(STUDY_PROFILES),
             links,
         ),
