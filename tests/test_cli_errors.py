@@ -1,12 +1,13 @@
 """Bad input on the command line gets one clear line and a non-zero exit, never a traceback or a
-hang: one row per mistake a user makes (a budget below one rollout, zero workers or copies, a
-port in use, a missing run directory or log, a run directory that is a file, a misspelt key in a
-profile or a launch file, a job's own setting among a profile's PPO hyperparameters, an unknown
-message type, a folder with no trained body, a study with no runs, of a missing run or not made
-yet, a run directory of another run id)."""
+hang: one row per mistake a user makes (a budget below one rollout, an impossible genome, zero
+workers or copies, a port in use, a missing run directory or log, a run directory that is a
+file, a misspelt key in a profile or a launch file, a job's own setting among a profile's PPO
+hyperparameters, an unknown message type, a folder with no trained body, a study with no runs,
+of a missing run or not made yet, a run directory of another run id)."""
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -43,6 +44,9 @@ def _files(tmp: Path, genome: Genome) -> None:
               "trainer", "cont": 2}]}]}  # fmt: skip
     (tmp / "launch.yaml").write_text(yaml.safe_dump(launch))
     (tmp / "a-file").write_text("")
+    no_joints = genome.model_dump(mode="json")
+    no_joints["limbs"][0]["joints"] = []
+    (tmp / "no-joints.json").write_text(json.dumps(no_joints))
     with Journal(tmp / "other") as journal:  # a run directory of run "other"
         journal.write(WorkerReady(run="other", node="n", role="trainer", host="h", pid=1))
 
@@ -50,6 +54,8 @@ def _files(tmp: Path, genome: Genome) -> None:
 CASES = {  # name: (arguments, exit status, what its last line says)
     "budget below one rollout": (["train", "--genome", GENOME, "--out", "t", "--steps", "100"],
                                  1, "total_steps 100 < one rollout"),
+    "an impossible genome": (["train", "--genome", "no-joints.json", "--out", "t"], 1,
+                             "no-joints.json is not a valid genome: limbs.0: limb 0: joints must"),
     "zero copies": (["train", "--genome", GENOME, "--out", "t", "--envs", "0"], 2,
                     "--envs: must be at least 1, not 0"),
     "zero workers": (["run", "--workers", "0"], 2, "--workers: must be at least 1, not 0"),

@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from derl.envs.registry import TASKS, TEST_TASKS, make_task
 from derl.lifetime import ppo_config
 from derl.rl import PPOConfig, PPOHyperparameters
+from derl.validation import problems
 
 CONTROL_DT = 0.02  # s per control step
 EPISODE_STEPS = 1000
@@ -109,8 +110,7 @@ def job_ppo(
     try:
         return ppo_config(task, steps, seed, num_envs=num_envs, **hyper.model_dump())
     except ValidationError as error:
-        reasons = "; ".join(e["msg"].removeprefix("Value error, ") for e in error.errors())
-        raise ValueError(f"PPO of {task} with {steps} steps: {reasons}") from None
+        raise ValueError(f"PPO of {task} with {steps} steps: {problems(error)}") from None
 
 
 PROFILES: dict[str, EvolutionConfig] = {

@@ -14,6 +14,7 @@ import yaml
 import zenoh
 from pydantic import BaseModel, ValidationError
 
+from derl.validation import problems
 from nodes.runtime.bus import ZenohOptions
 
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
@@ -35,17 +36,6 @@ def at_least_one(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
     return value
-
-
-def problems(error: ValidationError, names: dict[str, str] | None = None) -> str:
-    """A pydantic error in one line: `field: reason; ...` (fields renamed by `names`)."""
-    names = names or {}
-    reasons = []
-    for item in error.errors():
-        where = ".".join(names.get(str(part), str(part)) for part in item["loc"])
-        reason = item["msg"].removeprefix("Value error, ")
-        reasons.append(f"{where}: {reason}" if where else reason)
-    return "; ".join(reasons)
 
 
 def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True) -> None:

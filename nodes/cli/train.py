@@ -11,7 +11,8 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from derl.replay import CHECKPOINT, EPISODE_STEPS, GENOME, RESULT
-from nodes.cli.options import at_least_one, fail, problems
+from derl.validation import problems
+from nodes.cli.options import at_least_one, fail
 
 console = Console()
 

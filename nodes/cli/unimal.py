@@ -48,11 +48,12 @@ def load_genome(path: Path):  # -> Genome
     from pydantic import ValidationError
 
     from derl.unimal import Genome
+    from derl.validation import problems
 
     try:
         return Genome.model_validate_json(path.read_text())
     except ValidationError as error:
-        raise SystemExit(f"derl: {path} is not a valid genome:\n{error}") from None
+        raise SystemExit(f"derl: {path} is not a valid genome: {problems(error)}") from None
     except OSError as error:
         raise SystemExit(f"derl: cannot read {path}: {error.strerror}") from None
 

@@ -44,6 +44,7 @@ from pydantic import ValidationError
 from derl.evolution import EvolutionConfig
 from derl.rl.config import SAVED
 from derl.unimal import Genome, to_mjcf
+from derl.validation import problems
 from messages import (
     Ack,
     Birth,
@@ -171,7 +172,9 @@ class Coordinator:
         try:
             saved = EvolutionConfig.model_validate_json(path.read_text(), context=SAVED)
         except ValidationError as error:
-            raise SystemExit(f"derl: {path} is not a valid run configuration:\n{error}") from None
+            raise SystemExit(
+                f"derl: {path} is not a valid run configuration: {problems(error)}"
+            ) from None
         if (saved.name, saved.world, saved.seed) != (given.name, given.world, given.seed):
             raise SystemExit(
                 f"derl: {self.run_dir} holds a run of profile {saved.name} in {saved.world} with "

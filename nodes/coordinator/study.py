@@ -26,6 +26,7 @@ from derl.analysis.study import StudyConfig
 from derl.rl import PPOConfig
 from derl.rl.config import SAVED
 from derl.unimal import Genome
+from derl.validation import problems
 from messages import PopulationSnapshot, RunStatus
 from nodes.coordinator.node import Coordinator, serve
 from nodes.coordinator.state import CoordinatorState
@@ -235,8 +236,10 @@ def _read(path: Path, model: type[M], context: dict[str, object] | None = None) 
     except FileNotFoundError:
         raise SystemExit(f"derl: {path.parent} is not a study (no {path.name}): start it with "
                          "`derl study RUN_DIR... --study-dir DIR`") from None  # fmt: skip
-    except (OSError, ValidationError) as error:
-        raise SystemExit(f"derl: {path} is not valid: {error}") from None
+    except OSError as error:
+        raise SystemExit(f"derl: {path} is not readable: {error}") from None
+    except ValidationError as error:
+        raise SystemExit(f"derl: {path} is not valid: {problems(error)}") from None
 
 
 def prepare_study(study_dir: Path, runs: list[Path], config: StudyConfig) -> StudySetup:
