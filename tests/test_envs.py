@@ -60,13 +60,16 @@ def test_forward_reward_is_fifty_times_the_distance(quadruped: Genome, task: str
 
 
 def test_ctrl_cost_and_energy(quadruped: Genome) -> None:
+    """The control cost is on the actions as the policy gave them, unclipped (the released
+    code); MuJoCo gets them clipped to [-1, 1], and the energy (cost of work) is theirs."""
     env = _env(quadruped, "ft")
     env.reset(0)
     actions = np.full((env.num_envs, env.action_dim), 0.5, np.float32)
     actions[:, 0] = 3.0  # clipped to 1
     result = env.step(actions)
-    expected = -1e-3 * (0.25 * (env.action_dim - 1) + 1.0)
-    np.testing.assert_allclose(result.components["ctrl"], expected)
+    expected = -1e-3 * (0.25 * (env.action_dim - 1) + 9.0)
+    np.testing.assert_allclose(result.components["ctrl"], expected, rtol=1e-6)
+    assert np.all(env.ctrl[:, 0] == 1.0)
     gears = env.model.actuator_gear[:, 0]
     np.testing.assert_allclose(result.components["energy"], 0.5 * gears.sum() + 0.5 * gears[0])
 

@@ -114,7 +114,9 @@ class UnimalEnv:
         return self._reset(self.all)
 
     def step(self, actions: np.ndarray) -> StepResult:
-        """Apply (N, A) actions for one control step."""
+        """Apply (N, A) actions for one control step: MuJoCo gets them clipped to [-1, 1], the
+        control cost is on them as given (the released code's)."""
+        self.action = actions
         # np.clip(actions, -1, 1) without its Python wrappers (ufunc calls here and below)
         np.minimum(np.maximum(actions, -1.0, out=self.ctrl), 1.0, out=self.ctrl)
         np.copyto(self.prev_head, self.head_pos)
@@ -156,7 +158,8 @@ class UnimalEnv:
 
     # head_pos (N, 3): head centre in the world; head_vel (N, 3): its linear velocity; head_rot
     # (N, 3, 3): its orientation, columns are the head's axes in the world; prev_head (N, 3): the
-    # head centre before the last step; ctrl (N, A): the clipped actions. Live views (`_bind`).
+    # head centre before the last step; ctrl (N, A): the clipped actions; action (N, A): the last
+    # actions as given. Live views (`_bind`), but `action`.
 
     def to_head_frame(self, vectors: np.ndarray) -> np.ndarray:
         """World vectors (N, 3) expressed in each copy's head frame."""
@@ -263,6 +266,7 @@ class UnimalEnv:
         self.head_vel = self.qvel[:, self.root_dof : self.root_dof + 3]
         self.head_rot = self.xmat[:, self.head].reshape(-1, 3, 3)
         self.prev_head = np.zeros((self.num_envs, 3))
+        self.action = np.zeros((self.num_envs, self.model.nu))
 
     def _reset(self, ids: np.ndarray) -> Arrays:
         """New episodes for copies ``ids``; their first observations."""

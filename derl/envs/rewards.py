@@ -52,7 +52,8 @@ REWARD_WEIGHTS: dict[str, RewardWeights] = {
 
 
 class Ctrl(RewardTerm):
-    """``-w_c |a|^2`` over the clipped actions."""
+    """``-w_c |a|^2`` over the actions as the policy gave them, unclipped (the released code:
+    MuJoCo clamps the control it applies to [-1, 1])."""
 
     name: ClassVar[str] = "ctrl"
 
@@ -60,7 +61,7 @@ class Ctrl(RewardTerm):
         self.weight = weights.ctrl
 
     def __call__(self, env: EnvView) -> np.ndarray:
-        return -self.weight * np.add.reduce(np.square(env.ctrl), axis=1)
+        return -self.weight * np.add.reduce(np.square(env.action), axis=1)
 
 
 class Forward(RewardTerm):

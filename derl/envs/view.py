@@ -69,6 +69,11 @@ class EnvView(Protocol):
         ...
 
     @property
+    def action(self) -> np.ndarray:
+        """(N, A) the last actions as the policy gave them (unclipped)."""
+        ...
+
+    @property
     def yaw(self) -> np.ndarray:
         """(N,) heading: the head's x axis projected on the ground, from +x towards +y."""
         ...

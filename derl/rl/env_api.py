@@ -52,7 +52,7 @@ class BatchedEnv(Protocol):
 
     @property
     def action_dim(self) -> int:
-        """Action size A; actions lie in [-1, 1]."""
+        """Action size A; actions are applied within [-1, 1]."""
         ...
 
     def reset(self, seed: int) -> Obs:
@@ -60,5 +60,6 @@ class BatchedEnv(Protocol):
         ...
 
     def step(self, actions: np.ndarray) -> StepResult:
-        """Apply (N, A) float32 actions in [-1, 1] to all copies."""
+        """Apply (N, A) float32 actions to all copies: the policy's samples, unclipped; the
+        environment clips them to [-1, 1] where it applies them."""
         ...

@@ -126,7 +126,6 @@ class _Rollout:
         # advantage, old value, return. Gathered together per minibatch.
         self.aux = np.zeros((steps, num_envs, action_dim + 4), f32)
         self.actions = self.aux[..., :action_dim]
-        self.clipped = np.zeros((num_envs, action_dim), f32)
         self.values = np.zeros((steps + 1, num_envs), f32)
         self.final_values = np.zeros((steps, num_envs), f32)
         self.rewards = np.zeros((steps, num_envs), f32)
@@ -185,9 +184,8 @@ class _Trainer:
         for t in range(self.config.rollout_steps):
             t0 = clock()
             fused.act(buf.obs_rows(t), buf.noise[t], buf.actions[t])
-            np.minimum(np.maximum(buf.actions[t], -1.0, out=buf.clipped), 1.0, out=buf.clipped)
             t1 = clock()
-            step = self.env.step(buf.clipped)
+            step = self.env.step(buf.actions[t])  # unclipped: the env clips what it applies
             t2 = clock()
             self.env_s += t2 - t1
             self.inference_s += t1 - t0
