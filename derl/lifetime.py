@@ -1,11 +1,12 @@
 """Lifetime learning of one body in one task: build its batched environment, train a controller
 from scratch with PPO, and measure what evolution and the analyses need.
 
-Fitness is the mean episode sum of the task's selection component (forward progress for FT/VT,
-reach + push for MVT) over the episodes that finished in the last `fitness_window` steps: the
-paper's last 100k of 5M steps, scaled with the budget (a tenth of it) for short trainings. Cost
-of work over the same episodes is E / (M g r): E the episode's sum of |joint torque|, M the
-body's mass, r its selection reward (undefined, NaN, when r <= 0).
+Fitness is the released code's: the mean, over the last `FITNESS_ITERATIONS` PPO iterations (of
+a shorter training, all of them), of each iteration's mean episode sum of the task's selection
+component (forward progress for FT/VT, reach + push for MVT) over the last 10 finished episodes;
+for the paper's 5M steps, about the last 410k. Cost of work over the episodes finished in the
+same window is E / (M g r): E the episode's sum of |joint torque|, M the body's mass, r its
+selection reward (undefined, NaN, when r <= 0).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ if TYPE_CHECKING:
     from derl.rl.ppo import Progress, TrainResult
 
 GRAVITY = 9.81
-PAPER_WINDOW = 100_000
+FITNESS_ITERATIONS = 100
+"""The released code's fitness: the mean of its last 100 per-iteration values."""
 
 
 class LifetimeResult(BaseModel):
@@ -49,16 +51,16 @@ class LifetimeResult(BaseModel):
     time_split: dict[str, float]
 
 
-def fitness_window(total_steps: int, batch_size: int) -> int:
-    """The paper's 100k-step window, or a tenth of a shorter budget (at least one rollout)."""
-    return min(PAPER_WINDOW, max(total_steps // 10, batch_size))
+def fitness_window(batch_size: int) -> int:
+    """The env steps of the fitness's last `FITNESS_ITERATIONS` iterations of `batch_size`."""
+    return FITNESS_ITERATIONS * batch_size
 
 
 def ppo_config(task: str, steps: int, seed: int, **overrides: object) -> PPOConfig:
-    """The paper's PPO for a task: its fitness component and a budget-scaled fitness window."""
+    """The paper's PPO for a task: its fitness component and the released code's fitness window."""
     base = PPOConfig(total_steps=steps, seed=seed, **overrides)
     component = make_task(task).fitness_component
-    window = fitness_window(base.total_steps, base.batch_size)
+    window = fitness_window(base.batch_size)
     return base.model_copy(update={"fitness_component": component, "fitness_window_steps": window})
 
 

@@ -32,9 +32,9 @@ from messages.types import (
 SCHEMA_VERSION: Final = 3
 
 FitnessSource = Literal["window", "last_episodes", "unfinished"]
-"""As `derl.rl.episodes.FitnessSource`: "window" (episodes finished in the last window of steps,
-the definition), "last_episodes" (none there: the last finished ones), "unfinished" (none at all:
-the partial sums of the running episodes)."""
+"""As `derl.rl.episodes.FitnessSource`: "window" (the learning curve's values of the iterations in
+the last window of steps, the definition), "last_episodes" (a single episode finished: its sum),
+"unfinished" (none did: the partial sums of the running episodes)."""
 
 LeaseSeconds = Annotated[float, Field(gt=0, le=86_400, allow_inf_nan=False)]
 
@@ -256,7 +256,7 @@ class FitnessReport(MessageBase):
     fitness_source: FitnessSource
     """Which episodes the fitness comes from."""
     fitness_episodes: Count
-    """Episodes the fitness averages."""
+    """Finished episodes the fitness averages."""
     curve: Curve
     """The learning curve."""
     energy: Measure

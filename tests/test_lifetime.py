@@ -33,9 +33,8 @@ def _random_policy_fitness(genome: Genome, episodes: int = 64) -> float:
 
 
 def test_fitness_window_scales_with_the_budget() -> None:
-    assert fitness_window(5_000_000, 4096) == 100_000
-    assert fitness_window(500_000, 4096) == 50_000
-    assert fitness_window(8192, 4096) == 4096
+    assert fitness_window(4096) == 409_600  # the released code's last 100 iterations
+    assert fitness_window(2048) == 204_800
     config = ppo_config("mvt", 8192, seed=3)
     assert config.fitness_component == "manipulation" and config.seed == 3
 
@@ -84,8 +83,8 @@ def test_ppo_makes_a_quadruped_walk_forward(quadruped: Genome) -> None:
     random_fitness = _random_policy_fitness(quadruped)
     summary, _ = learn(quadruped, "ft", ppo_config("ft", 500_000, seed=1409))
     # Measured here: the random policy scores about -10 (it falls backwards); after 500k steps
-    # the fitness is 65 (seeds 1 and 2: 26 and 36; the 1M-step curve in the README reaches
-    # about 76).
+    # the curve ends at 60 and the fitness, the mean of the last 100 iterations' values (from
+    # 90k steps on), is 30 (seed 1: 27 and 12).
     assert random_fitness < 0
-    assert summary.fitness > 25 and summary.fitness > random_fitness + 30
+    assert summary.fitness > 20 and summary.fitness > random_fitness + 30
     assert summary.curve_returns[-1] > summary.curve_returns[0] + 25

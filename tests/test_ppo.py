@@ -269,21 +269,32 @@ def test_reward_scaler_divides_by_return_std_and_round_trips() -> None:
 
 
 def test_fitness_window_and_fallbacks() -> None:
-    tracker = EpisodeTracker(num_envs=2, component="forward", recent=10)
+    """The released code's fitness: the mean of the per-iteration values (the mean of the last
+    `recent` finished episodes, once two have finished) in the window; before that, the one
+    finished episode, or the running partial sums."""
+    tracker = EpisodeTracker(num_envs=2, component="forward", recent=2)
     no, first, both = np.array([False, False]), np.array([True, False]), np.array([True, True])
     tracker.step(np.ones(2), {"forward": np.array([1.0, 2.0])}, no, env_steps=2)
-    assert tracker.fitness(2, window=10, fallback_episodes=10).source == "unfinished"
-    assert tracker.fitness(2, window=10, fallback_episodes=10).value == pytest.approx(1.5)
+    assert tracker.end_iteration(2) is None
+    unfinished = tracker.fitness(2, window=10)
+    assert (unfinished.value, unfinished.source, unfinished.episodes) == (1.5, "unfinished", 0)
     tracker.step(np.ones(2), {"forward": np.array([1.0, 2.0])}, first, env_steps=4)
+    assert tracker.end_iteration(4) is None  # one episode: no curve point yet
+    single = tracker.fitness(4, window=10)
+    assert (single.value, single.source, single.episodes) == (2.0, "last_episodes", 1)
     tracker.step(np.ones(2), {"forward": np.array([5.0, 2.0])}, both, env_steps=100)
+    assert tracker.end_iteration(100) == 5.5  # episodes 5 and 6 (recent=2)
+    tracker.step(np.ones(2), {"forward": np.array([0.0, 1.0])}, np.array([False, True]), 200)
+    assert tracker.end_iteration(200) == 3.5  # episodes 6 and 1
     log = tracker.log()
-    np.testing.assert_array_equal(log.finish_step, [4, 100, 100])
-    np.testing.assert_array_equal(log.components["forward"], [2.0, 5.0, 6.0])
-    np.testing.assert_array_equal(log.length, [2, 1, 3])
-    window = tracker.fitness(100, window=50, fallback_episodes=10)
-    assert (window.value, window.source, window.episodes) == (5.5, "window", 2)
-    late = tracker.fitness(1000, window=50, fallback_episodes=2)
-    assert (late.value, late.source, late.episodes) == (5.5, "last_episodes", 2)
+    np.testing.assert_array_equal(log.finish_step, [4, 100, 100, 200])
+    np.testing.assert_array_equal(log.components["forward"], [2.0, 5.0, 6.0, 1.0])
+    np.testing.assert_array_equal(log.length, [2, 1, 3, 1])
+    assert tracker.curve == [(100, 5.5), (200, 3.5)]
+    last = tracker.fitness(200, window=50)
+    assert (last.value, last.source, last.episodes) == (3.5, "window", 2)
+    both_points = tracker.fitness(200, window=150)
+    assert (both_points.value, both_points.source, both_points.episodes) == (4.5, "window", 3)
 
 
 def test_checkpoint_bytes_give_identical_actions() -> None:

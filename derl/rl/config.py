@@ -63,7 +63,10 @@ class PPOConfig(PPOHyperparameters):
     )
     fitness_component: str = Field("forward", description="reward component the fitness sums")
     fitness_window_steps: int = Field(
-        100_000, ge=1, description="fitness averages episodes finished in the last this many steps"
+        409_600,
+        ge=1,
+        description="the fitness averages the curve's values of the iterations in the last this "
+        "many steps (the released code's 100 iterations)",
     )
 
     @property

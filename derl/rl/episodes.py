@@ -1,8 +1,11 @@
-"""Vectorised episode bookkeeping during training, and the fitness computed from it.
+"""Vectorised episode bookkeeping during training, the learning curve and the fitness from it.
 
 Per copy, running sums of the reward and of every reward component plus the episode length; when
 copies finish, one record per episode (env step at finish, return, component sums, length) is
-appended for all of them at once.
+appended for all of them at once. At the end of every iteration, once two episodes have finished,
+the curve gets the mean fitness-component sum of the last `recent` finished episodes (the released
+code's per-iteration value); the fitness is the mean of the curve's values in the last window of
+steps (the released code's: its last 100 values).
 """
 
 from __future__ import annotations
@@ -36,9 +39,10 @@ class EpisodeLog:
 class Fitness:
     """Mean episode sum of one reward component, and where it came from.
 
-    `source` is "window" (episodes finished in the last window of steps, the definition),
-    "last_episodes" (none finished in the window: the last finished ones), or "unfinished"
-    (no episode finished at all: the partial sums of the episodes still running).
+    `source` is "window" (the mean of the curve's values of the iterations in the last window of
+    steps, the definition; `episodes`: the finished episodes those values average), else
+    "last_episodes" (a single episode finished: its sum), or "unfinished" (none did: the partial
+    sums of the episodes still running).
     """
 
     value: float
@@ -59,6 +63,10 @@ class EpisodeTracker:
         self._ret: list[np.ndarray] = []
         self._length: list[np.ndarray] = []
         self._components: dict[str, list[np.ndarray]] = {}
+        self.curve: list[tuple[int, float]] = []
+        """Per iteration once two episodes have finished: (env steps, `recent_mean()`)."""
+        self._finished: list[int] = []  # per curve point: episodes finished by then
+        self.count = 0  # episodes finished so far
 
     def step(
         self,
@@ -90,12 +98,23 @@ class EpisodeTracker:
             self._components[key].append(running[idx])
             running[idx] = 0.0
         self.recent.extend(self._components[self.component][-1])
+        self.count += idx.size
         self.ret[idx] = 0.0
         self.length[idx] = 0
 
-    def recent_mean(self) -> float | None:
-        """Mean fitness-component sum over the last few finished episodes (None before any)."""
-        return float(np.mean(self.recent)) if self.recent else None
+    def end_iteration(self, env_steps: int) -> float | None:
+        """Close an iteration: its curve point, once two episodes have finished (the released
+        code's condition), which it returns; None before."""
+        if self.count < 2:
+            return None
+        value = self.recent_mean()
+        self.curve.append((env_steps, value))
+        self._finished.append(self.count)
+        return value
+
+    def recent_mean(self) -> float:
+        """Mean fitness-component sum over the last `recent` finished episodes (some finished)."""
+        return float(np.mean(self.recent))
 
     def log(self) -> EpisodeLog:
         def cat(parts: list[np.ndarray], dtype: type) -> np.ndarray:
@@ -108,14 +127,17 @@ class EpisodeTracker:
             components={k: cat(v, np.float64) for k, v in self._components.items()},
         )
 
-    def fitness(self, env_steps: int, window: int, fallback_episodes: int) -> Fitness:
-        """Mean fitness-component sum over episodes finished in the last `window` steps."""
+    def fitness(self, env_steps: int, window: int) -> Fitness:
+        """Mean of the curve's values of the iterations that ended in the last `window` steps
+        (`env_steps`: the steps done, the last curve point's)."""
+        if self.curve:
+            steps = np.array([point[0] for point in self.curve])
+            first = int(np.searchsorted(steps, env_steps - window, side="right"))
+            values = [value for _, value in self.curve[first:]]
+            # the first value averages the `recent` episodes finished last by its iteration
+            episodes = self._finished[-1] - max(0, self._finished[first] - self.recent.maxlen)
+            return Fitness(float(np.mean(values)), "window", episodes)
         log = self.log()
-        if len(log) == 0:
-            return Fitness(float(self.sums[self.component].mean()), "unfinished", 0)
-        sums = log.components[self.component]
-        in_window = log.finish_step > env_steps - window
-        if in_window.any():
-            return Fitness(float(sums[in_window].mean()), "window", int(in_window.sum()))
-        last = sums[-fallback_episodes:]
-        return Fitness(float(last.mean()), "last_episodes", len(last))
+        if len(log):
+            return Fitness(float(log.components[self.component].mean()), "last_episodes", len(log))
+        return Fitness(float(self.sums[self.component].mean()), "unfinished", 0)

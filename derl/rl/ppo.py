@@ -34,7 +34,7 @@ class Progress:
     iterations: int
     env_steps: int
     recent_return: float | None
-    """Mean fitness-component sum of the last finished episodes (None before the first)."""
+    """Mean fitness-component sum of the last finished episodes (None before two finished)."""
     steps_per_second: float
 
 
@@ -62,13 +62,13 @@ class TrainResult:
     fitness: float
     """Mean episode sum of `config.fitness_component` (see `fitness_source`)."""
     fitness_source: FitnessSource
-    """"window": episodes finished in the last `fitness_window_steps` (the definition);
-    "last_episodes": none finished there, the last `recent_episodes` were used;
-    "unfinished": no episode finished at all, the running partial sums were used."""
+    """"window": the mean of the curve's values of the iterations in the last
+    `fitness_window_steps` (the definition); "last_episodes": a single episode finished, its
+    sum; "unfinished": no episode finished at all, the running partial sums were used."""
     fitness_episodes: int
     curve: list[tuple[int, float]]
-    """Per iteration (once an episode has finished): (env steps, mean fitness-component sum
-    over the last `recent_episodes` finished episodes)."""
+    """Per iteration (once two episodes have finished, as the released code): (env steps, mean
+    fitness-component sum over the last `recent_episodes` finished episodes)."""
     episodes: EpisodeLog
     env_steps: int
     wall_time_s: float
@@ -276,15 +276,12 @@ def train(
     physics_before = getattr(env, "physics_s", 0.0)
     trainer = _Trainer(env, config)
     trainer.reset()
-    curve: list[tuple[int, float]] = []
     # numpy's BLAS (the sampling's products) on as many threads as torch's
     with threadpool_limits(config.torch_threads, user_api="blas"):
         for iteration in range(config.iterations):
             trainer.collect()
             trainer.update(iteration)
-            recent = trainer.episodes.recent_mean()
-            if recent is not None:
-                curve.append((trainer.env_steps, recent))
+            recent = trainer.episodes.end_iteration(trainer.env_steps)
             if callback is not None:
                 elapsed = time.perf_counter() - start
                 callback(
@@ -298,14 +295,12 @@ def train(
                 )
     wall = time.perf_counter() - start
     physics_s = getattr(env, "physics_s", None)
-    fitness = trainer.episodes.fitness(
-        trainer.env_steps, config.fitness_window_steps, config.recent_episodes
-    )
+    fitness = trainer.episodes.fitness(trainer.env_steps, config.fitness_window_steps)
     return TrainResult(
         fitness=fitness.value,
         fitness_source=fitness.source,
         fitness_episodes=fitness.episodes,
-        curve=curve,
+        curve=trainer.episodes.curve,
         episodes=trainer.episodes.log(),
         env_steps=trainer.env_steps,
         wall_time_s=wall,
