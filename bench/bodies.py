@@ -1,21 +1,17 @@
-"""Reference bodies for the benchmarks: a 6-limb and a 10-limb UNIMAL, the same on every run."""
+"""Reference bodies for the benchmarks: a 6-limb and a 10-limb UNIMAL, the same on every run and
+every version (`reference_bodies.json`: drawn once, on 2026-12-03, so that figures measured before
+and after a change of the mutations compare the same bodies)."""
 
 from __future__ import annotations
 
-import numpy as np
+import json
+from pathlib import Path
 
-from derl.unimal import Genome, MutationFailed, mutate, random_genome
+from derl.unimal import Genome
+
+FILE = Path(__file__).with_name("reference_bodies.json")
 
 
-def reference_body(limbs: int, seed: int = 0) -> Genome:
-    """The first random body (from `seed`) grown or drawn to exactly `limbs` limbs."""
-    rng = np.random.default_rng(seed)
-    while True:
-        genome = random_genome(rng)
-        while genome.num_limbs < limbs:
-            try:
-                genome, _ = mutate(genome, rng, op="grow_limb")
-            except MutationFailed:
-                break
-        if genome.num_limbs == limbs:
-            return genome
+def reference_body(limbs: int) -> Genome:
+    """The reference body with `limbs` limbs (6 or 10)."""
+    return Genome.model_validate(json.loads(FILE.read_text())[str(limbs)])
