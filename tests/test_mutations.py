@@ -20,6 +20,12 @@ from derl.unimal import (
 )
 from derl.unimal.geometry import MIRROR, layout
 from derl.unimal.mjcf import agent_spec
+from derl.unimal.mutations import (
+    PAIR_ON_PAIR_DIRECTIONS,
+    PAIR_ON_SAGITTAL_DIRECTIONS,
+    SAGITTAL_DIRECTIONS,
+    draw_direction,
+)
 from derl.unimal.space import MAX_LIMBS
 
 
@@ -115,3 +121,25 @@ def test_any_mutation_sequence_gives_a_valid_symmetric_body(seed: int, steps: in
         except MutationFailed:
             continue
         _assert_symmetric_and_valid(genome)
+
+
+@pytest.mark.parametrize(
+    ("allowed", "down", "others"),
+    [
+        (SAGITTAL_DIRECTIONS, 8 / 12, 1 / 12),  # theta 0 or 180 with phi 90 or 135
+        (PAIR_ON_SAGITTAL_DIRECTIONS, 0.0, 1 / 6),  # each theta or its mirror twin's
+        (PAIR_ON_PAIR_DIRECTIONS, 8 / 24, 1 / 24),
+    ],
+)
+def test_directions_are_drawn_as_the_released_code_draws_them(
+    allowed: tuple[tuple[int, int], ...], down: float, others: float
+) -> None:
+    """theta and phi independently, again until allowed: straight down, which every theta
+    gives with phi 180, is 8 times likelier than another direction (not uniform)."""
+    rng = np.random.default_rng(0)
+    draws = [draw_direction(rng, allowed) for _ in range(24_000)]
+    share = {d: draws.count(d) / len(draws) for d in allowed}
+    assert share.get((0, 180), 0.0) == pytest.approx(down, abs=0.015)
+    for direction, value in share.items():
+        if direction != (0, 180):
+            assert value == pytest.approx(others, abs=0.015)

@@ -27,7 +27,10 @@ from derl.unimal.validity import InvalidBody, check_body
 MAX_ATTEMPTS = 50
 MIN_LIMBS_TO_DELETE = 3
 
-# Distinct limb directions (theta, phi) by where a new limb hangs.
+Direction = tuple[int, int]
+"""(theta, phi) in degrees."""
+
+# Distinct limb directions by where a new limb hangs.
 SAGITTAL_DIRECTIONS = ((0, 90), (180, 90), (0, 135), (180, 135), (0, 180))
 PAIR_ON_SAGITTAL_DIRECTIONS = tuple((t, p) for t in (45, 90, 135) for p in (90, 135))
 PAIR_ON_PAIR_DIRECTIONS = (*((t, p) for t in THETAS for p in PHIS if p != 180), (0, 180))
@@ -65,6 +68,21 @@ def _other(rng: np.random.Generator, options: Sequence[T], current: T) -> T:
     return _pick(rng, [o for o in options if o != current])
 
 
+def draw_direction(rng: np.random.Generator, allowed: Sequence[Direction]) -> Direction:
+    """A new limb's direction among those `allowed` at its site, drawn as the released code
+    draws it: theta (8 values) and phi (3) independently, again until they give an allowed
+    direction. So a direction is as likely as the draws that give it: straight down (phi 180)
+    for any theta, a pair's theta or its mirror twin's (360 - theta)."""
+    while True:
+        theta, phi = _pick(rng, THETAS), _pick(rng, PHIS)
+        if phi == 180:
+            theta = 0
+        elif (theta, phi) not in allowed:
+            theta = 360 - theta  # the mirror twin of a pair on the sagittal plane
+        if (theta, phi) in allowed:
+            return theta, phi
+
+
 def random_joint(rng: np.random.Generator, axis: str) -> Joint:
     return Joint(axis=axis, range=_pick(rng, JOINT_RANGES), gear=_pick(rng, GEARS))
 
@@ -99,7 +117,7 @@ def grow_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
         directions = PAIR_ON_SAGITTAL_DIRECTIONS if paired else SAGITTAL_DIRECTIONS
     else:
         paired, directions = True, PAIR_ON_PAIR_DIRECTIONS
-    theta, phi = _pick(rng, directions)
+    theta, phi = draw_direction(rng, directions)
     new = Limb(
         id=genome.next_id(),
         parent=parent,
