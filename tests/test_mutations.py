@@ -34,7 +34,7 @@ def test_each_operator_changes_what_it_says(quadruped: Genome, op: str) -> None:
     rng = np.random.default_rng(1)
     child, mutation = mutate(quadruped, rng, op=op)
     assert mutation.op == op
-    assert child != quadruped
+    assert child != quadruped  # a redrawn value may also come out as it was (not with this seed)
     check_body(child)
     if op == "grow_limb":
         assert child.num_limbs in (quadruped.num_limbs + 1, quadruped.num_limbs + 2)
@@ -143,3 +143,20 @@ def test_directions_are_drawn_as_the_released_code_draws_them(
     for direction, value in share.items():
         if direction != (0, 180):
             assert value == pytest.approx(others, abs=0.015)
+
+
+def test_joint_mutations_redraw_every_limb_entry_half_the_time(quadruped: Genome) -> None:
+    """joint_angle, gear and dof redraw the hinges of every limb entry (a limb or a pair) with
+    probability 1/2, else of one; density redraws both densities (the released code)."""
+    rng = np.random.default_rng(5)
+    for op in ("joint_angle", "gear", "dof"):
+        changed = []
+        for _ in range(400):
+            child, _ = mutate(quadruped, rng, op=op, check=lambda genome: None)
+            changed.append(sum(a != b for a, b in zip(quadruped.limbs, child.limbs, strict=True)))
+        assert 0.38 < sum(count >= 2 for count in changed) / len(changed) < 0.6, op
+        assert max(changed) == len(quadruped.limbs)
+    children = [mutate(quadruped, rng, op="density")[0] for _ in range(400)]
+    limbs, head = quadruped.limb_density, quadruped.head_density
+    both = [c.limb_density != limbs and c.head_density != head for c in children]
+    assert sum(both) / len(both) == pytest.approx((5 / 6) ** 2, abs=0.08)

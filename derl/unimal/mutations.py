@@ -148,43 +148,47 @@ def limb_params(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
 
 
 def density(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """A new density for all limbs, or for the head."""
-    field = _pick(rng, ("limb_density", "head_density"))
-    value = _other(rng, DENSITIES, getattr(genome, field))
-    return _with(genome, **{field: value}), f"{field} {value}"
+    """New densities for the limbs and for the head, each drawn anew (either may come out as it
+    was: the released code)."""
+    limbs, head = _pick(rng, DENSITIES), _pick(rng, DENSITIES)
+    return _with(genome, limb_density=limbs, head_density=head), f"limbs {limbs}, head {head}"
+
+
+def _mutate_joints(
+    genome: Genome, rng: np.random.Generator, redraw: Callable[[Limb], tuple[Joint, ...]]
+) -> tuple[Genome, str]:
+    """New hinges (`redraw`) for every limb entry (a limb or a pair) with probability 1/2, else
+    for one drawn entry: the released code's `mutate_joint`. The values are drawn anew, so a
+    hinge may come out as it was."""
+    chosen = genome.limbs if rng.integers(2) else (_pick(rng, genome.limbs),)
+    new = {limb.id: Limb(**{**dict(limb), "joints": redraw(limb)}) for limb in chosen}
+    child = _with(genome, limbs=tuple(new.get(limb.id, limb) for limb in genome.limbs))
+    return child, f"limb{'s' * (len(new) > 1)} {', '.join(map(str, new))}"
 
 
 def dof(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """A new set of hinge axes for a limb (or pair); kept axes keep their range and gear."""
-    limb = _pick(rng, genome.limbs)
-    current = tuple(j.axis for j in limb.joints)
-    axes = _other(rng, AXIS_SETS, current)
-    kept = {j.axis: j for j in limb.joints}
-    joints = tuple(kept.get(axis) or random_joint(rng, axis) for axis in axes)
-    return _replace(genome, limb, joints=joints), f"limb {limb.id} axes {''.join(axes)}"
-
-
-def _mutate_joint(
-    genome: Genome, rng: np.random.Generator, field: str, options: Sequence[object]
-) -> tuple[Genome, str]:
-    limb = _pick(rng, genome.limbs)
-    index = int(rng.integers(len(limb.joints)))
-    joint = limb.joints[index]
-    value = _other(rng, options, getattr(joint, field))
-    joints = list(limb.joints)
-    joints[index] = Joint(**{**dict(joint), field: value})
-    child = _replace(genome, limb, joints=tuple(joints))
-    return child, f"limb {limb.id} joint {joint.axis} {field} {value}"
+    """New hinges, their axes drawn anew, with new ranges and gears."""
+    return _mutate_joints(genome, rng, lambda _: random_joints(rng))
 
 
 def joint_angle(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """A new range for one hinge of a limb (or pair)."""
-    return _mutate_joint(genome, rng, "range", JOINT_RANGES)
+    """A new range for every hinge (of one limb entry, or of all)."""
+    return _mutate_joints(
+        genome,
+        rng,
+        lambda limb: tuple(
+            Joint(**{**dict(j), "range": _pick(rng, JOINT_RANGES)}) for j in limb.joints
+        ),
+    )
 
 
 def gear(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """A new motor gear for one hinge of a limb (or pair)."""
-    return _mutate_joint(genome, rng, "gear", GEARS)
+    """A new motor gear for every hinge (of one limb entry, or of all)."""
+    return _mutate_joints(
+        genome,
+        rng,
+        lambda limb: tuple(Joint(**{**dict(j), "gear": _pick(rng, GEARS)}) for j in limb.joints),
+    )
 
 
 OPERATORS: dict[str, Operator] = {
