@@ -64,10 +64,6 @@ def _pick(rng: np.random.Generator, items: Sequence[T]) -> T:
     return items[int(rng.integers(len(items)))]
 
 
-def _other(rng: np.random.Generator, options: Sequence[T], current: T) -> T:
-    return _pick(rng, [o for o in options if o != current])
-
-
 def draw_direction(rng: np.random.Generator, allowed: Sequence[Direction]) -> Direction:
     """A new limb's direction among those `allowed` at its site, drawn as the released code
     draws it: theta (8 values) and phi (3) independently, again until they give an allowed
@@ -141,9 +137,10 @@ def delete_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
 
 
 def limb_params(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """Give a limb (or pair) a new length; its children move with its sites."""
+    """Give a limb (or pair) a length drawn anew (it may come out as it was: the released code);
+    its children move with its sites."""
     limb = _pick(rng, genome.limbs)
-    length = _other(rng, LIMB_LENGTHS, limb.length)
+    length = _pick(rng, LIMB_LENGTHS)
     return _replace(genome, limb, length=length), f"limb {limb.id} length {length}"
 
 
