@@ -180,6 +180,13 @@ def test_object_is_seen_in_the_head_frame(quadruped: Genome) -> None:
     np.testing.assert_allclose(seen[9:12], [goal[1], -goal[0], goal[2]], atol=1e-5)
 
 
+def test_mvt_agents_see_the_box_and_goal_not_the_terrain() -> None:
+    """The released code's MVT observes proprioception and the object only: its configuration
+    lists the heightmap, but the manipulation environment never adds it."""
+    assert make_task("mvt").obs_spaces() == {"object": 12}
+    assert set(make_task("vt").obs_spaces()) == {"heightmap"}
+
+
 def test_mvt_places_box_and_goal_as_the_released_code(quadruped: Genome) -> None:
     """The box a whole 15-24 m ahead of the spawn, the goal 15-24 m beyond it; 10 m (plus half
     sizes) kept free along the sides; the goal's centre 0.11 m above the ground."""

@@ -72,7 +72,9 @@ def mvt(
     grid: HeightmapGrid | None = None,
     placement: BoxPlacement | None = None,
 ) -> Task:
-    """MVT: VT's terrain on 60 m x 40 m, a box, and a goal further along +x than the box."""
+    """MVT: VT's terrain on 60 m x 40 m, a box, and a goal further along +x than the box. The
+    agent sees the box and the goal, not the terrain: the released code's MVT observes no
+    heightmap (its configuration lists one, but its manipulation environment never adds it)."""
     terrain = terrain or TerrainConfig.manipulation()
     w = weights or REWARD_WEIGHTS["mvt"]
     arena = Heightfield(terrain, grid or HeightmapGrid())
@@ -87,6 +89,6 @@ def mvt(
         spawn=spawn,
         props=(box,),
         rewards=(reach, PushObject(box, w, reach), Ctrl(w)),
-        observations=(Heightmap(arena), ObjectSeen(box)),
+        observations=(ObjectSeen(box),),
         metrics={"manipulation": ("reach", "push")},
     )
