@@ -158,8 +158,8 @@ class UnimalEnv:
 
     # head_pos (N, 3): head centre in the world; head_vel (N, 3): its linear velocity; head_rot
     # (N, 3, 3): its orientation, columns are the head's axes in the world; prev_head (N, 3): the
-    # head centre before the last step; ctrl (N, A): the clipped actions; action (N, A): the last
-    # actions as given. Live views (`_bind`), but `action`.
+    # head centre before the last step; ctrl (N, A): the clipped actions. Live views (`_bind`).
+    # action (N, A): the actions as the last `step` was given them (unclipped).
 
     def to_head_frame(self, vectors: np.ndarray) -> np.ndarray:
         """World vectors (N, 3) expressed in each copy's head frame."""

@@ -15,6 +15,7 @@ from derl.unimal.mutations import (
     PAIR_ON_PAIR_DIRECTIONS,
     PAIR_ON_SAGITTAL_DIRECTIONS,
     SAGITTAL_DIRECTIONS,
+    Direction,
 )
 from derl.unimal.space import (
     AXIS_SETS,
@@ -25,7 +26,6 @@ from derl.unimal.space import (
     MAX_LIMBS,
 )
 
-Direction = tuple[int, int]
 Poly = list[int]
 
 
