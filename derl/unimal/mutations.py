@@ -168,24 +168,21 @@ def dof(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
     return _mutate_joints(genome, rng, lambda _: random_joints(rng))
 
 
+def _redrawn(
+    rng: np.random.Generator, field: str, options: Sequence[object]
+) -> Callable[[Limb], tuple[Joint, ...]]:
+    """A limb's hinges, each with `field` drawn anew from `options`."""
+    return lambda limb: tuple(Joint(**{**dict(j), field: _pick(rng, options)}) for j in limb.joints)
+
+
 def joint_angle(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
     """A new range for every hinge (of one limb entry, or of all)."""
-    return _mutate_joints(
-        genome,
-        rng,
-        lambda limb: tuple(
-            Joint(**{**dict(j), "range": _pick(rng, JOINT_RANGES)}) for j in limb.joints
-        ),
-    )
+    return _mutate_joints(genome, rng, _redrawn(rng, "range", JOINT_RANGES))
 
 
 def gear(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
     """A new motor gear for every hinge (of one limb entry, or of all)."""
-    return _mutate_joints(
-        genome,
-        rng,
-        lambda limb: tuple(Joint(**{**dict(j), "gear": _pick(rng, GEARS)}) for j in limb.joints),
-    )
+    return _mutate_joints(genome, rng, _redrawn(rng, "gear", GEARS))
 
 
 OPERATORS: dict[str, Operator] = {
