@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from derl.evolution import Child, Evolution, breed, load_profile, population
-from derl.evolution.population import first_draft
+from derl.evolution.population import first_draft, tournament_draws
 from derl.unimal import Genome, Joint, Limb, body_hash, check_body, is_valid, sample_population
 from derl.unimal.mutations import OPERATORS, MutationFailed
 
@@ -138,6 +138,18 @@ def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body
     evolution.record(again)
     evolution.birth(again.name, 50.0, breed(*evolution.to_train(again.name))[0])
     assert evolution.best() == member  # the first born of equals
+
+
+def test_tournament_draws_are_uniform_with_replacement_and_fixed_for_a_seed() -> None:
+    assert tournament_draws(1, 0, 4, 64) == ([9, 58, 54, 37], 3066514885187968334)  # any numpy
+    assert tournament_draws(1, 0, 4, 64) != tournament_draws(2, 0, 4, 64)
+    assert tournament_draws(1, 0, 4, 64) != tournament_draws(1, 1, 4, 64)
+    positions, seed = tournament_draws(5, 9, 40, 3)  # more draws than one hash block, and repeats
+    assert len(positions) == 40 and set(positions) == {0, 1, 2} and 0 <= seed < 2**63
+    counts = np.bincount(
+        [p for k in range(4000) for p in tournament_draws(7, k, 4, 8)[0]], minlength=8
+    )
+    assert counts.sum() == 16000 and np.all(np.abs(counts - 2000) < 200)  # 4.7 sigma
 
 
 def test_replaying_decisions_and_births_rebuilds_the_state(initial: list[Genome]) -> None:

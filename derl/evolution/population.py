@@ -3,7 +3,7 @@
 The population is the P most recently born agents, in birth order. The initial P bodies come from
 the run's seed; afterwards each tournament draws T members with replacement, the fittest is the
 parent (the first drawn among equals), and one mutation of its body is the child. Tournament k
-draws from its own generator seeded by (seed, 1, k), so a decision depends only on the state it
+draws from a hash of (seed, k) (`tournament_draws`), so a decision depends only on the state it
 was made in: replaying recorded decisions and births rebuilds the same state, and the next
 decision is the one the crashed run would have made.
 
@@ -19,6 +19,8 @@ looked up: a draft that is a born body is the child if valid, checked once per b
 
 from __future__ import annotations
 
+import hashlib
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -37,6 +39,21 @@ from derl.unimal import (
 )
 
 MAX_DRAWS = 100
+
+
+def tournament_draws(
+    seed: int, iteration: int, size: int, population: int
+) -> tuple[list[int], int]:
+    """Tournament `iteration`'s draws: `size` positions in a population of `population`, drawn
+    with replacement, and a 63-bit mutation seed. A counter-based generator: 8 bytes of the
+    SHAKE-128 digest of (seed, iteration) per draw, a position the 64-bit word modulo
+    `population` (a bias under 2**-50). A tenth of what a numpy generator costs to seed, and
+    the same draws whatever the numpy version."""
+    digest = hashlib.shake_128(f"derl tournament {seed} {iteration}".encode()).digest(
+        8 * (size + 1)
+    )
+    words = struct.unpack(f"<{size + 1}Q", digest)
+    return [word % population for word in words[:size]], words[size] >> 1
 
 
 @dataclass(frozen=True)
@@ -142,9 +159,11 @@ class Evolution:
         """Decide the next child (call `record` with it to make it part of the state)."""
         if not self.initial_born:
             raise RuntimeError("tournaments start once the initial population is born")
-        rng = np.random.default_rng([self.config.seed, 1, self.iterations])
         population = self.population
-        drawn = [population[i] for i in rng.integers(len(population), size=self.config.tournament)]
+        positions, mutation_seed = tournament_draws(
+            self.config.seed, self.iterations, self.config.tournament, len(population)
+        )
+        drawn = [population[i] for i in positions]
         parent = max(drawn, key=lambda m: m.fitness)
         return Child(
             name=f"c{self.iterations:05d}",
@@ -152,7 +171,7 @@ class Evolution:
             parent=parent.agent,
             contestants=tuple(m.agent for m in drawn),
             fitness=tuple(m.fitness for m in drawn),
-            mutation_seed=int(rng.integers(2**63)),
+            mutation_seed=mutation_seed,
             iteration=self.iterations,
         )
 
