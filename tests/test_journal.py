@@ -157,7 +157,7 @@ for i in range(10**9):
 """
 
 
-def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path) -> None:
+def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path, caplog) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     child = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(CHILD), str(tmp_path)],
@@ -184,10 +184,16 @@ def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path) -> None:
     back = list(replay(tmp_path))
     assert 300 <= reported <= len(back) <= reported + 1
     assert [m.env_steps for m in back] == list(range(len(back)))  # type: ignore[attr-defined]
-    with Journal(tmp_path) as journal:  # a restart: a new segment, the old one stays readable
+    with (
+        caplog.at_level(logging.INFO, logger="nodes.journal.segments"),
+        Journal(tmp_path) as journal,  # a restart: a new segment, the old one stays readable
+    ):
         assert journal.segment.name == "segment-0002.mcap"
         journal.write(mixed(1)[0])
         assert len(list(journal.replay())) == len(back) + 1
+    # the restart says once what it found at the killed segment's end: no footer, or a torn tail
+    said = [r.getMessage() for r in caplog.records if "segment-0001" in r.getMessage()]
+    assert len(said) == 1 and ("has no footer" in said[0] or "torn tail" in said[0]), said
 
 
 def test_compaction_keeps_every_message(tmp_path: Path) -> None:

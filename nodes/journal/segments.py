@@ -25,13 +25,14 @@ import os
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import NamedTuple
 
 from mcap.exceptions import EndOfFile
-from mcap.records import Channel, McapRecord, Message, Schema
+from mcap.records import Channel, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
@@ -183,8 +184,7 @@ def cut_torn_tail(path: Path) -> int:
     """Cut a segment's torn tail (a record a crash left half written) back to its last whole
     record; the number of bytes cut (0 when the tail is whole)."""
     try:
-        for _ in records(path, strict=True):
-            pass
+        last = deque(records(path, strict=True), maxlen=1)
     except JournalDamaged as damage:
         with path.open("r+b") as f:
             f.truncate(damage.end)
@@ -193,6 +193,8 @@ def cut_torn_tail(path: Path) -> int:
         log.warning("%s: torn tail recovered: %d bytes after byte %d cut (%r)", path,
                     damage.size - damage.end, damage.end, damage.reason)  # fmt: skip
         return damage.size - damage.end
+    if not (last and isinstance(last[0], Footer)):
+        log.info("%s has no footer (its writer died between messages): every record whole", path)
     return 0
 
 
@@ -248,7 +250,9 @@ def records(path: Path, strict: bool = False) -> Iterator[McapRecord]:
                 yield record
         except Exception as exc:  # a cut or corrupt tail: EndOfFile, CRC, struct, zstd errors...
             if isinstance(exc, EndOfFile) and end == size:
-                log.info("%s has no footer (still open, or its writer died between messages)", path)
+                log.debug(
+                    "%s has no footer (still open, or its writer died between messages)", path
+                )
             elif strict:
                 raise JournalDamaged(path, end, size, exc) from None
             else:
