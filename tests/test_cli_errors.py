@@ -59,6 +59,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "zero copies": (["train", "--genome", GENOME, "--out", "t", "--envs", "0"], 2,
                     "--envs: must be at least 1, not 0"),
     "zero workers": (["run", "--workers", "0"], 2, "--workers: must be at least 1, not 0"),
+    "an option of another command": (["train", "--genome", GENOME, "--out", "t", "--env", "ft"],
+                                     2, "unrecognized arguments: --env ft"),  # not --envs
     "misspelt profile key": (["run", "--profile", "typo.yaml"], 1,
                              "unknown key 'populaton'; valid keys: name, world, population"),
     "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,

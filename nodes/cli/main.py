@@ -20,8 +20,18 @@ from nodes.cli import (
 )
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse without prefix matching of long options, for every subcommand (each parser
+    made by `add_subparsers` is of its parent's class): with it, `derl train --env ft` read as
+    `--envs ft` and failed on "'ft' is not an integer"."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="derl",
         description="Deep Evolutionary Reinforcement Learning: evolve and train UNIMAL bodies.",
     )
