@@ -15,6 +15,7 @@ from gymnasium.utils.env_checker import check_env
 import derl.envs
 from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
 from derl.envs.arenas import Floor
+from derl.envs.batched import MAX_SPEED
 from derl.envs.endings import Escaped
 from derl.envs.eval_tasks import ObstacleConfig
 from derl.envs.heightmap import sample
@@ -240,6 +241,20 @@ def test_unstable_physics_ends_only_that_copy(quadruped: Genome) -> None:
     assert env.unstable_count == 1
     assert all(np.isfinite(v).all() for v in result.obs.values())
     assert result.components["forward"][1] == 0.0
+
+
+def test_a_copy_flung_faster_than_any_body_moves_is_unstable(quadruped: Genome) -> None:
+    """A finite blow-up that MuJoCo does not warn about (seen in a demo run: a body spun up in
+    the air, then was flung 31 km in one step, a forward reward of 1.6 million)."""
+    env = _env(quadruped, "ft", n=3)
+    env.reset(0)
+    env.qvel[1, 0] = 2 * MAX_SPEED  # the head at 200 m/s, forward
+    result = env.step(np.zeros((3, env.action_dim), np.float32))
+    assert result.terminated.tolist() == [False, True, False]
+    assert env.unstable_count == 1
+    assert result.components["forward"][1] == 0.0
+    env.qvel[2, 0] = 0.5 * MAX_SPEED  # fast, but not absurd: the copy goes on
+    assert not env.step(np.zeros((3, env.action_dim), np.float32)).terminated[2]
 
 
 def test_batch_matches_single_simulations(quadruped: Genome) -> None:
