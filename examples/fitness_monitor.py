@@ -23,6 +23,8 @@ import time
 import msgpack
 import zenoh
 
+if not 2 <= len(sys.argv) <= 3 or sys.argv[1].startswith("-"):
+    sys.exit("usage: python examples/fitness_monitor.py RUN [ENDPOINT]")
 run, endpoint = sys.argv[1], (sys.argv[2:] or ["tcp/127.0.0.1:7447"])[0]
 config = zenoh.Config()
 config.insert_json5("mode", json.dumps("peer"))
