@@ -14,13 +14,13 @@ from typing import Literal, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from derl.envs.batched import EnvConfig
 from derl.envs.registry import TASKS, TEST_TASKS, make_task
+from derl.envs.rewards import CONTROL_DT
 from derl.lifetime import ppo_config
 from derl.rl import PPOConfig, PPOHyperparameters
 from derl.validation import problems
 
-CONTROL_DT = 0.02  # s per control step
-EPISODE_STEPS = 1000
 BONUS = 10.0  # the largest per-step bonus of a reward
 SEED_LIMIT = 2**64  # seeds travel as unsigned 64-bit integers
 MAX_LEASE_S = 86_400.0
@@ -82,7 +82,7 @@ class EvolutionConfig(BaseModel):
         task = make_task(self.world)
         diagonal = 2 * math.hypot(*task.arena.half)
         per_metre = 1 / CONTROL_DT if task.fitness_component == "forward" else 2 * 100.0
-        return per_metre * diagonal + BONUS * (EPISODE_STEPS + 1)
+        return per_metre * diagonal + BONUS * (EnvConfig().episode_steps + 1)
 
     def _ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
         return job_ppo(task, steps, seed, self.num_envs, self.ppo)
