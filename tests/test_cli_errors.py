@@ -3,7 +3,8 @@ hang: one row per mistake a user makes (a budget below one rollout, an impossibl
 workers or copies, a port in use, a missing run directory or log, a run directory that is a
 file, a misspelt key in a profile or a launch file, a job's own setting among a profile's PPO
 hyperparameters, an unknown message type, a folder with no trained body, a study with no runs,
-of a missing run or not made yet, a run directory of another run id)."""
+of a missing run or not made yet, a run directory of another run id, a monitor that hears
+nothing of its run)."""
 
 from __future__ import annotations
 
@@ -89,6 +90,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                               "holds the journal of run 'other', not 'r': resume it with --run"),
     "coordinator of no study": (["coordinator", "--run", "r", "--study", "s"], 1,
                                 "s is not a study (no study.json)"),
+    "a monitor that hears nothing": (["monitor", "--once", "1", "--run", "r"], 1,
+                                     "heard nothing of run r in 1 s"),
 }  # fmt: skip
 
 

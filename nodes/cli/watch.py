@@ -39,7 +39,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         const=3.0,
         type=float,
         metavar="S",
-        help="listen S seconds (default 3), print one snapshot and exit",
+        help="listen S seconds (default 3), print one snapshot and exit (1 if nothing of the "
+        "run was heard)",
     )
     add_bus_arguments(monitor, run_required=False)
     monitor.set_defaults(handler=_clearly(_monitor))
@@ -177,7 +178,11 @@ def _stop_on_signals() -> threading.Event:
 def _monitor(args: argparse.Namespace) -> int:
     from nodes.tools.monitor import monitor
 
-    monitor(options_from(args), args.run, args.once, _stop_on_signals())
+    view = monitor(options_from(args), args.run, args.once, _stop_on_signals())
+    if args.once is not None and not view.heard:  # a script must tell "no run" from a quiet one
+        print(f"derl monitor: heard nothing of run {view.run} in {args.once:g} s: is it running? "
+              "check --connect/--mode", file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 

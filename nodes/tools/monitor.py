@@ -98,6 +98,7 @@ class RunView:
         self.workers: dict[str, WorkerRow] = {}
         self.history = RunHistory()
         self.rejected = 0  # by this monitor
+        self.heard = False  # anything of the run: a message or a node's liveliness
 
     @property
     def births(self) -> list[Birth]:
@@ -116,6 +117,7 @@ class RunView:
     def apply(self, msg: MessageBase, now: float) -> None:
         if msg.run != self.run:
             return
+        self.heard = True
         self.history.apply(msg)
         if isinstance(msg, RunStatus):
             self.status, self.status_at = msg, now
@@ -149,6 +151,7 @@ class RunView:
             self._row(msg.node, now).state = "idle"
 
     def liveliness(self, role: str, node: str, up: bool, now: float) -> None:
+        self.heard = True
         row = self._row(node, now)
         row.role = role
         if not up:
