@@ -98,6 +98,9 @@ SCALE_PROFILE = {
     "eval_tasks": [],
 }
 GOAL_RATE = 1000.0
+# the coordinator's Zenoh config: its session stamps each sample it puts with the time (HLC), so
+# the generator can tell the coordinator's part of a latency from its own
+TIMESTAMPING = {"timestamping": {"enabled": True}}
 MAX_SETTLE_S = 10.0  # the longest a phase settles before its window opens
 SLOW_FILE_S = 100e-6  # creating a file slower than this is worth a warning
 BODIES = 16  # sampled bodies; the initial population is them and children of them
@@ -170,8 +173,10 @@ class LoadGenerator:
         self.session = zenoh.open(_peer_config(endpoint))
         self.lock = threading.Lock()
         self.idle_since: dict[str, float] = {}  # node -> when it became idle
+        self.idle_wall: dict[str, float] = {}  # the same moment by the wall clock (`time.time`)
         self.last_ready: dict[str, tuple[float, int]] = {}  # node -> (when, asks unanswered)
-        self.received: list[tuple[float, float, str]] = []  # (time, latency, child)
+        # (time, latency, child, the coordinator's part of the latency: None if not stamped)
+        self.received: list[tuple[float, float, str, float | None]] = []
         self.ack_wait: dict[str, float] = {}  # node -> its last report's wait for the Ack
         self.seen: set[str] = set()  # job ids received
         self.repeated = 0
@@ -229,6 +234,7 @@ class LoadGenerator:
     def _ready(self, node: str, now: float) -> None:
         with self.lock:
             self.idle_since.setdefault(node, now)
+            self.idle_wall.setdefault(node, time.time())
             asks = self.last_ready[node][1] + 1 if node in self.last_ready else 0
             self.last_ready[node] = (now, asks)
         payload = self.ready_payload.get(node)
@@ -239,6 +245,8 @@ class LoadGenerator:
 
     def _on_job(self, sample: zenoh.Sample) -> None:
         now = time.perf_counter()
+        # the coordinator's session stamps what it publishes (`TIMESTAMPING`) when it puts it
+        put_at = sample.timestamp.get_time().timestamp() if sample.timestamp else None
         job = msgpack.unpackb(sample.payload.to_bytes())
         if job["type"] != "TrainJob":  # a Cancel (never expected here: one worker per child)
             with self.lock:
@@ -250,10 +258,11 @@ class LoadGenerator:
                 self.repeated += 1
                 return
             self.seen.add(job["job"])
-            since = self.idle_since.pop(node, None)
+            since, wall = self.idle_since.pop(node, None), self.idle_wall.pop(node, None)
             self.last_ready.pop(node, None)
             if since is not None:
-                self.received.append((now, now - since, job["child"]))
+                part = None if put_at is None or wall is None else put_at - wall
+                self.received.append((now, now - since, job["child"], part))
             # the job lasts what is left of the worker's cycle (cycle_s, jittered) once its
             # round trips (this job's, its last report's Ack) are taken out: so W workers offer
             # W / cycle_s assignments a second whatever the round trips take
@@ -328,17 +337,24 @@ class LoadGenerator:
 
     def window(self, start: float, end: float) -> dict[str, object]:
         with self.lock:
-            inside = [(t, lat) for t, lat, _ in self.received if start <= t < end]
+            inside = [(t, lat, part) for t, lat, _, part in self.received if start <= t < end]
             acks = [wait for t, wait in self.acked if start <= t < end]
             repeated, self.repeated = self.repeated, 0
             rejected, self.rejected = dict(self.rejected), Counter()
             cancelled, self.cancelled = self.cancelled, 0
-        latencies = [lat for _, lat in inside]
+        latencies = [lat for _, lat, _ in inside]
+        parts = [part for _, _, part in inside if part is not None]
         return {
             "assignments_per_s": round(len(inside) / (end - start), 1),
             "latency_p50_ms": _ms(_percentile(latencies, 50)),
             "latency_p99_ms": _ms(_percentile(latencies, 99)),
             "latency_max_ms": _ms(max(latencies, default=None)),
+            # from the ask until the coordinator put its job on the bus (the job's timestamp):
+            # the latency less the generator's own wait to take the job (on one small machine,
+            # for the cores and its interpreter lock, which a remote worker does not share)
+            "coordinator_latency_p50_ms": _ms(_percentile(parts, 50)),
+            "coordinator_latency_p99_ms": _ms(_percentile(parts, 99)),
+            "coordinator_latency_max_ms": _ms(max(parts, default=None)),
             # a report's wait for its Ack: its journal entry and checkpoint file on the disk
             "ack_p50_ms": _ms(_percentile(acks, 50)),
             "ack_p99_ms": _ms(_percentile(acks, 99)),
@@ -350,7 +366,7 @@ class LoadGenerator:
 
     def tournaments_started(self) -> bool:
         with self.lock:
-            return any(child.startswith("c") for _, _, child in self.received[-50:])
+            return any(child.startswith("c") for _, _, child, _ in self.received[-50:])
 
 
 def _peer_config(endpoint: str) -> zenoh.Config:
@@ -367,11 +383,13 @@ def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, ob
     seed_run_dir(run_dir, load_profile("paper").population)
     profile = work / f"{run}.yaml"
     profile.write_text(yaml.safe_dump(SCALE_PROFILE))
+    zenoh_file = work / f"{run}-zenoh.json5"
+    zenoh_file.write_text(json.dumps(TIMESTAMPING))
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     log = work / f"{run}-coordinator.log"
     coordinator = spawn_derl(
         ["coordinator", "--run", run, "--profile", str(profile), "--run-dir", str(run_dir),
-         "--listen", endpoint], log,
+         "--listen", endpoint, "--zenoh-config", str(zenoh_file)], log,
     )  # fmt: skip
     result: dict[str, object] = {"workers": workers}
     try:
