@@ -265,6 +265,49 @@ def test_a_child_drafted_like_one_in_training_waits_for_its_birth() -> None:
     assert state.evolution.repeat("c00001") == ("c00000", body, mutation)
 
 
+def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_descendants(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A repaired segment (`derl log repair`) kept what came before the damage; a later segment
+    still holds the job and the birth of a child whose tournament was lost, and a child of that
+    child in training. The replay skips them, says so, and resumes; no name is given twice."""
+    config = load_profile("smoke").model_copy(update={"population": 2, "total": 6})
+    initial = sample_population(2, np.random.default_rng(3))
+    state = CoordinatorState.start(config, initial)
+    run = "repaired"
+    body = breed(initial[0], 7)[0]
+
+    def job(child: str, parent: str, genome: Genome, seed: int) -> TrainJob:
+        return TrainJob(run=run, job=f"{child}.1", child=child, node="w1", genome=genome,
+                        task=config.world, ppo=config.training_ppo(), parent=parent,
+                        mutation_seed=seed, lease_s=config.lease_s)  # fmt: skip
+
+    kept = [_born(run, f"i000{k}", None, genome, k) for k, genome in enumerate(initial)]
+    later = [  # Tournament(c00000, parent i0000, iteration 0) was in the damaged part
+        job("c00000", "i0000", initial[0], 7),
+        _born(run, "c00000", "i0000", body, 2),
+        Tournament(
+            run=run,
+            child="c00001",
+            contestants=("c00000",),
+            fitness=(1.0,),
+            parent="c00000",
+            mutation_seed=3,
+            iteration=1,
+        ),
+        job("c00001", "c00000", body, 3),
+    ]
+    with caplog.at_level(logging.WARNING, logger="derl.coordinator"):
+        for msg in [*kept, *later]:
+            state.apply(msg)
+        for child in state.by_child:  # what a restarted coordinator does next (`_resume`)
+            state.training(child)
+    assert set(state.born) == {"i0000", "i0001"} and not state.jobs
+    skipped = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+    assert len(skipped) == 4 and all("c0000" in line for line in skipped), skipped
+    assert state.wants_tournament() and state.evolution.tournament().name == "c00002"
+
+
 def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> None:
     """An evaluation whose job fails `max_attempts` times (a body the test task cannot load) is
     given up like a child, not handed out forever: the run finishes with the others' results."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,10 +16,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
+from nodes_fixtures import Processes, derl_argv, wait_for
 
 from messages import FitnessReport, MessageBase, encode
 from messages.examples import examples
-from nodes.journal.segments import Journal, JournalWriter
+from nodes.journal.segments import Journal, JournalWriter, segments
 from nodes.tools.logs import LogError, export_json, info, read_log, repair
 
 STEPS = 5
@@ -150,6 +152,79 @@ def test_a_run_directory_is_read_segment_by_segment(tmp_path: Path) -> None:
     assert [f.messages for f in info(tmp_path / "run")] == [10, 10]
     with pytest.raises(LogError, match="no journal"):
         info(tmp_path)
+
+
+def _ended_by_a_crash(run_dir: Path, messages: list[MessageBase]) -> Path:
+    """A segment of `run_dir` as a coordinator SIGKILLed between messages leaves it: every
+    record whole, no footer."""
+    journal = Journal(run_dir)
+    for message in messages:
+        journal.write(message)
+    kept = journal.segment.read_bytes()
+    journal.close()
+    journal.segment.write_bytes(kept)
+    return journal.segment
+
+
+def test_a_segment_its_run_went_on_after_is_recovered_not_a_failure(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    first, second = _messages()[:10], _messages()[10:20]
+    crashed = _ended_by_a_crash(run, first)
+    (alone,) = info(run)  # not resumed yet: the run's end is open
+    assert alone.integrity == "truncated" and "10 messages recovered" in alone.detail
+    with Journal(run) as journal:  # the restarted coordinator's segment
+        for message in second:
+            journal.write(message)
+    assert [(f.integrity, f.messages) for f in info(run)] == [("recovered", 10), ("clean", 10)]
+    done = _derl("log", "info", str(run))
+    assert done.returncode == 0 and "integrity:   recovered: no footer" in done.stdout
+    assert "repair with" not in done.stdout and "1 clean, 1 recovered" in done.stdout
+    # damage that is not at the run's end is no crash's doing: corrupt, and a failure
+    data = bytearray(crashed.read_bytes())
+    data[data.find(encode(first[5])) + 5] ^= 0x40
+    crashed.write_bytes(data)
+    damaged = info(run)[0]
+    assert damaged.integrity == "corrupt" and "not at the end of the run" in damaged.detail
+    assert damaged.messages == 5
+    done = _derl("log", "info", str(run))
+    assert done.returncode == 3 and f"repair with: derl log repair {crashed}" in done.stdout
+
+
+def test_a_damaged_segment_stops_the_coordinator_and_its_advice_resumes_the_run(
+    tmp_path: Path, procs: Processes
+) -> None:
+    """The coordinator refuses a segment damaged before the run's end, names the command that
+    repairs it, and resumes once the repaired file is in the damaged one's place."""
+    run = tmp_path / "run"
+    messages = _messages()
+    with Journal(run) as journal:
+        for message in messages[:10]:
+            journal.write(message)
+    with Journal(run) as journal:
+        for message in messages[10:20]:
+            journal.write(message)
+    first = segments(run)[0]
+    data = bytearray(first.read_bytes())
+    data[data.find(encode(messages[5])) + 5] ^= 0x40
+    first.write_bytes(data)
+    coordinator = ["coordinator", "--run", "r1", "--run-dir", str(run), "--listen",
+                   "tcp/127.0.0.1:0"]  # fmt: skip
+    done = _derl(*coordinator)
+    said = done.stderr.strip().splitlines()[-1]
+    assert done.returncode == 1 and f"{first} is damaged" in said, done.stderr
+    advice = re.search(r"`derl (log repair \S+ \S+)`", said)
+    assert advice is not None, said
+    command = advice[1].split()
+    repaired = tmp_path / command[-1]
+    assert _derl(*command[:-1], str(repaired)).returncode == 0
+    first.replace(tmp_path / "damaged.mcap")  # as the advice says
+    repaired.replace(first)
+    procs.start("coordinator", derl_argv(*coordinator))
+    wait_for(lambda: "journaled messages replayed" in procs.log("coordinator"), 60, "a resume")
+    assert "Traceback" not in procs.log("coordinator")
+    assert "no tournament decided it (lost with a damaged segment?): skipped" in procs.log(
+        "coordinator"
+    )
 
 
 def _derl(*args: str) -> subprocess.CompletedProcess[str]:

@@ -277,7 +277,7 @@ def _log_info(args: argparse.Namespace) -> int:
         print(json.dumps([dataclasses.asdict(f) for f in files], indent=2))
     else:
         print(describe(files))
-    return 0 if all(f.integrity == "clean" for f in files) else 3
+    return 0 if all(f.integrity in ("clean", "recovered") for f in files) else 3
 
 
 def _log_repair(args: argparse.Namespace) -> int:

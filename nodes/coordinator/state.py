@@ -11,10 +11,16 @@ Which jobs are in flight, who holds them and what waits for a worker are all der
 children held back because a child with their first draft is in training (`hold`); each goes
 back to the front of the queue once that child is born or given up (a restart forgets them: they
 are in the queue again, and held again when they come up).
+
+A journal whose damaged segment was replaced by its repaired part (`derl log repair`) may have
+lost a Tournament whose child's job, report or birth are in a later segment: each such message,
+and every tournament that drew an agent the journal never saw born, is skipped with a warning
+(`known`), so the run resumes without them instead of failing on a child it never decided.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -28,12 +34,16 @@ from messages import (
     ChildFailed,
     EvalJob,
     EvalResult,
+    FitnessReport,
     JobFailed,
     JobLost,
+    MessageBase,
     Tournament,
     TrainJob,
 )
 from nodes.journal.history import EvalKey, RunHistory
+
+log = logging.getLogger("derl.coordinator")
 
 
 def tournament_message(run: str, decided: Child) -> Tournament:
@@ -88,6 +98,28 @@ class CoordinatorState(RunHistory):
         return state
 
     # --- the fold ----------------------------------------------------------------------------
+
+    def apply(self, msg: MessageBase) -> None:
+        if self.known(msg):
+            super().apply(msg)
+
+    def known(self, msg: MessageBase) -> bool:
+        """Whether `msg` is about a child the journal decided (else logged: it is skipped)."""
+        evolution = self.evolution
+        if isinstance(msg, Tournament):
+            if msg.parent in evolution.genomes:
+                return True
+            # its name is never given to another child
+            evolution.iterations = max(evolution.iterations, msg.iteration + 1)
+            what = f"Tournament of {msg.child}: its parent {msg.parent} was never born"
+        elif isinstance(msg, TrainJob | FitnessReport | Birth | ChildFailed):
+            if msg.child in evolution.parents:
+                return True
+            what = f"{msg.type} of {msg.child}: no tournament decided it"
+        else:
+            return True
+        log.warning("journal: %s (lost with a damaged segment?): skipped", what)
+        return False
 
     def on_Tournament(self, msg: Tournament) -> None:
         super().on_Tournament(msg)

@@ -164,7 +164,7 @@ class JournalDamaged(RuntimeError):
     def __init__(self, path: Path, end: int, size: int, reason: object) -> None:
         super().__init__(
             f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}); the run "
-            f"cannot be resumed from it as it is. `derl log repair {path} --out FILE` writes "
+            f"cannot be resumed from it as it is. `derl log repair {path} REPAIRED.mcap` writes "
             "what can be read of it; move the damaged file away and put the repaired one in its "
             "place to resume without what was lost"
         )

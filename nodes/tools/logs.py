@@ -30,7 +30,14 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from nodes.journal.segments import Logged, compact, read_logged, records, segments
+from nodes.journal.segments import (
+    JournalDamaged,
+    Logged,
+    compact,
+    read_logged,
+    records,
+    segments,
+)
 
 log = logging.getLogger("derl.mcap")
 
@@ -155,7 +162,7 @@ def export_json(source: Path, out: Path) -> int:
 
 # --- info and repair -------------------------------------------------------------------------
 
-Integrity = Literal["clean", "truncated", "corrupt"]
+Integrity = Literal["clean", "recovered", "truncated", "corrupt"]
 
 
 @dataclass
@@ -194,48 +201,85 @@ def info(path: Path) -> list[FileInfo]:
     return [_file_info(file) for file in log_files(path)]
 
 
+def _resumed_after(path: Path) -> bool:
+    """Whether `path` is a journal segment of a run directory with a later segment: the run
+    went on after it (a coordinator that restarts opens a new segment)."""
+    if path.parent.name != "journal":
+        return False
+    names = [segment.name for segment in segments(path.parent.parent)]
+    return path.name in names and names.index(path.name) < len(names) - 1
+
+
 def _file_info(path: Path) -> FileInfo:
     result = FileInfo(path=str(path), size=path.stat().st_size)
     schemas: dict[int, str] = {}
     channels: dict[int, ChannelInfo] = {}
     footer = False
-    for record in records(path):
-        if isinstance(record, Schema):
-            schemas[record.id] = record.name
-        elif isinstance(record, Channel) and record.id not in channels:  # again in the summary
-            channels[record.id] = ChannelInfo(
-                record.topic, schemas.get(record.schema_id, ""), record.message_encoding
-            )
-        elif isinstance(record, Message) and record.channel_id in channels:
-            channel = channels[record.channel_id]
-            channel.count += 1
-            result.messages += 1
-            if result.start_ns is None or result.end_ns is None:
-                result.start_ns = result.end_ns = record.log_time
-            result.start_ns = min(result.start_ns, record.log_time)
-            result.end_ns = max(result.end_ns, record.log_time)
-            if channel.encoding == MessageEncoding.MessagePack:
-                try:
-                    decode(record.data)
-                except DecodeError:
-                    result.undecodable += 1
-        elif isinstance(record, Footer):
-            footer = True
+    damage: JournalDamaged | None = None  # what ends the file before its last byte
+    try:
+        for record in records(path, strict=True):
+            _count(record, result, schemas, channels)
+            footer = footer or isinstance(record, Footer)
+    except JournalDamaged as error:
+        damage = error
     result.channels = list(channels.values())
     summary_count, summary_error = _summary(path, result)
-    if footer and summary_count in (None, result.messages):
+    n = result.messages
+    if footer and summary_count in (None, n):
         result.integrity = "clean"
         result.detail = "complete" if result.indexed else "complete, no index"
     elif footer or summary_count is not None:
         result.integrity = "corrupt"
-        result.detail = f"{result.messages} of {summary_count} messages readable (CRC or record)"
+        result.detail = f"{n} of {summary_count} messages readable (CRC or record)"
+    elif _resumed_after(path):  # a coordinator died while writing it and its run resumed
+        if damage is None:  # (a torn tail is cut when the run resumes)
+            result.integrity = "recovered"
+            result.detail = (
+                f"no footer: its writer died between messages (a crash) and the run went on in "
+                f"the next segment; every record whole, {n} messages"
+            )
+        else:
+            result.integrity = "corrupt"
+            result.detail = (
+                f"damaged at byte {damage.end} of {damage.size} ({type(damage.reason).__name__}), "
+                f"not at the end of the run: the coordinator will not resume from it; {n} messages "
+                "before the damage"
+            )
     else:
         result.integrity = "truncated"
+        torn = "" if damage is None else (
+            f", then a torn tail of {damage.size - damage.end} bytes (resuming the run cuts it)"
+        )  # fmt: skip
         result.detail = (
-            f"no footer ({summary_error}): the writer died or is still writing; "
-            f"{result.messages} messages recovered"
+            f"no footer ({summary_error}): the writer died or is still writing; {n} messages "
+            f"recovered{torn}"
         )
     return result
+
+
+def _count(
+    record: object, result: FileInfo, schemas: dict[int, str], channels: dict[int, ChannelInfo]
+) -> None:
+    """Fold one record into `result` (channels, counts, times, undecodable messages)."""
+    if isinstance(record, Schema):
+        schemas[record.id] = record.name
+    elif isinstance(record, Channel) and record.id not in channels:  # again in the summary
+        channels[record.id] = ChannelInfo(
+            record.topic, schemas.get(record.schema_id, ""), record.message_encoding
+        )
+    elif isinstance(record, Message) and record.channel_id in channels:
+        channel = channels[record.channel_id]
+        channel.count += 1
+        result.messages += 1
+        if result.start_ns is None or result.end_ns is None:
+            result.start_ns = result.end_ns = record.log_time
+        result.start_ns = min(result.start_ns, record.log_time)
+        result.end_ns = max(result.end_ns, record.log_time)
+        if channel.encoding == MessageEncoding.MessagePack:
+            try:
+                decode(record.data)
+            except DecodeError:
+                result.undecodable += 1
 
 
 def _summary(path: Path, result: FileInfo) -> tuple[int | None, str]:
@@ -272,7 +316,7 @@ def describe(files: list[FileInfo]) -> str:
             f"  {c.topic:<{width}}  {c.schema:<18} {c.encoding:<8} {c.count:>8,}"
             for c in sorted(file.channels, key=lambda c: (c.topic, c.schema))
         ]
-        if file.integrity != "clean":
+        if file.integrity in ("truncated", "corrupt"):
             lines.append(f"repair with: derl log repair {file.path} OUT.mcap")
         lines.append("")
     segments_note = f"{len(files)} files, " if len(files) > 1 else ""
