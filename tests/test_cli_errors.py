@@ -4,7 +4,7 @@ workers or copies, a port in use, a missing run directory or log, a run director
 file, a misspelt key in a profile or a launch file, a job's own setting among a profile's PPO
 hyperparameters, an unknown message type, a folder with no trained body, a study with no runs,
 of a missing run or not made yet, a run directory of another run id, a monitor that hears
-nothing of its run)."""
+nothing of its run, a missing or misspelt Zenoh config)."""
 
 from __future__ import annotations
 
@@ -45,6 +45,7 @@ def _files(tmp: Path, genome: Genome) -> None:
               "trainer", "cont": 2}]}]}  # fmt: skip
     (tmp / "launch.yaml").write_text(yaml.safe_dump(launch))
     (tmp / "a-file").write_text("")
+    (tmp / "typo.json5").write_text('{"trasport": {}}')
     no_joints = genome.model_dump(mode="json")
     no_joints["limbs"][0]["joints"] = []
     (tmp / "no-joints.json").write_text(json.dumps(no_joints))
@@ -92,6 +93,11 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                 "s is not a study (no study.json)"),
     "a monitor that hears nothing": (["monitor", "--once", "1", "--run", "r"], 1,
                                      "heard nothing of run r in 1 s"),
+    "a missing Zenoh config": (["trainer", "--run", "r", "--zenoh-config", "missing.json5"], 1,
+                               "--zenoh-config missing.json5: No such file or directory"),
+    "misspelt Zenoh config key": (["trainer", "--run", "r", "--zenoh-config", "typo.json5"], 1,
+                                  "--zenoh-config typo.json5: JSON error: Message { msg: \"unknown "
+                                  "field `trasport`"),
 }  # fmt: skip
 
 

@@ -72,9 +72,12 @@ class ZenohOptions(BaseModel):
 
 def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     """The Zenoh config of `options` (unknown keys in a config file are Zenoh's errors)."""
-    config = (
-        zenoh.Config.from_file(str(options.config_file)) if options.config_file else zenoh.Config()
-    )
+    config = zenoh.Config()
+    if options.config_file:
+        try:
+            config = zenoh.Config.from_file(str(options.config_file))
+        except zenoh.ZError as error:  # Zenoh's reason does not name the file
+            raise zenoh.ZError(f"--zenoh-config {options.config_file}: {error}") from None
 
     def put(key: str, value: object) -> None:
         config.insert_json5(key, json.dumps(value))
