@@ -27,7 +27,7 @@ from derl.rl import PPOConfig
 from derl.rl.config import SAVED
 from derl.unimal import Genome
 from derl.validation import problems
-from messages import PopulationSnapshot, RunStatus
+from messages import MessageBase, PopulationSnapshot, RunStatus
 from nodes.coordinator.node import Coordinator, serve
 from nodes.coordinator.state import CoordinatorState
 from nodes.journal.history import EvalKey, load_history, load_runs
@@ -86,6 +86,10 @@ class StudyState(CoordinatorState):
         ]
         self.worlds = list(dict.fromkeys(job.task for job in plan.jobs))
         self.tested: dict[str, list[tuple[str, float]]] = {}  # world -> (agent, mean), planned
+
+    def known(self, msg: MessageBase) -> bool:
+        """Every message: a study decides no children (it has no evolution to check them by)."""
+        return True
 
     def _plan_evaluations(self) -> None:
         if not self.planned:
