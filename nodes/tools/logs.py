@@ -247,9 +247,10 @@ def _file_info(path: Path) -> FileInfo:
             )
     else:
         result.integrity = "truncated"
-        torn = "" if damage is None else (
-            f", then a torn tail of {damage.size - damage.end} bytes (resuming the run cuts it)"
-        )  # fmt: skip
+        torn = ""
+        if damage is not None:
+            resumes = "; resuming the run cuts it" if path.parent.name == "journal" else ""
+            torn = f", then a torn tail of {damage.size - damage.end} bytes{resumes}"
         result.detail = (
             f"no footer ({summary_error}): the writer died or is still writing; {n} messages "
             f"recovered{torn}"
