@@ -59,7 +59,7 @@ def test_run_restarts_a_killed_trainer_and_a_killed_coordinator(tmp_path: Path) 
         assert len(pids[other]) == 1 and len(pids["evaluator-0"]) == 1, pids  # untouched
         assert_born_once(run_dir, 8)
         # the progress view heard the restarted coordinator; the rate is the run's mean, not 0
-        assert re.search(r"done: 8 bodies, best i\d+ \(.+\), [1-9][\d,]* env steps/s", log), log
+        assert re.search(r"done: 8 bodies, best [ic]\d+ \(.+\), [1-9][\d,]* env steps/s", log), log
         assert f"tcp/127.0.0.1:{port}" in log
         coordinator_log = (run_dir / "logs" / "coordinator.log").read_text()
         assert "journaled messages replayed" in coordinator_log.split("start 1:")[-1]
