@@ -1,17 +1,22 @@
 """A worker's first WorkerReady goes out once the coordinator's subscription is known to its
 session: one sent before is lost, and a neighbour took the waiting job meanwhile (seen in CI: a
-2-trainer launch where one trainer did every job)."""
+2-trainer launch where one trainer did every job). An idle worker asks less and less often, and
+says when it hears no coordinator of its run."""
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
 
-from messages import KeySpace
-from nodes.runtime.bus import ZenohOptions, open_session
+import pytest
+
+from messages import KeySpace, RunStatus
+from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from nodes.worker import node
 from nodes.worker.node import Worker, ready_wait
-from tests.nodes_fixtures import free_port, run_id
+from tests.nodes_fixtures import free_port, run_id, wait_for
 
 
 def test_a_worker_asks_for_work_as_soon_as_a_coordinator_would_hear_it() -> None:
@@ -45,3 +50,32 @@ def test_an_idle_worker_asks_less_and_less_often() -> None:
     """After 1, 2, 4, then every 8 s: the coordinator sends a job to a worker that asked as soon
     as there is one, so asking again only recovers from a lost message or a restart."""
     assert [ready_wait(asks) for asks in range(6)] == [1.0, 2.0, 4.0, 8.0, 8.0, 8.0]
+
+
+def test_a_worker_that_hears_no_coordinator_says_so_once_and_when_it_hears_one(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A mistyped run id or endpoint must not look like a quiet run: an idle worker that hears no
+    status of its run says so once, and says when a coordinator is heard."""
+    monkeypatch.setattr(node, "UNHEARD_S", 1.5)
+    run, endpoint = run_id(), f"tcp/127.0.0.1:{free_port()}"
+    worker = Worker(run, "trainer-unheard-test", "trainer")
+    with open_session(ZenohOptions(listen=(endpoint,))) as coordinator_side:
+        thread = threading.Thread(
+            target=worker.serve, args=(ZenohOptions(connect=(endpoint,)),), daemon=True
+        )
+        with caplog.at_level(logging.INFO, logger="derl.worker"):
+            thread.start()
+            try:
+                wait_for(lambda: worker.unheard, 15, "the worker to say it hears no coordinator")
+                status = RunStatus(run=run, born=0, target=8, best_fitness=None, best_agent=None,
+                                   in_flight=0, workers_alive=1)  # fmt: skip
+                bus = Bus(coordinator_side, run)
+                wait_for(lambda: bus.publish(status) or not worker.unheard, 10, "the status heard")
+            finally:
+                worker.stop.set()
+                thread.join(timeout=10)
+    said = [r.getMessage() for r in caplog.records if "coordinator of run" in r.getMessage()]
+    assert len(said) == 2, said
+    assert f"no coordinator of run {run} heard for" in said[0] and "check --run" in said[0]
+    assert said[1].endswith(f"the coordinator of run {run} is heard")

@@ -10,7 +10,10 @@ per process; a tournament's child is first bred from its parent's body with
 re-sends its result every second until the coordinator acknowledges it, so a coordinator restart
 loses nothing. A Reject makes it drop the result, a Cancel of its job stops the training, and a
 training that raises is reported as JobFailed; each time it asks for work again. Every key it
-publishes on carries its node id. It stops on SIGTERM or SIGINT, or when the run is done.
+publishes on carries its node id. It stops on SIGTERM or SIGINT, or when the run is done. An idle
+worker that has heard no coordinator of its run for `UNHEARD_S` (the coordinator publishes the
+run's status every second) says so once: a mistyped run id or endpoint must not look like a quiet
+run.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ READY_PERIOD_S = (1.0, 8.0)  # the wait after the first ask while idle, doubled 
 HEARD_POLL_S = 0.01  # how often a worker looks whether its WorkerReady would be heard
 PROGRESS_PERIOD_S = 1.0
 RESEND_PERIOD_S = 1.0
+UNHEARD_S = 10.0  # an idle worker that heard no status of its run this long says so
 
 
 def ready_wait(asks: int) -> float:
@@ -78,6 +82,8 @@ class Worker:
         self.run_finished = threading.Event()
         self.finished_jobs: set[str] = set()  # a copy sent again is not trained twice
         self.cancelled: set[str] = set()
+        self.heard_at = time.monotonic()  # when the run's status was last heard (or the start)
+        self.unheard = False  # said that no coordinator is heard (until one is)
 
     def serve(self, options: ZenohOptions, max_jobs: int | None = None) -> None:
         with open_session(options) as session:
@@ -96,6 +102,7 @@ class Worker:
                 job = self._next_job(jobs, ready_wait(asks))
                 asks = asks + 1 if job is None else 0
                 if job is None:
+                    self._say_if_unheard()
                     continue
                 try:
                     result = self._work(job)
@@ -128,8 +135,20 @@ class Worker:
         return self.stop.is_set() or self.run_finished.is_set() or limit
 
     def _status(self, status: RunStatus) -> None:
+        self.heard_at = time.monotonic()
+        if self.unheard:
+            self.unheard = False
+            log.info("%s: the coordinator of run %s is heard", self.node, self.run)
         if status.done:
             self.run_finished.set()
+
+    def _say_if_unheard(self) -> None:
+        silent = time.monotonic() - self.heard_at
+        if silent >= UNHEARD_S and not self.unheard:
+            self.unheard = True
+            log.warning("%s: no coordinator of run %s heard for %.0f s (none publishes derl/%s/"
+                        "status): is it running? check --run and --connect", self.node, self.run,
+                        silent, self.run)  # fmt: skip
 
     def _next_job(self, jobs: queue.Queue, wait_s: float) -> TrainJob | EvalJob | None:
         """Ask for work, then wait up to `wait_s` for a job (None: none came, or the worker
