@@ -4,7 +4,7 @@ workers or copies, a port in use, a missing run directory or log, a run director
 file, a misspelt key in a profile or a launch file, a job's own setting among a profile's PPO
 hyperparameters, an unknown message type, a folder with no trained body, a study with no runs,
 of a missing run or not made yet, a run directory of another run id, a monitor that hears
-nothing of its run, a missing or misspelt Zenoh config)."""
+nothing of its run, a missing or misspelt Zenoh config, an argument no option takes)."""
 
 from __future__ import annotations
 
@@ -63,6 +63,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "zero workers": (["run", "--workers", "0"], 2, "--workers: must be at least 1, not 0"),
     "an option of another command": (["train", "--genome", GENOME, "--out", "t", "--env", "ft"],
                                      2, "unrecognized arguments: --env ft"),  # not --envs
+    "an argument no option takes": (["unimal", "sample", "3", "--out", "b"], 2,
+                                    "derl unimal sample: error: unrecognized arguments: 3"),
     "misspelt profile key": (["run", "--profile", "typo.yaml"], 1,
                              "unknown key 'populaton'; valid keys: name, world, population"),
     "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,

@@ -21,13 +21,23 @@ from nodes.cli import (
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse without prefix matching of long options, for every subcommand (each parser
-    made by `add_subparsers` is of its parent's class): with it, `derl train --env ft` read as
-    `--envs ft` and failed on "'ft' is not an integer"."""
+    """argparse for every subcommand (each parser made by `add_subparsers` is of its parent's
+    class) without prefix matching of long options: with it, `derl train --env ft` read as
+    `--envs ft` and failed on "'ft' is not an integer". An argument no option takes is refused by
+    the subcommand that got it, with that subcommand's usage (argparse's own top level showed
+    `usage: derl [-h] COMMAND ...` for `derl unimal sample 3`)."""
 
     def __init__(self, *args: object, **kwargs: object) -> None:
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: list[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
 
 
 def build_parser() -> argparse.ArgumentParser:
