@@ -1,12 +1,14 @@
 """`derl run` supervises its nodes: a SIGKILLed trainer and a SIGKILLed coordinator are started
 again (the coordinator alone, on the same endpoint, resuming from its journal), every body is
 born once, the run finishes, and the progress view (a Zenoh peer of the coordinator's endpoint)
-follows the run across the restart."""
+follows the run across the restart. A run stopped with Ctrl-C prints the command that resumes
+it."""
 
 from __future__ import annotations
 
 import os
 import re
+import shlex
 import signal
 from pathlib import Path
 
@@ -84,3 +86,26 @@ def test_the_rate_shown_once_the_run_is_done_is_the_mean_while_it_trained() -> N
     assert rate.shown(status(4000.0)).steps_per_s == 4000.0
     assert rate.shown(status(0.0, done=True)).steps_per_s == 2500.0
     assert TrainingRate().shown(status(0.0, done=True)).steps_per_s == 0.0
+
+
+@pytest.mark.slow
+def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> None:
+    """Ctrl-C: `derl run` stops every node and prints the command that resumes the run (a
+    profile file's run refuses to resume under another profile); that command finishes it."""
+    run_dir = tmp_path / "my run"
+    processes = Processes(tmp_path / "test-logs")
+    try:
+        argv = ["run", "--profile", "smoke", "--seed", "3", "--run-dir", str(run_dir)]
+        run = processes.start("run", derl_argv(*argv, "--port", str(free_port())))
+        wait_for(lambda: births(run_dir), 120, "a birth")
+        run.send_signal(signal.SIGINT)
+        assert run.wait(timeout=30) == 130
+        said = re.search(r"stopped; `(derl run .+)` resumes the run", processes.log("run"))
+        assert said is not None, processes.log("run")
+        assert said[1] == f"derl run --profile smoke --seed 3 --run-dir '{run_dir}'"
+        again = processes.start("again", derl_argv(*shlex.split(said[1])[1:], "--port",
+                                                   str(free_port())))  # fmt: skip
+        assert again.wait(timeout=240) == 0, processes.log("again")
+        assert_born_once(run_dir, 8)
+    finally:
+        processes.close()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shlex
 import signal
 import socket
 import statistics
@@ -96,7 +97,9 @@ def _run(args: argparse.Namespace) -> int:
     )
     code, status = supervise(supervisor, run, endpoint, config.total)
     if code != 0:
-        console.print(f"stopped; `derl run --run-dir {run_dir} ...` resumes the run")
+        again = shlex.join(["derl", "run", "--profile", args.profile, *env, *seed, "--run-dir",
+                            str(run_dir)])  # fmt: skip
+        console.print(f"stopped; `{again}` resumes the run", highlight=False, soft_wrap=True)
         return code
     best = "-"
     if status is not None and status.best_agent:
