@@ -270,14 +270,14 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _log_info(args: argparse.Namespace) -> int:
-    from nodes.tools.logs import describe, info
+    from nodes.tools.logs import HEALTHY, describe, info
 
     files = info(args.log)
     if args.json:
         print(json.dumps([dataclasses.asdict(f) for f in files], indent=2))
     else:
         print(describe(files))
-    return 0 if all(f.integrity in ("clean", "recovered") for f in files) else 3
+    return 0 if all(f.integrity in HEALTHY for f in files) else 3
 
 
 def _log_repair(args: argparse.Namespace) -> int:

@@ -101,8 +101,9 @@ class Coordinator:
         if segments(run_dir):
             try:
                 for msg in replay(run_dir):
-                    self.state.apply(msg)
-                    replayed += 1
+                    if self.state.known(msg):  # what it decides live is known
+                        self.state.apply(msg)
+                        replayed += 1
             except JournalDamaged as damage:
                 raise SystemExit(f"derl: {damage}") from None
         if self.state.run not in (None, run):  # its own messages would not change the state

@@ -15,7 +15,8 @@ are in the queue again, and held again when they come up).
 A journal whose damaged segment was replaced by its repaired part (`derl log repair`) may have
 lost a Tournament whose child's job, report or birth are in a later segment: each such message,
 and every tournament that drew an agent the journal never saw born, is skipped with a warning
-(`known`), so the run resumes without them instead of failing on a child it never decided.
+(`known`, asked by the replay), so the run resumes without them instead of failing on a child it
+never decided.
 """
 
 from __future__ import annotations
@@ -98,10 +99,6 @@ class CoordinatorState(RunHistory):
         return state
 
     # --- the fold ----------------------------------------------------------------------------
-
-    def apply(self, msg: MessageBase) -> None:
-        if self.known(msg):
-            super().apply(msg)
 
     def known(self, msg: MessageBase) -> bool:
         """Whether `msg` is about a child the journal decided (else logged: it is skipped)."""

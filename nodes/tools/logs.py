@@ -163,6 +163,7 @@ def export_json(source: Path, out: Path) -> int:
 # --- info and repair -------------------------------------------------------------------------
 
 Integrity = Literal["clean", "recovered", "truncated", "corrupt"]
+HEALTHY: frozenset[Integrity] = frozenset({"clean", "recovered"})  # nothing to repair
 
 
 @dataclass
@@ -317,7 +318,7 @@ def describe(files: list[FileInfo]) -> str:
             f"  {c.topic:<{width}}  {c.schema:<18} {c.encoding:<8} {c.count:>8,}"
             for c in sorted(file.channels, key=lambda c: (c.topic, c.schema))
         ]
-        if file.integrity in ("truncated", "corrupt"):
+        if file.integrity not in HEALTHY:
             lines.append(f"repair with: derl log repair {file.path} OUT.mcap")
         lines.append("")
     segments_note = f"{len(files)} files, " if len(files) > 1 else ""

@@ -98,7 +98,11 @@ class RunView:
         self.workers: dict[str, WorkerRow] = {}
         self.history = RunHistory()
         self.rejected = 0  # by this monitor
-        self.heard = False  # anything of the run: a message or a node's liveliness
+
+    @property
+    def heard(self) -> bool:
+        """Whether anything of the run came: a message (the fold took its run) or a node."""
+        return self.history.run is not None or bool(self.workers)
 
     @property
     def births(self) -> list[Birth]:
@@ -117,7 +121,6 @@ class RunView:
     def apply(self, msg: MessageBase, now: float) -> None:
         if msg.run != self.run:
             return
-        self.heard = True
         self.history.apply(msg)
         if isinstance(msg, RunStatus):
             self.status, self.status_at = msg, now
@@ -151,7 +154,6 @@ class RunView:
             self._row(msg.node, now).state = "idle"
 
     def liveliness(self, role: str, node: str, up: bool, now: float) -> None:
-        self.heard = True
         row = self._row(node, now)
         row.role = role
         if not up:
