@@ -70,11 +70,7 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from derl.evolution import EvolutionConfig, load_profile
-from derl.evolution.population import breed, first_draft
-from derl.unimal import Genome, sample_population
-from derl.unimal.mutations import MutationFailed
-from messages import (
+from derl.messages import (
     Curve,
     FitnessReport,
     KeySpace,
@@ -86,8 +82,13 @@ from messages import (
     decode,
     encode,
 )
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.worker.node import ready_wait
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.worker.node import ready_wait
+
+from derl.evolution import EvolutionConfig, load_profile
+from derl.evolution.population import breed, first_draft
+from derl.unimal import Genome, sample_population
+from derl.unimal.mutations import MutationFailed
 
 SCALE_PROFILE = {
     "profile": "paper",
@@ -370,13 +371,13 @@ class LoadGenerator:
 
 
 def _peer_config(endpoint: str) -> zenoh.Config:
-    from nodes.runtime.bus import zenoh_config
+    from derl.nodes.runtime.bus import zenoh_config
 
     return zenoh_config(ZenohOptions(connect=(endpoint,)))
 
 
 def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, object]:
-    from nodes.runtime.processes import spawn_derl, stop_all
+    from derl.nodes.runtime.processes import spawn_derl, stop_all
 
     run = f"bench-{workers}"
     run_dir = work / run
@@ -467,7 +468,7 @@ class _NoBus:
 
 
 def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
-    from nodes.coordinator.node import Coordinator
+    from derl.nodes.coordinator.node import Coordinator
 
     seed_run_dir(run_dir, config.population)
     coordinator = Coordinator(run, run_dir, config)
@@ -616,7 +617,7 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
 
 
 def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
-    from nodes.journal.segments import JournalWriter, read_segment
+    from derl.nodes.journal.segments import JournalWriter, read_segment
 
     run = "bench-journal"
     genome = bodies()[0]
@@ -659,7 +660,7 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
 
 
 def _ack(run: str, job: TrainJob):
-    from messages import Ack
+    from derl.messages import Ack
 
     return Ack(run=run, of="FitnessReport", job=job.job, child=job.child, node=job.node)
 
@@ -668,8 +669,8 @@ def _ack(run: str, job: TrainJob):
 
 
 def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> dict[str, object]:
-    from nodes.coordinator.node import Coordinator
-    from nodes.journal.segments import segments
+    from derl.nodes.coordinator.node import Coordinator
+    from derl.nodes.journal.segments import segments
 
     config = load_profile("paper").model_copy(update={"total": bodies_total})
     run_dir = work / "recovery"
@@ -720,8 +721,9 @@ def hub(endpoint: str, run: str, seconds: float) -> None:
 def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
     import subprocess
 
+    from derl.messages import Ack
+
     from derl.lifetime import learn, ppo_config
-    from messages import Ack
 
     run, node = "bench-share", "trainer-0"
     genome = bodies()[1]

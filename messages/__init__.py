@@ -1,8 +1,8 @@
 """The wire: pydantic message models, the msgpack codec, key expressions, the schema version."""
 
-from messages.codec import DecodeError, decode, encode
-from messages.keys import InvalidKey, KeySpace, ParsedKey, check_segment, kind_of, parse
-from messages.schema import (
+from derl.messages.codec import DecodeError, decode, encode
+from derl.messages.keys import InvalidKey, KeySpace, ParsedKey, check_segment, kind_of, parse
+from derl.messages.schema import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     Ack,

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import random
 
-from derl.rl.config import PPOConfig
-from derl.unimal.genome import Genome, Joint, Limb
-from messages.schema import (
+from derl.messages.schema import (
     Ack,
     Birth,
     Cancel,
@@ -32,6 +30,9 @@ from messages.schema import (
     TrainProgress,
     WorkerReady,
 )
+
+from derl.rl.config import PPOConfig
+from derl.unimal.genome import Genome, Joint, Limb
 
 _JOINTS = (Joint(axis="x", range=(-30, 60), gear=200), Joint(axis="y", range=(-45, 0), gear=150))
 

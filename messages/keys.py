@@ -12,8 +12,8 @@ import re
 from dataclasses import dataclass
 from typing import Final, NamedTuple
 
-from messages.schema import MessageBase
-from messages.types import ID_PATTERN
+from derl.messages.schema import MessageBase
+from derl.messages.types import ID_PATTERN
 
 ROOT: Final = "derl"
 

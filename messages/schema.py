@@ -10,12 +10,7 @@ from __future__ import annotations
 
 from typing import Annotated, Final, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
-from derl.rl.config import PPOConfig
-from derl.unimal.genome import Genome
-from derl.unimal.mutations import OPERATORS
-from messages.types import (
+from derl.messages.types import (
     MAX_CHECKPOINT_BYTES,
     MAX_ITEMS,
     Count,
@@ -28,6 +23,11 @@ from messages.types import (
     Steps,
     Text,
 )
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from derl.rl.config import PPOConfig
+from derl.unimal.genome import Genome
+from derl.unimal.mutations import OPERATORS
 
 SCHEMA_VERSION: Final = 3
 

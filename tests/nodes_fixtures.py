@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import TypeVar
 
 import yaml
-
-from messages import Birth, MessageBase, RunStatus, TrainJob, TrainProgress
-from nodes.journal.segments import replay, segments
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.runtime.processes import child_setup, stop_all
+from derl.messages import Birth, MessageBase, RunStatus, TrainJob, TrainProgress
+from derl.nodes.journal.segments import replay, segments
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.processes import child_setup, stop_all
 
 M = TypeVar("M", bound=MessageBase)
 
@@ -79,7 +78,7 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> obje
 
 
 def derl_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "nodes.cli", *args]
+    return [sys.executable, "-m", "derl.nodes.cli", *args]
 
 
 class Processes:

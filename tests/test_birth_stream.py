@@ -12,13 +12,13 @@ from pathlib import Path
 import msgpack
 import pytest
 import yaml
+from derl.messages import Birth, FitnessReport, Reject, Rejection, TrainProgress, encode
+from derl.messages.examples import examples
+from derl.nodes.journal.segments import replay, segments
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from nodes_fixtures import Processes, derl_argv, free_port, run_id, wait_for
 
 from derl.unimal import Genome
-from messages import Birth, FitnessReport, Reject, Rejection, TrainProgress, encode
-from messages.examples import examples
-from nodes.journal.segments import replay, segments
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
 
 PROFILE = {
     "profile": "smoke",

@@ -18,9 +18,7 @@ from pathlib import Path
 import msgpack
 import pytest
 import zenoh
-from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
-
-from messages import (
+from derl.messages import (
     Birth,
     ChildFailed,
     JobFailed,
@@ -32,10 +30,11 @@ from messages import (
     WorkerReady,
     encode,
 )
-from messages.examples import examples
-from messages.keys import ARITY
-from nodes.runtime.bus import Bus
-from nodes.tools.logs import read_log
+from derl.messages.examples import examples
+from derl.messages.keys import ARITY
+from derl.nodes.runtime.bus import Bus
+from derl.nodes.tools.logs import read_log
+from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
 
 PROFILE = {
     "total": 20,  # room for the coordinator kill after the trainer faults, on a fast machine too

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import pytest
 import yaml
+from derl.messages import WorkerReady
+from derl.nodes.journal.segments import Journal
 from nodes_fixtures import REPO, derl_argv, free_port
 
 from derl.unimal import Genome
-from messages import WorkerReady
-from nodes.journal.segments import Journal
 
 GENOME = "genome.json"
 

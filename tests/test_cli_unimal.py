@@ -15,7 +15,7 @@ from derl.unimal import Genome, check_body
 
 def derl(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "nodes.cli", *args],
+        [sys.executable, "-m", "derl.nodes.cli", *args],
         capture_output=True,
         text=True,
         timeout=300,

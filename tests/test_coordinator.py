@@ -18,12 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
-from derl.evolution.population import first_draft
-from derl.rl import PPOConfig, PPOHyperparameters
-from derl.unimal import Genome, sample_population
-from messages import (
+from derl.messages import (
     Ack,
     Birth,
     Curve,
@@ -36,12 +31,17 @@ from messages import (
     WorkerReady,
     decode,
 )
-from nodes.coordinator import node
-from nodes.coordinator.node import INITIAL_FILE, Coordinator
-from nodes.coordinator.state import CoordinatorState
-from nodes.journal.history import run_log
-from nodes.journal.segments import read_segment
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.coordinator import node
+from derl.nodes.coordinator.node import INITIAL_FILE, Coordinator
+from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.journal.history import run_log
+from derl.nodes.journal.segments import read_segment
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+
+from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
+from derl.evolution.population import first_draft
+from derl.rl import PPOConfig, PPOHyperparameters
+from derl.unimal import Genome, sample_population
 from tests.nodes_fixtures import free_port, run_id
 
 QUIET_S = 0.5  # how long "nothing was published" is watched for

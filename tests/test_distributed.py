@@ -14,6 +14,9 @@ from pathlib import Path
 
 import msgpack
 import pytest
+from derl.messages import Birth, FitnessReport, JobLost, encode
+from derl.messages.examples import examples
+from derl.nodes.journal.segments import replay, segments
 from nodes_fixtures import (
     LocalRun,
     Observer,
@@ -25,10 +28,6 @@ from nodes_fixtures import (
     observe,
     wait_for,
 )
-
-from messages import Birth, FitnessReport, JobLost, encode
-from messages.examples import examples
-from nodes.journal.segments import replay, segments
 
 PROFILE = {
     "total": 4,
@@ -53,7 +52,8 @@ def observer(local: LocalRun) -> Iterator[Observer]:
 def test_smoke_run_end_to_end(tmp_path: Path) -> None:
     run_dir = tmp_path / "smoke"
     result = subprocess.run(
-        [sys.executable, "-m", "nodes.cli", "run", "--profile", "smoke", "--run-dir", str(run_dir)],
+        [sys.executable, "-m", "derl.nodes.cli", "run", "--profile", "smoke",
+         "--run-dir", str(run_dir)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
@@ -164,7 +164,7 @@ def test_garbage_on_every_key_is_rejected(
 
 
 def test_worker_defaults_keep_multicast_off() -> None:
-    from nodes.runtime.bus import ZenohOptions, zenoh_config
+    from derl.nodes.runtime.bus import ZenohOptions, zenoh_config
 
     config = zenoh_config(ZenohOptions())
     assert '"enabled":false' in config.get_json("scouting/multicast").replace(" ", "")

@@ -178,10 +178,11 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
 ) -> None:
     """A coordinator that died between journaling a Tournament and its TrainJob: the replayed
     fold keeps the child waiting (it is trained next), never decides past it."""
+    from derl.messages import Birth, TrainJob
+    from derl.messages.examples import examples
+    from derl.nodes.coordinator.state import CoordinatorState, tournament_message
+
     from derl.rl import PPOConfig
-    from messages import Birth, TrainJob
-    from messages.examples import examples
-    from nodes.coordinator.state import CoordinatorState, tournament_message
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
     state = CoordinatorState.start(config, initial)

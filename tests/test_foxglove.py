@@ -18,13 +18,12 @@ import foxglove
 import pytest
 import websockets
 import zenoh
+from derl.messages import MESSAGE_TYPES, Birth, TrainProgress, encode
+from derl.messages.examples import examples
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.tools.foxglove import SUMMARY_TOPIC, TOPICS, Bridge, RunSummary, serve
+from derl.nodes.tools.logs import base64_text, json_form
 from nodes_fixtures import free_port
-
-from messages import MESSAGE_TYPES, Birth, TrainProgress, encode
-from messages.examples import examples
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.tools.foxglove import SUMMARY_TOPIC, TOPICS, Bridge, RunSummary, serve
-from nodes.tools.logs import base64_text, json_form
 
 LAYOUT = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk 0.30 accepts (formerly foxglove.websocket.v1)

@@ -14,13 +14,19 @@ from pathlib import Path
 
 import msgpack
 import pytest
+from derl.messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, kind_of
+from derl.messages.examples import examples
+from derl.nodes.journal.segments import (
+    Journal,
+    JournalWriter,
+    compact,
+    read_segment,
+    replay,
+    segments,
+)
 from mcap.reader import make_reader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
-
-from messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, kind_of
-from messages.examples import examples
-from nodes.journal.segments import Journal, JournalWriter, compact, read_segment, replay, segments
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -93,7 +99,7 @@ def test_segment_cut_at_any_byte_gives_a_prefix(tmp_path: Path, caplog) -> None:
     cut_file = tmp_path / "cut.mcap"
     for cut in cuts:
         cut_file.write_bytes(data[:cut])
-        with caplog.at_level(logging.INFO, logger="nodes.journal.segments"):
+        with caplog.at_level(logging.INFO, logger="derl.nodes.journal.segments"):
             back = payloads(list(read_segment(cut_file)))
         assert back == written[: len(back)], cut
         counts.append(len(back))
@@ -122,7 +128,7 @@ def test_undecodable_records_are_skipped(tmp_path: Path, caplog) -> None:
         ]:
             writer.add_message(channel, log_time=1, data=data, publish_time=1)
         writer.finish()
-    with caplog.at_level(logging.WARNING, logger="nodes.journal.segments"):
+    with caplog.at_level(logging.WARNING, logger="derl.nodes.journal.segments"):
         assert list(read_segment(path)) == good
     assert "not msgpack" in caplog.text
     assert "schema version 99" in caplog.text
@@ -139,15 +145,15 @@ def test_corrupt_chunk_ends_the_segment_with_a_warning(tmp_path: Path, caplog) -
     at = data.find(written[10])
     data[at + len(written[10]) // 2] ^= 0x40
     path.write_bytes(data)
-    with caplog.at_level(logging.WARNING, logger="nodes.journal.segments"):
+    with caplog.at_level(logging.WARNING, logger="derl.nodes.journal.segments"):
         assert payloads(list(read_segment(path))) == written[:10]
     assert "CRCValidationError" in caplog.text
 
 
 CHILD = """
 import sys
-from messages import TrainProgress
-from nodes.journal.segments import Journal
+from derl.messages import TrainProgress
+from derl.nodes.journal.segments import Journal
 
 journal = Journal(sys.argv[1])
 for i in range(10**9):
@@ -185,7 +191,7 @@ def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path, caplog) -> N
     assert 300 <= reported <= len(back) <= reported + 1
     assert [m.env_steps for m in back] == list(range(len(back)))  # type: ignore[attr-defined]
     with (
-        caplog.at_level(logging.INFO, logger="nodes.journal.segments"),
+        caplog.at_level(logging.INFO, logger="derl.nodes.journal.segments"),
         Journal(tmp_path) as journal,  # a restart: a new segment, the old one stays readable
     ):
         assert journal.segment.name == "segment-0002.mcap"

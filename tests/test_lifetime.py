@@ -57,7 +57,7 @@ def test_train_and_rollout_commands(quadruped: Genome, tmp_path: Path) -> None:
     genome = tmp_path / "body.json"
     genome.write_text(quadruped.model_dump_json())
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "nodes.cli"]
+    command = [sys.executable, "-m", "derl.nodes.cli"]
     subprocess.run(
         [*command, "train", "--genome", str(genome), "--task", "mvt", "--steps", "8192",
          "--envs", "16", "--out", str(out)],

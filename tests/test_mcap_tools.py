@@ -13,15 +13,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from derl.messages import FitnessReport, MessageBase, encode
+from derl.messages.examples import examples
+from derl.nodes.journal.segments import Journal, JournalWriter, segments
+from derl.nodes.tools.logs import LogError, export_json, info, read_log, repair
 from mcap.reader import make_reader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
 from nodes_fixtures import Processes, derl_argv, wait_for
-
-from messages import FitnessReport, MessageBase, encode
-from messages.examples import examples
-from nodes.journal.segments import Journal, JournalWriter, segments
-from nodes.tools.logs import LogError, export_json, info, read_log, repair
 
 STEPS = 5
 
@@ -229,7 +228,7 @@ def test_a_damaged_segment_stops_the_coordinator_and_its_advice_resumes_the_run(
 
 def _derl(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "nodes.cli", *args], capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "derl.nodes.cli", *args], capture_output=True, text=True, timeout=60
     )
 
 

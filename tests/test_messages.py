@@ -9,11 +9,7 @@ import typing
 import msgpack
 import pytest
 import zenoh
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from pydantic import ValidationError
-
-from messages import (
+from derl.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     DecodeError,
@@ -28,8 +24,11 @@ from messages import (
     kind_of,
     parse,
 )
-from messages.examples import GENOME, examples
-from messages.keys import ARITY, ROUTES
+from derl.messages.examples import GENOME, examples
+from derl.messages.keys import ARITY, ROUTES
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
 
 SAMPLES = examples("run1", 3)
 PAYLOADS = [encode(m) for m in SAMPLES]

@@ -173,7 +173,7 @@ def test_run_survives_a_host_dropping_off(tmp_path: Path, network: Network) -> N
     processes = Processes(tmp_path / "test-logs")
     try:
         for host in HOSTS:
-            argv = [sys.executable, "-m", "nodes.cli", "launch", str(launch), "--host", host]
+            argv = [sys.executable, "-m", "derl.nodes.cli", "launch", str(launch), "--host", host]
             processes.start(host, network.exec(host, *argv))
         # the mesh: hostB's trainer talks to hostA's trainers directly (gossip), not only to
         # the seed, over the namespaces' own addresses

@@ -14,12 +14,11 @@ from concurrent.futures import Future
 from pathlib import Path
 
 import pytest
-
-from messages import Ack, RunStatus
-from nodes.coordinator.outbox import Outbox
-from nodes.journal.segments import Journal, read_segment
-from nodes.runtime.checkpoint_writer import write_batch
-from nodes.runtime.checkpoints import CheckpointFiles
+from derl.messages import Ack, RunStatus
+from derl.nodes.coordinator.outbox import Outbox
+from derl.nodes.journal.segments import Journal, read_segment
+from derl.nodes.runtime.checkpoint_writer import write_batch
+from derl.nodes.runtime.checkpoints import CheckpointFiles
 
 
 def test_a_batch_of_checkpoints_is_written_whole_and_links_share_its_files(

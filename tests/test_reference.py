@@ -7,10 +7,9 @@ from pathlib import Path
 
 import pytest
 import yaml
-
-from messages import MESSAGE_TYPES, SCHEMA_VERSION, Birth
-from nodes.cli.main import main
-from nodes.tools.reference import DOCUMENTS, command
+from derl.messages import MESSAGE_TYPES, SCHEMA_VERSION, Birth
+from derl.nodes.cli.main import main
+from derl.nodes.tools.reference import DOCUMENTS, command
 
 ROOT = Path(__file__).resolve().parents[1]
 

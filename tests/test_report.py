@@ -12,17 +12,17 @@ from pathlib import Path
 
 import pytest
 import yaml
+from derl.messages import Ack, Birth, Curve, EvalResult, FitnessReport, Tournament, TrainJob
+from derl.nodes.cli.main import main
+from derl.nodes.cli.report import _thresholds
+from derl.nodes.journal.history import load_runs
+from derl.nodes.journal.history import run_log as load_run
+from derl.nodes.journal.segments import Journal, segments
 
 from derl.analysis import RetrainPlan
 from derl.evolution import breed
 from derl.rl import PPOConfig
 from derl.unimal import Genome
-from messages import Ack, Birth, Curve, EvalResult, FitnessReport, Tournament, TrainJob
-from nodes.cli.main import main
-from nodes.cli.report import _thresholds
-from nodes.journal.history import load_runs
-from nodes.journal.history import run_log as load_run
-from nodes.journal.segments import Journal, segments
 
 FIGURES = (
     "fitness.png",
@@ -302,7 +302,7 @@ def test_study_plan_only_writes_the_retraining_jobs(tmp_path: Path, quadruped: G
 
 def derl(*args: str) -> subprocess.CompletedProcess[str]:
     result = subprocess.run(
-        [sys.executable, "-m", "nodes.cli", *args], capture_output=True, text=True, timeout=600
+        [sys.executable, "-m", "derl.nodes.cli", *args], capture_output=True, text=True, timeout=600
     )
     assert result.returncode == 0, result.stdout + result.stderr
     return result

@@ -13,6 +13,8 @@ import signal
 from pathlib import Path
 
 import pytest
+from derl.messages import RunStatus
+from derl.nodes.cli.run import TrainingRate
 from nodes_fixtures import (
     Processes,
     assert_born_once,
@@ -23,9 +25,6 @@ from nodes_fixtures import (
     pid_alive,
     wait_for,
 )
-
-from messages import RunStatus
-from nodes.cli.run import TrainingRate
 
 
 def _pids(log: str) -> dict[str, list[int]]:

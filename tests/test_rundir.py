@@ -12,9 +12,8 @@ import time
 from pathlib import Path
 
 import pytest
+from derl.nodes.runtime.rundir import LOCK_FILE, RunDirLocked, lock_run_dir, write_atomic
 from nodes_fixtures import REPO, wait_for
-
-from nodes.runtime.rundir import LOCK_FILE, RunDirLocked, lock_run_dir, write_atomic
 
 
 def _python(code: str) -> subprocess.Popen:
@@ -30,7 +29,7 @@ def _python(code: str) -> subprocess.Popen:
 def _hold_lock(run_dir: Path) -> subprocess.Popen:
     holder = _python(f"""
         import sys, time
-        from nodes.runtime.rundir import lock_run_dir
+        from derl.nodes.runtime.rundir import lock_run_dir
         with lock_run_dir({str(run_dir)!r}):
             print("locked", flush=True)
             time.sleep(120)
@@ -60,7 +59,7 @@ def test_a_second_process_is_refused_and_told_who_holds_the_lock(tmp_path: Path)
 def test_the_lock_is_held_until_the_block_ends(tmp_path: Path) -> None:
     with lock_run_dir(tmp_path / "run"):
         contender = _python(f"""
-            from nodes.runtime.rundir import RunDirLocked, lock_run_dir
+            from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
             try:
                 with lock_run_dir({str(tmp_path / "run")!r}):
                     print("acquired")
@@ -85,7 +84,7 @@ def test_a_write_killed_before_its_rename_leaves_the_old_file_whole(tmp_path: Pa
     write_atomic(target, "old " * 1000)
     writer = _python(f"""
         import os, signal
-        from nodes.runtime import rundir
+        from derl.nodes.runtime import rundir
         rundir.os.fsync = lambda fd: os.kill(os.getpid(), signal.SIGKILL)  # die at the sync
         rundir.write_atomic({str(target)!r}, "new " * 100_000)
     """)
@@ -100,7 +99,7 @@ def test_writes_killed_at_any_moment_never_leave_a_part(tmp_path: Path) -> None:
     size = 4 << 20
     for attempt in range(4):
         writer = _python(f"""
-            from nodes.runtime.rundir import write_atomic
+            from derl.nodes.runtime.rundir import write_atomic
             print("writing", flush=True)
             k = 0
             while True:

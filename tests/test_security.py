@@ -30,6 +30,22 @@ import yaml
 import zenoh
 from cryptography.hazmat.primitives.serialization import load_pem_private_key
 from cryptography.x509 import load_pem_x509_certificate
+from derl.messages import (
+    Birth,
+    FitnessReport,
+    MessageBase,
+    Rejection,
+    RunStatus,
+    TrainJob,
+    decode,
+    encode,
+)
+from derl.messages.examples import examples
+from derl.nodes.journal.segments import replay
+from derl.nodes.launch.commands import build_commands
+from derl.nodes.launch.identities import MONITOR, issue, make_ca
+from derl.nodes.launch.model import load
+from derl.nodes.runtime.bus import Bus, ZenohOptions, zenoh_config
 from nodes_fixtures import (
     REPO,
     Processes,
@@ -40,23 +56,6 @@ from nodes_fixtures import (
     wait_for,
     write_profile,
 )
-
-from messages import (
-    Birth,
-    FitnessReport,
-    MessageBase,
-    Rejection,
-    RunStatus,
-    TrainJob,
-    decode,
-    encode,
-)
-from messages.examples import examples
-from nodes.journal.segments import replay
-from nodes.launch.commands import build_commands
-from nodes.launch.identities import MONITOR, issue, make_ca
-from nodes.launch.model import load
-from nodes.runtime.bus import Bus, ZenohOptions, zenoh_config
 
 FORGED_FITNESS = -4242.0
 

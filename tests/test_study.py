@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 import yaml
+from derl.messages import Curve, EvalJob, EvalResult, JobFailed
+from derl.nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
 from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for, write_profile
 
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
 from derl.rl import PPOConfig
 from derl.unimal import Genome
-from messages import Curve, EvalJob, EvalResult, JobFailed
-from nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
 
 CONFIG = StudyConfig(
     per_lineage=2,

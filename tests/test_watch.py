@@ -16,9 +16,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from nodes_fixtures import Processes, derl_argv, free_port, wait_for
-
-from messages import (
+from derl.messages import (
     Birth,
     FitnessReport,
     MessageBase,
@@ -28,13 +26,14 @@ from messages import (
     encode,
     kind_of,
 )
-from messages.examples import examples
-from nodes.journal.segments import JournalWriter
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.runtime.processes import stop_all
-from nodes.tools.logs import read_log
-from nodes.tools.monitor import RunView, sparkline
-from nodes.tools.topic import key_expression, rate_line
+from derl.messages.examples import examples
+from derl.nodes.journal.segments import JournalWriter
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.processes import stop_all
+from derl.nodes.tools.logs import read_log
+from derl.nodes.tools.monitor import RunView, sparkline
+from derl.nodes.tools.topic import key_expression, rate_line
+from nodes_fixtures import Processes, derl_argv, free_port, wait_for
 
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
 STEPS, GAP_S = 6, 0.4

@@ -1,7 +1,7 @@
-"""`python -m nodes.cli`: the `derl` command, with this interpreter."""
+"""`python -m derl.nodes.cli`: the `derl` command, with this interpreter."""
 
 import sys
 
-from nodes.cli.main import main
+from derl.nodes.cli.main import main
 
 sys.exit(main())

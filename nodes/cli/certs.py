@@ -5,11 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from derl.nodes.cli.options import fail, fail_invalid
+from derl.nodes.launch.identities import MONITOR, write_identities
+from derl.nodes.launch.model import LaunchFile, load
 from pydantic import ValidationError
-
-from nodes.cli.options import fail, fail_invalid
-from nodes.launch.identities import MONITOR, write_identities
-from nodes.launch.model import LaunchFile, load
 
 
 def register(commands: argparse._SubParsersAction) -> None:

@@ -7,12 +7,11 @@ import logging
 import signal
 from pathlib import Path
 
+from derl.nodes.cli.options import fail_invalid, profile_from
+from derl.nodes.launch.commands import dry_run_text, plan
+from derl.nodes.launch.model import LaunchFile, load
+from derl.nodes.launch.supervisor import Supervisor
 from pydantic import ValidationError
-
-from nodes.cli.options import fail_invalid, profile_from
-from nodes.launch.commands import dry_run_text, plan
-from nodes.launch.model import LaunchFile, load
-from nodes.launch.supervisor import Supervisor
 
 log = logging.getLogger("derl.launch")
 

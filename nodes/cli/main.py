@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from nodes.cli import (
+from derl.nodes.cli import (
     certs,
     launch,
     nodes,

@@ -15,8 +15,7 @@ import threading
 from pathlib import Path
 
 import zenoh
-
-from nodes.cli.options import (
+from derl.nodes.cli.options import (
     add_bus_arguments,
     add_profile_arguments,
     at_least_one,
@@ -26,8 +25,8 @@ from nodes.cli.options import (
     run_directory,
     study_profile_from,
 )
-from nodes.launch.model import split_endpoint, with_port
-from nodes.runtime.bus import node_name
+from derl.nodes.launch.model import split_endpoint, with_port
+from derl.nodes.runtime.bus import node_name
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -68,8 +67,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _coordinator(args: argparse.Namespace) -> int:
-    from nodes.coordinator.node import serve
-    from nodes.coordinator.study import serve_study
+    from derl.nodes.coordinator.node import serve
+    from derl.nodes.coordinator.study import serve_study
 
     try:
         if args.study is not None:
@@ -87,7 +86,7 @@ def _coordinator(args: argparse.Namespace) -> int:
 def _worker(args: argparse.Namespace) -> int:
     if args.workers > 1:
         return _fan_out(args)
-    from nodes.worker.node import serve
+    from derl.nodes.worker.node import serve
 
     name = args.name or node_name(args.role)
     try:
@@ -125,7 +124,7 @@ def _shifted(endpoint: str, k: int) -> str:
 def _fan_out(args: argparse.Namespace) -> int:
     """`--workers K`: K single-worker processes, all stopped on SIGTERM or SIGINT; the exit
     status of the first that failed, else 0."""
-    from nodes.runtime.processes import exit_status, spawn_derl, stop_all
+    from derl.nodes.runtime.processes import exit_status, spawn_derl, stop_all
 
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -144,7 +143,7 @@ def _fan_out(args: argparse.Namespace) -> int:
 
 
 def _router(args: argparse.Namespace) -> int:
-    from nodes.runtime.bus import open_session
+    from derl.nodes.runtime.bus import open_session
 
     options = options_from(args, mode="router")
     if not options.listen and not options.config_file:

@@ -12,10 +12,10 @@ from typing import NoReturn, TypeGuard, get_args
 
 import yaml
 import zenoh
+from derl.nodes.runtime.bus import ZenohOptions
 from pydantic import BaseModel, ValidationError
 
 from derl.validation import problems
-from nodes.runtime.bus import ZenohOptions
 
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
 IN_USE = 2  # exit status when a port or a run directory is taken by another process

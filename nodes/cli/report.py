@@ -13,10 +13,9 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from derl.nodes.cli.options import fail
+from derl.nodes.journal.history import load_runs
 from rich.console import Console
-
-from nodes.cli.options import fail
-from nodes.journal.history import load_runs
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog
@@ -93,7 +92,7 @@ def _thresholds(text: str) -> dict[str, float]:
 
 def _runs_or_study(paths: list[Path]) -> list[RunLog]:
     """The runs of `paths`, or a study's runs with its results (`derl study`)."""
-    from nodes.coordinator.study import SETUP_FILE, study_logs
+    from derl.nodes.coordinator.study import SETUP_FILE, study_logs
 
     studies = [path for path in paths if (path / SETUP_FILE).is_file()]
     if not studies:

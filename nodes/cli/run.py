@@ -20,11 +20,8 @@ import socket
 import statistics
 from pathlib import Path
 
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-from messages import RunStatus
-from nodes.cli.options import (
+from derl.messages import RunStatus
+from derl.nodes.cli.options import (
     IN_USE,
     add_profile_arguments,
     at_least_one,
@@ -32,10 +29,12 @@ from nodes.cli.options import (
     profile_from,
     run_directory,
 )
-from nodes.launch.commands import NodeCommand
-from nodes.launch.supervisor import Supervisor
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.launch.supervisor import Supervisor
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 console = Console()
 
@@ -127,7 +126,7 @@ def listenable(port: int) -> int:
 def local_run_id(run_dir: Path) -> str:
     """The run id of the run (or study) in `run_dir`: its journal's when it has one (it may
     have been started by `derl coordinator --run ID`), else the directory's name."""
-    from nodes.journal.history import journal_run
+    from derl.nodes.journal.history import journal_run
 
     return journal_run(run_dir) or re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
 

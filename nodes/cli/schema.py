@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 import json
 
-from messages import MESSAGE_TYPES, SCHEMA_VERSION
-from nodes.cli.options import fail
-from nodes.tools.reference import DOCUMENTS, summary
+from derl.messages import MESSAGE_TYPES, SCHEMA_VERSION
+from derl.nodes.cli.options import fail
+from derl.nodes.tools.reference import DOCUMENTS, summary
 
 USAGE = 2  # exit status for an unknown type, as argparse's for bad arguments
 

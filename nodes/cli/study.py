@@ -17,10 +17,8 @@ import argparse
 import signal
 from pathlib import Path
 
-from rich.console import Console
-
-from nodes.cli.options import IN_USE, at_least_one, fail, run_directory, study_profile_from
-from nodes.cli.run import (
+from derl.nodes.cli.options import IN_USE, at_least_one, fail, run_directory, study_profile_from
+from derl.nodes.cli.run import (
     DEFAULT_PORT,
     listenable,
     local_nodes,
@@ -28,8 +26,9 @@ from nodes.cli.run import (
     port_number,
     supervise,
 )
-from nodes.launch.supervisor import Supervisor
-from nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.launch.supervisor import Supervisor
+from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from rich.console import Console
 
 console = Console()
 
@@ -58,7 +57,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from nodes.coordinator.study import SETUP_FILE, prepare_study, read_plan
+    from derl.nodes.coordinator.study import SETUP_FILE, prepare_study, read_plan
 
     config = study_profile_from(args)
     if not (args.study_dir / SETUP_FILE).exists():  # checked before DIR is made

@@ -7,12 +7,12 @@ import csv
 import json
 from pathlib import Path
 
+from derl.nodes.cli.options import at_least_one, fail
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from derl.replay import CHECKPOINT, EPISODE_STEPS, GENOME, RESULT
 from derl.validation import problems
-from nodes.cli.options import at_least_one, fail
 
 console = Console()
 
@@ -56,10 +56,10 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from derl.nodes.cli.unimal import load_genome
     from pydantic import ValidationError
 
     from derl.lifetime import learn, ppo_config
-    from nodes.cli.unimal import load_genome
 
     genome = load_genome(args.genome)
     try:

@@ -21,9 +21,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from messages import InvalidKey
-from messages.keys import ARITY
-from nodes.cli.options import add_bus_arguments, options_from
+from derl.messages import InvalidKey
+from derl.messages.keys import ARITY
+from derl.nodes.cli.options import add_bus_arguments, options_from
 
 if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
@@ -152,9 +152,9 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
 
     @functools.wraps(handler)
     def run(args: argparse.Namespace) -> int:
-        from nodes.tools.logs import LogError
-        from nodes.tools.recorder import ReplayRefused
-        from nodes.tools.topic import RunNotFound
+        from derl.nodes.tools.logs import LogError
+        from derl.nodes.tools.recorder import ReplayRefused
+        from derl.nodes.tools.topic import RunNotFound
 
         try:
             return handler(args)
@@ -176,7 +176,7 @@ def _stop_on_signals() -> threading.Event:
 
 
 def _monitor(args: argparse.Namespace) -> int:
-    from nodes.tools.monitor import monitor
+    from derl.nodes.tools.monitor import monitor
 
     view = monitor(options_from(args), args.run, args.once, _stop_on_signals())
     if args.once is not None and not view.heard:  # a script must tell "no run" from a quiet one
@@ -187,7 +187,7 @@ def _monitor(args: argparse.Namespace) -> int:
 
 
 def _foxglove(args: argparse.Namespace) -> int:
-    from nodes.tools.foxglove import CannotServe, serve
+    from derl.nodes.tools.foxglove import CannotServe, serve
 
     def started(run: str, server: WebSocketServer) -> None:
         print(f"serving run {run} on ws://{args.host}:{server.port} (Ctrl-C stops)", flush=True)
@@ -201,7 +201,7 @@ def _foxglove(args: argparse.Namespace) -> int:
 
 
 def _topic_list(args: argparse.Namespace) -> int:
-    from nodes.tools.topic import topic_list
+    from derl.nodes.tools.topic import topic_list
 
     key = args.key or ("**" if args.run else "derl/**")
     topic_list(options_from(args), key, args.run, args.duration, _stop_on_signals())
@@ -209,7 +209,7 @@ def _topic_list(args: argparse.Namespace) -> int:
 
 
 def _echo(args: argparse.Namespace) -> int:
-    from nodes.tools.topic import echo
+    from derl.nodes.tools.topic import echo
 
     stop = _stop_on_signals()
     echo(options_from(args), args.key, args.run, args.count, args.duration, args.raw, stop)
@@ -217,14 +217,14 @@ def _echo(args: argparse.Namespace) -> int:
 
 
 def _hz(args: argparse.Namespace) -> int:
-    from nodes.tools.topic import hz
+    from derl.nodes.tools.topic import hz
 
     hz(options_from(args), args.key, args.run, args.duration, args.window, _stop_on_signals())
     return 0
 
 
 def _record(args: argparse.Namespace) -> int:
-    from nodes.tools.recorder import record
+    from derl.nodes.tools.recorder import record
 
     if args.out.exists():
         raise FileExistsError(f"{args.out} exists; choose another name")
@@ -239,7 +239,7 @@ def _record(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from nodes.tools.recorder import replay
+    from derl.nodes.tools.recorder import replay
 
     done = replay(
         options_from(args),
@@ -262,7 +262,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from nodes.tools.logs import export_json
+    from derl.nodes.tools.logs import export_json
 
     written = export_json(args.log, args.out)
     print(f"exported {written} messages to {args.out} (json + jsonschema)")
@@ -270,7 +270,7 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _log_info(args: argparse.Namespace) -> int:
-    from nodes.tools.logs import HEALTHY, describe, info
+    from derl.nodes.tools.logs import HEALTHY, describe, info
 
     files = info(args.log)
     if args.json:
@@ -281,7 +281,7 @@ def _log_info(args: argparse.Namespace) -> int:
 
 
 def _log_repair(args: argparse.Namespace) -> int:
-    from nodes.tools.logs import describe, repair
+    from derl.nodes.tools.logs import describe, repair
 
     print(describe([repair(args.source, args.out)]))
     return 0

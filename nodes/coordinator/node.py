@@ -39,13 +39,7 @@ from concurrent.futures import Future
 from pathlib import Path
 
 import zenoh
-from pydantic import ValidationError
-
-from derl.evolution import EvolutionConfig
-from derl.rl.config import SAVED
-from derl.unimal import Genome, to_mjcf
-from derl.validation import problems
-from messages import (
+from derl.messages import (
     Ack,
     Birth,
     Cancel,
@@ -67,13 +61,19 @@ from messages import (
     WorkerReady,
     encode,
 )
-from messages.examples import GENOME
-from nodes.coordinator.outbox import Outbox, Reply
-from nodes.coordinator.state import CoordinatorState, tournament_message
-from nodes.journal.segments import Journal, JournalDamaged, replay, segments
-from nodes.runtime.bus import MSGPACK, Bus, Inlet, ZenohOptions, open_session
-from nodes.runtime.checkpoints import CheckpointFiles
-from nodes.runtime.rundir import RunDirLocked, lock_run_dir, write_atomic
+from derl.messages.examples import GENOME
+from derl.nodes.coordinator.outbox import Outbox, Reply
+from derl.nodes.coordinator.state import CoordinatorState, tournament_message
+from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segments
+from derl.nodes.runtime.bus import MSGPACK, Bus, Inlet, ZenohOptions, open_session
+from derl.nodes.runtime.checkpoints import CheckpointFiles
+from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir, write_atomic
+from pydantic import ValidationError
+
+from derl.evolution import EvolutionConfig
+from derl.rl.config import SAVED
+from derl.unimal import Genome, to_mjcf
+from derl.validation import problems
 
 log = logging.getLogger("derl.coordinator")
 

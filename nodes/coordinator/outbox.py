@@ -30,7 +30,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 
-from messages import MessageBase
+from derl.messages import MessageBase
 
 log = logging.getLogger("derl.coordinator")
 

@@ -26,10 +26,7 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from derl.evolution import Child, Evolution, EvolutionConfig, Member
-from derl.rl import PPOConfig
-from derl.unimal import Genome
-from messages import (
+from derl.messages import (
     Birth,
     Cancel,
     ChildFailed,
@@ -42,7 +39,11 @@ from messages import (
     Tournament,
     TrainJob,
 )
-from nodes.journal.history import EvalKey, RunHistory
+from derl.nodes.journal.history import EvalKey, RunHistory
+
+from derl.evolution import Child, Evolution, EvolutionConfig, Member
+from derl.rl import PPOConfig
+from derl.unimal import Genome
 
 log = logging.getLogger("derl.coordinator")
 

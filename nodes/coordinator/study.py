@@ -19,6 +19,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
+from derl.messages import MessageBase, PopulationSnapshot, RunStatus
+from derl.nodes.coordinator.node import Coordinator, serve
+from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.journal.history import EvalKey, load_history, load_runs
+from derl.nodes.runtime.bus import ZenohOptions
+from derl.nodes.runtime.rundir import write_atomic
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from derl.analysis.selection import RetrainJob, RetrainPlan, by_mean_fitness
@@ -27,12 +33,6 @@ from derl.rl import PPOConfig
 from derl.rl.config import SAVED
 from derl.unimal import Genome
 from derl.validation import problems
-from messages import MessageBase, PopulationSnapshot, RunStatus
-from nodes.coordinator.node import Coordinator, serve
-from nodes.coordinator.state import CoordinatorState
-from nodes.journal.history import EvalKey, load_history, load_runs
-from nodes.runtime.bus import ZenohOptions
-from nodes.runtime.rundir import write_atomic
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog

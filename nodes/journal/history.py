@@ -14,7 +14,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from messages import (
+from derl.messages import (
     Birth,
     ChildFailed,
     EvalJob,
@@ -26,8 +26,8 @@ from messages import (
     Tournament,
     TrainJob,
 )
-from nodes.journal.segments import JournalDamaged, read_segment, replay, segments
-from nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
+from derl.nodes.journal.segments import JournalDamaged, read_segment, replay, segments
+from derl.nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog

@@ -31,13 +31,20 @@ from pathlib import Path
 from types import TracebackType
 from typing import NamedTuple
 
+from derl.messages import (
+    SCHEMA_VERSION,
+    DecodeError,
+    KeySpace,
+    MessageBase,
+    decode,
+    encode,
+    kind_of,
+)
 from mcap.exceptions import EndOfFile
 from mcap.records import Channel, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
-
-from messages import SCHEMA_VERSION, DecodeError, KeySpace, MessageBase, decode, encode, kind_of
 
 log = logging.getLogger(__name__)
 

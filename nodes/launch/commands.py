@@ -21,7 +21,7 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
-from nodes.launch.model import (
+from derl.nodes.launch.model import (
     ROLES,
     WILDCARD_HOSTS,
     HostSpec,

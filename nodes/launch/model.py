@@ -30,9 +30,8 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
+from derl.messages.types import Id
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
-
-from messages.types import Id
 
 ROLES = ("router", "coordinator", "trainer", "evaluator")  # also the start order on a host
 LOCAL_ADDRESSES = {"localhost", "local", "127.0.0.1", "::1"}
@@ -197,7 +196,7 @@ class LaunchFile(_Strict):
                         f"host {host.name!r}: in a peer mesh every host needs a `listen` "
                         "endpoint the other hosts can reach (peers without one do not mesh)"
                     )
-            from nodes.launch.commands import build_commands  # (it imports this module)
+            from derl.nodes.launch.commands import build_commands  # (it imports this module)
 
             if not any("--connect" not in c.args for c in build_commands(self)):
                 raise ValueError(

@@ -4,7 +4,7 @@ Used by `derl launch` and `derl run`. Restarts back off 1, 2, 4 ... 30 s. A coor
 0 has finished the run: everything stops; any other exit is a failure, restarted by its policy
 (the coordinator alone: it resumes from its journal while the workers go on). Everything stops on
 Ctrl-C, SIGTERM or SIGHUP (an ssh session that ends). Local processes run with this Python
-(``python -m nodes.cli``, the same as ``derl``).
+(``python -m derl.nodes.cli``, the same as ``derl``).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from nodes.launch.commands import NodeCommand
-from nodes.runtime.processes import child_setup, spawn_derl, stop_all
+from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.runtime.processes import child_setup, spawn_derl, stop_all
 
 log = logging.getLogger("derl.launch")
 

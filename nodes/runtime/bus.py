@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import Final, Literal
 
 import zenoh
+from derl.messages import DecodeError, InvalidKey, KeySpace, MessageBase, decode, encode, parse
 from pydantic import BaseModel, ConfigDict, Field
-
-from messages import DecodeError, InvalidKey, KeySpace, MessageBase, decode, encode, parse
 
 log = logging.getLogger("derl.bus")
 

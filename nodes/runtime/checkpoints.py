@@ -26,7 +26,7 @@ from collections.abc import Iterator
 from concurrent.futures import Future
 from pathlib import Path
 
-from nodes.runtime import checkpoint_writer
+from derl.nodes.runtime import checkpoint_writer
 
 FOLDER = "checkpoints"
 

@@ -24,7 +24,7 @@ def spawn_derl(args: list[str], log_file: Path | None = None) -> subprocess.Pope
     out = open(log_file, "ab") if log_file else None  # noqa: SIM115 (the child owns it)
     try:
         return subprocess.Popen(
-            [sys.executable, "-m", "nodes.cli", *args],
+            [sys.executable, "-m", "derl.nodes.cli", *args],
             stdout=out,
             stderr=subprocess.STDOUT if out else None,
             stdin=subprocess.DEVNULL,

@@ -26,13 +26,12 @@ from itertools import accumulate
 
 import foxglove
 import zenoh
+from derl.messages import Birth, ChildFailed, KeySpace, MessageBase, RunStatus, TrainProgress
+from derl.nodes.runtime.bus import ZenohOptions, open_session
+from derl.nodes.tools.logs import base64_text, json_form, json_schema
+from derl.nodes.tools.topic import Checker, Tap, choose_run
 from foxglove.websocket import WebSocketServer
 from pydantic import BaseModel
-
-from messages import Birth, ChildFailed, KeySpace, MessageBase, RunStatus, TrainProgress
-from nodes.runtime.bus import ZenohOptions, open_session
-from nodes.tools.logs import base64_text, json_form, json_schema
-from nodes.tools.topic import Checker, Tap, choose_run
 
 KINDS = ("births", "status", "progress")
 """The key families the bridge serves."""

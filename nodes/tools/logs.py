@@ -24,13 +24,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
 
-from mcap.reader import make_reader
-from mcap.records import Channel, Footer, Message, Schema
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
-
-from messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from nodes.journal.segments import (
+from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
+from derl.nodes.journal.segments import (
     JournalDamaged,
     Logged,
     compact,
@@ -38,6 +33,10 @@ from nodes.journal.segments import (
     records,
     segments,
 )
+from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Message, Schema
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 log = logging.getLogger("derl.mcap")
 

@@ -25,13 +25,7 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import zenoh
-from rich.console import Console, Group
-from rich.live import Live
-from rich.panel import Panel
-from rich.table import Table
-from rich.text import Text
-
-from messages import (
+from derl.messages import (
     Ack,
     Birth,
     EvalJob,
@@ -46,9 +40,14 @@ from messages import (
     TrainProgress,
     WorkerReady,
 )
-from nodes.journal.history import RunHistory
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.tools.topic import Checker, Tap, choose_run
+from derl.nodes.journal.history import RunHistory
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.tools.topic import Checker, Tap, choose_run
+from rich.console import Console, Group
+from rich.live import Live
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
 
 REFRESH_S = 0.5
 RECENT_BIRTHS = 8

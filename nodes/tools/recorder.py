@@ -26,12 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-
-from messages import MessageBase, kind_of
-from nodes.journal.segments import JournalWriter
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.tools.logs import log_files, read_log
-from nodes.tools.topic import Checker, Tap, live_runs, resolve
+from derl.messages import MessageBase, kind_of
+from derl.nodes.journal.segments import JournalWriter
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.tools.logs import log_files, read_log
+from derl.nodes.tools.topic import Checker, Tap, live_runs, resolve
 
 log = logging.getLogger("derl.recorder")
 

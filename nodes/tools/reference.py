@@ -13,26 +13,26 @@ import math
 from collections.abc import Callable
 from typing import Final
 
+import derl.messages.codec
+import derl.messages.keys
+import derl.messages.schema
+import derl.messages.types
+from derl.messages import MESSAGE_TYPES, SCHEMA_VERSION, Curve, KeySpace, Member, MessageBase
+from derl.messages.examples import examples
+from derl.messages.keys import ARITY, PUBLISHERS, ROOT, ROUTES
+from derl.messages.types import ID_PATTERN
+from derl.nodes.launch.model import HostSpec, LaunchFile, NodeSpec, PeerMesh, RouterTopology
+from derl.nodes.runtime.bus import congestion_control
+from derl.nodes.tools.logs import base64_text, json_form
 from pydantic import BaseModel
 from pydantic_core import to_jsonable_python
 
 import derl.analysis.study
 import derl.evolution.config
-import messages.codec
-import messages.keys
-import messages.schema
-import messages.types
 from derl.analysis.study import STUDY_PROFILES, StudyConfig
 from derl.evolution.config import PROFILES, EvolutionConfig
 from derl.rl.config import PPOConfig, PPOHyperparameters
 from derl.unimal.genome import Genome, Joint, Limb
-from messages import MESSAGE_TYPES, SCHEMA_VERSION, Curve, KeySpace, Member, MessageBase
-from messages.examples import examples
-from messages.keys import ARITY, PUBLISHERS, ROOT, ROUTES
-from messages.types import ID_PATTERN
-from nodes.launch.model import HostSpec, LaunchFile, NodeSpec, PeerMesh, RouterTopology
-from nodes.runtime.bus import congestion_control
-from nodes.tools.logs import base64_text, json_form
 
 PPO_ANCHOR: Final = "#ppoconfig"
 HYPER_ANCHOR: Final = "#ppo-ppohyperparameters"
@@ -70,13 +70,13 @@ def protocol() -> str:
         f"Schema version: **{SCHEMA_VERSION}**. Every payload is a msgpack map with "
         "`schema_version`, `type` (the message type) and `run`; a node refuses any other version.",
         "",
-        _markdown(inspect.getdoc(messages.codec)),
+        _markdown(inspect.getdoc(derl.messages.codec)),
         "",
-        _markdown(inspect.getdoc(messages.types)) + f" An id matches `{ID_PATTERN}`.",
+        _markdown(inspect.getdoc(derl.messages.types)) + f" An id matches `{ID_PATTERN}`.",
         "",
         "## Keys",
         "",
-        _markdown(inspect.getdoc(messages.keys)),
+        _markdown(inspect.getdoc(derl.messages.keys)),
         "",
         "| key | messages | published by | congestion control |",
         "| --- | --- | --- | --- |",
@@ -87,7 +87,7 @@ def protocol() -> str:
         "",
         "## Messages",
         "",
-        _markdown(inspect.getdoc(messages.schema)),
+        _markdown(inspect.getdoc(derl.messages.schema)),
         "",
         "Bytes travel as msgpack bin; the examples show them in base64.",
         "",

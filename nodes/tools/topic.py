@@ -24,11 +24,10 @@ from itertools import pairwise
 
 import msgpack
 import zenoh
-
-from messages import InvalidKey, KeySpace, MessageBase, RunStatus, parse
-from messages.keys import ROOT
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes.tools.logs import json_data, json_form, summarise_bytes
+from derl.messages import InvalidKey, KeySpace, MessageBase, RunStatus, parse
+from derl.messages.keys import ROOT
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.tools.logs import json_data, json_form, summarise_bytes
 
 log = logging.getLogger("derl.topic")
 

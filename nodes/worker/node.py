@@ -28,11 +28,7 @@ import time
 from collections.abc import Callable
 from typing import Literal
 
-from derl.evolution import breed
-from derl.lifetime import LifetimeResult, learn
-from derl.rl import Progress
-from derl.unimal import Genome, Mutation
-from messages import (
+from derl.messages import (
     Ack,
     Cancel,
     Curve,
@@ -46,7 +42,12 @@ from messages import (
     TrainProgress,
     WorkerReady,
 )
-from nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+
+from derl.evolution import breed
+from derl.lifetime import LifetimeResult, learn
+from derl.rl import Progress
+from derl.unimal import Genome, Mutation
 
 log = logging.getLogger("derl.worker")
 
