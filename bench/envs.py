@@ -31,7 +31,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import UnimalEnv, make_env
-from derl.envs.terrain import TerrainConfig, generate_terrain
 
 
 def _rate(run, steps: int, copies: int) -> float:
@@ -93,8 +92,9 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
 def _uneven(env: UnimalEnv) -> Iterator[None]:
     """Every heightmap read point by point, as if no head stood above level ground."""
     terrains = env.task.terrains
+    every = np.arange(env.num_envs)
     terrains.heightmap = lambda xy, yaw, which=None: terrains.lookup(
-        terrains.vertices(xy, which), yaw
+        terrains.vertices(xy), every if which is None else which, yaw
     )
     try:
         yield
@@ -121,14 +121,42 @@ def _heightmap_ms(env: UnimalEnv, environment: Callable[[int], None], steps: int
 
 
 def bench_terrain(repeats: int) -> dict[str, float]:
-    config = TerrainConfig.variable()
-    rng = np.random.default_rng(0)
+    """The cost of a new VT terrain for one copy: drawn into its model's heightfield, padded,
+    its heightmap flags set (`TerrainStack.renew`)."""
+    env = make_env(reference_body(6), "vt", num_envs=1, seed=0)
+    terrains, rng, one = env.task.terrains, np.random.default_rng(0), np.zeros(1, np.intp)
     times = []
-    for _ in range(repeats * 5):
+    for _ in range(repeats * 10):
         start = time.perf_counter()
-        generate_terrain(config, rng).hfield()
+        terrains.renew(one, rng)
         times.append(time.perf_counter() - start)
-    return {"vt_terrain_generation_ms_median": round(statistics.median(times) * 1e3, 2)}
+    return {"vt_terrain_renewal_ms_median": round(statistics.median(times) * 1e3, 3)}
+
+
+def first_obstacles(limbs: int, steps: int) -> dict[str, object]:
+    """Where the first obstacle lies (m ahead of the spawn) over the episodes the copies of a
+    VT rollout of random actions start: the share of episodes at each distance."""
+    env = make_env(reference_body(limbs), "vt", num_envs=32, seed=0)
+    env.reset(0)
+    terrains, rng = env.task.terrains, np.random.default_rng(1)
+    starts = [terrains.first_obstacle.copy()]
+    lengths = []
+    for _ in range(steps):
+        result = env.step(rng.uniform(-1, 1, (env.num_envs, env.action_dim)))
+        done = result.terminated | result.truncated
+        starts.append(terrains.first_obstacle[done])
+        lengths.append(np.count_nonzero(done))
+    ahead = np.round(np.concatenate(starts) - env.task.spawn[0], 3)
+    values, counts = np.unique(ahead, return_counts=True)
+    return {
+        "limbs": limbs,
+        "episodes": int(counts.sum()),
+        "mean_episode_steps": round(steps * env.num_envs / max(sum(lengths), 1), 1),
+        "share_by_metres_ahead": {
+            f"{v:g}": round(int(c) / int(counts.sum()), 3)
+            for v, c in zip(values, counts, strict=True)
+        },
+    }
 
 
 def main() -> None:
@@ -142,8 +170,9 @@ def main() -> None:
         for limbs in (6, 10)
     ]
     terrain = bench_terrain(args.repeats)
-    episode_ms = 1000 * 32 / next(r for r in results if r["world"] == "vt")["env_steps_per_s"]
-    terrain["full_vt_episode_ms_per_copy"] = round(episode_ms * 1000 / 32, 1)
+    vt = next(r for r in results if r["world"] == "vt")
+    terrain["full_vt_episode_ms_per_copy"] = round(1000 * 1000 / vt["env_steps_per_s"], 1)
+    terrain["first_obstacles"] = first_obstacles(6, args.steps)
     print(json.dumps({"threads": 1, "copies": 32, "worlds": results, "terrain": terrain}, indent=2))
 
 

@@ -17,6 +17,7 @@ from derl.envs.terrain import (
     _rubble_strips,
     generate_terrain,
 )
+from derl.envs.terrain_stack import TerrainStack, add_hfield
 
 SEEDS = range(25)
 
@@ -121,7 +122,7 @@ def test_rubble_strips_are_clipped_triangle_waves(n: int) -> None:
     seen: set[tuple[int, int, float]] = set()
     for seed in range(8):
         block = np.zeros((1001, n), np.float32)
-        height = _rubble(block, config, np.random.default_rng(seed))
+        height = _rubble(block, config, np.random.default_rng(seed), 1.0)
         rows, wave, clip = _rubble_strips(1001, config, np.random.default_rng(seed))
         assert set(rows.tolist()) <= set(range(10, 20))
         assert rows[:-1].sum() < 1001 <= rows.sum()  # the last strip is cut by the edge
@@ -214,24 +215,9 @@ def test_config_rejects_unknown_keys_and_impossible_heights() -> None:
 # --- MuJoCo agreement ---------------------------------------------------------------------------
 
 
-def _hfield_model(terrain: Terrain) -> tuple[mujoco.MjModel, mujoco.MjData]:
-    field = terrain.hfield()
-    xml = f"""
-    <mujoco>
-      <asset>
-        <hfield name="terrain" nrow="{field.nrow}" ncol="{field.ncol}"
-                size="{" ".join(map(str, field.size))}"/>
-      </asset>
-      <worldbody><geom type="hfield" hfield="terrain"/></worldbody>
-    </mujoco>"""
-    model = mujoco.MjModel.from_xml_string(xml)
+def _ray_heights(model: mujoco.MjModel, points: np.ndarray) -> np.ndarray:
     data = mujoco.MjData(model)
-    terrain.write_to(model)
     mujoco.mj_forward(model, data)
-    return model, data
-
-
-def _ray_heights(model: mujoco.MjModel, data: mujoco.MjData, points: np.ndarray) -> np.ndarray:
     geomid = np.zeros(1, dtype=np.int32)
     down = np.array([0.0, 0.0, -1.0])
     start = 10.0
@@ -242,21 +228,27 @@ def _ray_heights(model: mujoco.MjModel, data: mujoco.MjData, points: np.ndarray)
     return start - np.asarray(dist)
 
 
-def test_height_at_matches_mujoco_rays_also_after_in_place_rewrite() -> None:
+def test_terrains_drawn_in_place_are_what_mujoco_sees() -> None:
+    """A terrain drawn straight into a model's padded heightfield (no recompile), again and
+    again: MuJoCo's surface is `Terrain.height_at` of the stack's heights, the same draws as
+    `generate_terrain`'s, and continues at its edge heights beyond the edges."""
     config = TerrainConfig(size_x=20.0, size_y=10.0, start_flat=4.0)
+    spec = mujoco.MjSpec()
+    add_hfield(spec, config, HeightmapGrid())
+    model = spec.compile()
+    stack = TerrainStack(config, model, 1, HeightmapGrid())
     rng = np.random.default_rng(3)
-    first = generate_terrain(config, np.random.default_rng(0))
-    model, data = _hfield_model(first)
-    for terrain in (first, generate_terrain(config, np.random.default_rng(1))):
-        terrain.write_to(model)  # no recompile
+    for seed in (0, 1):
+        stack.renew(np.array([0]), np.random.default_rng(seed))
+        terrain = Terrain(stack.heights[0], config.resolution, config.max_height)
+        drawn = generate_terrain(config, np.random.default_rng(seed))
+        np.testing.assert_allclose(terrain.heights, drawn.heights, atol=1e-6)
         assert terrain.heights.max() > 0.2
-        points = rng.uniform((-9.9, -4.9), (9.9, 4.9), size=(400, 2))
-        hits = _ray_heights(model, data, points)
+        rough = rough_columns(terrain.heights, stack.margin)  # heads that need a lookup
+        assert rough.any() and not (rough & ~stack.rough[0]).any()
+        points = rng.uniform((-12.0, -7.0), (12.0, 7.0), size=(400, 2))  # beyond the edges too
+        hits = _ray_heights(stack.models[0], points)
         np.testing.assert_allclose(hits, terrain.height_at(points[:, 0], points[:, 1]), atol=2e-3)
-    with pytest.raises(ValueError):
-        generate_terrain(TerrainConfig(size_x=20.0, size_y=12.0, start_flat=4.0), rng).write_to(
-            model
-        )
 
 
 def test_height_at_interpolates_on_mujoco_triangles() -> None:
@@ -391,7 +383,7 @@ def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
     """Skipping heads above level stretches gives what reading every point gives."""
     config = TerrainConfig(size_x=30.0, size_y=10.0, start_flat=8.0)
     terrains = [generate_terrain(config, np.random.default_rng(seed)) for seed in range(4)]
-    stack = HeightStack(terrains[0], 4, HeightmapGrid())
+    stack = HeightStack.allocate(terrains[0], 4, HeightmapGrid())
     for i, terrain in enumerate(terrains):
         stack.write(i, terrain.heights)
     rng = np.random.default_rng(1)
@@ -400,7 +392,8 @@ def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
         xy = rng.uniform((-16.0, -6.0), (16.0, 6.0), (n, 2))
         yaw = rng.uniform(-np.pi, np.pi, n)
         heightmaps = stack.heightmap(xy, yaw, which)
-        np.testing.assert_array_equal(heightmaps, stack.lookup(stack.vertices(xy, which), yaw))
+        every = np.arange(4) if which is None else which
+        np.testing.assert_array_equal(heightmaps, stack.lookup(stack.vertices(xy), every, yaw))
     column = np.clip(np.rint((xy[:, 0] - terrains[0].x_min) / 0.1), 0, 300).astype(int)
     rough = stack.rough[which, column]
     assert rough.any() and not rough.all()

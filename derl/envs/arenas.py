@@ -1,6 +1,6 @@
 """Arenas: the ground of a task. `Floor` is a plane, level or tilted; `Heightfield` gives every
-copy its own terrain, drawn anew after episodes that saw it (VT's corridor by default, or the
-obstacle boxes and the escape bowl defined here)."""
+copy its own terrain, drawn anew for every episode (VT's corridor by default, or the obstacle
+boxes and the escape bowl defined here)."""
 
 from __future__ import annotations
 
@@ -17,8 +17,6 @@ from derl.envs.task import Arena
 from derl.envs.terrain import Segment, Terrain, TerrainConfig
 from derl.envs.terrain_stack import TerrainStack, add_hfield
 from derl.envs.view import EnvView
-
-BODY_REACH = 2.0  # m: no limb tip is further than this from the head
 
 
 class Floor(Arena):
@@ -53,40 +51,39 @@ class Floor(Arena):
 
 
 class Heightfield(Arena):
-    """A heightfield laid out like ``config``, one terrain per copy: ``draw(rng)`` makes one
-    (default: `generate_terrain`'s corridor). A copy's terrain is renewed after an episode whose
-    head came within the heightmap's reach plus a body's size of its first obstacle."""
+    """A heightfield laid out like ``config``, one terrain per copy, new for every episode:
+    ``draw(rng)`` makes one (default: `generate_terrain`'s corridor, drawn in place). ``grid``:
+    the heightmap the task observes (None: none)."""
 
     def __init__(
         self,
         config: TerrainConfig,
-        grid: HeightmapGrid,
+        grid: HeightmapGrid | None = None,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
     ) -> None:
         self.config, self.grid, self.draw = config, grid, draw
         self.half = (config.size_x / 2, config.size_y / 2)
 
     def build(self, spec: mujoco.MjSpec) -> None:
-        add_hfield(spec, self.config)
+        add_hfield(spec, self.config, self.grid)
 
     def bind(self, env: EnvView) -> None:
         self.terrains = TerrainStack(self.config, env.model, env.num_envs, self.grid, self.draw)
         env.set_models(self.terrains.models)
 
-    def start(self) -> None:
-        self.terrains.forget()
-
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
-        self.terrains.renew(ids, env.rng, self.grid.reach + BODY_REACH)
-
-    def placed(self, env: EnvView, ids: np.ndarray) -> None:
-        self.terrains.track(env.head_pos[:, 0])
-
-    def update(self, env: EnvView) -> None:
-        self.terrains.track(env.head_pos[:, 0])
+        self.terrains.renew(ids, env.rng)
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)
+
+    def top(self, xy: np.ndarray, half: float, ids: np.ndarray | None = None) -> np.ndarray:
+        cells = round(half / self.config.resolution)
+        offsets = np.arange(-cells, cells + 1) * self.config.resolution
+        square = np.stack(np.meshgrid(offsets, offsets), axis=2).reshape(-1, 2)
+        points = (xy[:, None] + square).reshape(-1, 2)
+        which = np.repeat(np.arange(len(xy)) if ids is None else ids, len(square))
+        return self.terrains.ground(points, which).reshape(len(xy), -1).max(axis=1)
 
 
 # --- obstacle: boxes on a corridor --------------------------------------------------------------

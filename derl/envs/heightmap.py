@@ -30,7 +30,10 @@ heights) instead of the original's -10 m gap: it keeps observations in the terra
 and episodes end before bodies get there. A head outside the world counts as on its edge.
 """
 
+from __future__ import annotations
+
 import math
+from collections.abc import Sequence
 from functools import cached_property
 
 import numpy as np
@@ -66,7 +69,7 @@ class HeightmapGrid(BaseModel):
     resolution: float = Field(0.1, gt=0)
 
     @model_validator(mode="after")
-    def _whole_cells(self) -> "HeightmapGrid":
+    def _whole_cells(self) -> HeightmapGrid:
         for name in ("behind", "ahead", "side"):
             cells = getattr(self, name) / self.resolution
             if abs(cells - round(cells)) > 1e-6 or round(cells) == 1:
@@ -121,63 +124,100 @@ def offset_table(grid: HeightmapGrid, resolution: float, row_length: int) -> np.
     return d_row * np.int32(row_length) + d_col
 
 
-class HeightStack:
-    """M terrains laid out like ``layout`` (its shape, resolution and extent), stored padded by
-    `margin` edge-valued cells on every side, and the heightmap and ground lookups on them.
+def padding(grid: HeightmapGrid | None, resolution: float) -> int:
+    """Edge-valued cells a terrain needs on every side so that each point of ``grid`` around a
+    head anywhere on the terrain reads a vertex of that terrain (0 without a heightmap)."""
+    return 0 if grid is None else math.ceil(grid.reach / resolution) + 1
 
-    Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
-    stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
+
+class HeightStack:
+    """M terrains laid out like ``layout`` (its shape, resolution and extent) and the heightmap
+    and ground lookups on them. Terrain i lives in ``arrays[i]``, a C-contiguous float32 array of
+    (nrow + 2 m, ncol + 2 m) vertices, m = `margin` = `padding` (grid): its vertices framed by m
+    cells on every side that repeat its edges (`pad`), heights in units of ``scale`` m. The arrays
+    may be the caller's: a model's heightfield data (normalised heights, ``scale`` its elevation),
+    so that the physics and the observations read one copy of each terrain.
+
+    Flat indices into a terrain are int32 (numpy gathers them faster than int64), which limits a
+    terrain to 2**31 vertices.
 
     A head whose grid lies on one height (a stretch of columns, each the same height from edge
     to edge, such as a flat start area) sees all zeros: its heightmap is not looked up, which
-    saves the cache misses of reading its part of the stack (`rough` tells which columns need it).
+    saves the cache misses of reading its terrain (`rough` tells which columns need it).
     """
 
-    def __init__(self, layout: Terrain, count: int, grid: HeightmapGrid) -> None:
+    def __init__(
+        self,
+        layout: Terrain,
+        arrays: Sequence[np.ndarray],
+        grid: HeightmapGrid | None,
+        scale: float = 1.0,
+    ) -> None:
         self.layout = layout
-        self.margin = math.ceil(grid.reach / layout.resolution) + 1  # beyond any rounded point
-        m = self.margin
-        self.padded = np.zeros((count, layout.nrow + 2 * m, layout.ncol + 2 * m), np.float32)
-        if self.padded.size > np.iinfo(np.int32).max:
-            raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
+        self.margin = m = padding(grid, layout.resolution)
+        shape = (layout.nrow + 2 * m, layout.ncol + 2 * m)
+        if shape[0] * shape[1] > np.iinfo(np.int32).max:
+            raise ValueError(f"a terrain of {shape} vertices exceeds 2**31")
+        for array in arrays:
+            if array.shape != shape or array.dtype != np.float32 or not array.flags.c_contiguous:
+                raise ValueError(f"terrains must be C-contiguous float32 {shape}: {array.shape}")
+        self.padded = list(arrays)
+        self.interior = [array[m : m + layout.nrow, m : m + layout.ncol] for array in arrays]
+        """Terrain i's own vertices: a view of ``padded[i]`` (write `pad` (i) after a change)."""
+        self.scale = float(scale)
+        self._flat = [array.reshape(-1) for array in arrays]
         # (M, ncol) whether a head above the column reads more than one height (all zeros: no)
-        self.rough = np.zeros((count, layout.ncol), bool)
-        row_length = self.padded.shape[2]
-        self._flat = self.padded.reshape(-1)
-        self._table = offset_table(grid, layout.resolution, row_length)
-        first = np.arange(count) * self.padded[0].size + m * row_length + m
-        self._first = first.astype(np.int32)  # flat index of each terrain's vertex (0, 0)
-        self._terrains = np.arange(count)
+        self.rough = np.zeros((len(arrays), layout.ncol), bool)
+        row_length = shape[1]
+        self._table = None if grid is None else offset_table(grid, layout.resolution, row_length)
+        self._head = 0 if grid is None else grid.offsets.tolist().index([0.0, 0.0])
+        self._first = m * row_length + m  # flat index of each terrain's vertex (0, 0)
+        self._terrains = np.arange(len(arrays))
         self._strides = np.array([1, row_length], np.int32)  # flat index step per column, row
         self._origin = np.array([layout.x_min, layout.y_min])
         self._last = np.array([layout.ncol - 1, layout.nrow - 1])
 
+    @classmethod
+    def allocate(cls, layout: Terrain, count: int, grid: HeightmapGrid | None) -> HeightStack:
+        """A stack of ``count`` terrains in arrays of its own, heights in metres (all 0)."""
+        m = padding(grid, layout.resolution)
+        shape = (layout.nrow + 2 * m, layout.ncol + 2 * m)
+        return cls(layout, [np.zeros(shape, np.float32) for _ in range(count)], grid)
+
     @property
     def heights(self) -> np.ndarray:
-        """(M, nrow, ncol) the terrains without their padding (a read-only view: see `write`)."""
-        m = self.margin
-        view = self.padded[:, m:-m, m:-m]
-        view.flags.writeable = False
-        return view
+        """(M, nrow, ncol) the terrains without their padding, in metres (a copy)."""
+        return np.stack(self.interior) * np.float32(self.scale)
 
     def write(self, i: int, heights: np.ndarray) -> None:
-        """Terrain ``i`` becomes ``heights`` (nrow, ncol); its padding repeats its edges."""
-        m, padded = self.margin, self.padded[i]
-        padded[m:-m, m:-m] = heights
-        padded[:m, m:-m] = heights[0]
-        padded[-m:, m:-m] = heights[-1]
-        padded[:, :m] = padded[:, m : m + 1]
-        padded[:, -m:] = padded[:, -m - 1 : -m]
-        self.rough[i] = rough_columns(heights, m)
+        """Terrain ``i`` becomes ``heights`` (nrow, ncol), in metres."""
+        np.multiply(heights, np.float32(1.0 / self.scale), out=self.interior[i])
+        self.pad(i)
+        self.rough[i] = rough_columns(heights, self.margin)
 
-    def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (clamped to the terrain)
-        on terrain ``which[n]`` (default: terrain n)."""
-        return self._vertices(self._cells(xy), self._which(xy, which))
+    def pad(self, i: int) -> None:
+        """Repeat terrain ``i``'s edges into its padding (after its vertices changed)."""
+        m, padded = self.margin, self.padded[i]
+        if not m:
+            return
+        nrow, ncol = self.layout.nrow, self.layout.ncol
+        inner = slice(m, m + ncol)
+        padded[:m, inner] = padded[m, inner]
+        padded[m + nrow :, inner] = padded[m + nrow - 1, inner]
+        padded[:, :m] = padded[:, m : m + 1]
+        padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
+
+    def vertices(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) flat index in its terrain's `padded` array of the vertex nearest each point
+        (clamped to the terrain)."""
+        return self._vertices(self._cells(xy))
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        """(N,) height of the vertex nearest each point, as the heightmap reads it."""
-        return self._flat[self.vertices(xy, which)]
+        """(N,) height of the vertex nearest each point, as the heightmap reads it; point n on
+        terrain ``which[n]`` (default: terrain n)."""
+        vertices, flat = self.vertices(xy).tolist(), self._flat
+        heights = [flat[t].item(v) for t, v in zip(self._which(xy, which), vertices, strict=True)]
+        return np.array(heights) * self.scale
 
     def heightmap(
         self, xy: np.ndarray, yaw: np.ndarray, which: np.ndarray | None = None
@@ -185,24 +225,30 @@ class HeightStack:
         """(N, K) float32 heightmaps of heads at ``xy`` (N, 2) facing ``yaw`` (N,), head n on
         terrain ``which[n]`` (default: n), relative to the ground under each head. ``yaw`` is the
         angle of the head's x-axis projected on the ground, from world +x towards +y."""
-        cells, terrains = self._cells(xy), self._which(xy, which)
+        cells, terrains = self._cells(xy), np.asarray(self._which(xy, which))
         rough = np.flatnonzero(self.rough[terrains, cells[:, 0]])
         if len(rough) == len(xy):
-            return self.lookup(self._vertices(cells, terrains), yaw)
+            return self.lookup(self._vertices(cells), terrains, yaw)
         heights = np.zeros((len(xy), self._table.shape[1]), np.float32)
         if len(rough):
-            centre = self._vertices(cells[rough], terrains[rough])
-            heights[rough] = self.lookup(centre, yaw[rough])
+            centre = self._vertices(cells[rough])
+            heights[rough] = self.lookup(centre, terrains[rough], yaw[rough])
         return heights
 
-    def lookup(self, centre: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-        """(N, K) float32 heightmaps around the vertices ``centre`` (N,) (flat indices) facing
-        ``yaw`` (N,), relative to those vertices: the stack read at every point of the grid."""
+    def lookup(self, centre: np.ndarray, which: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        """(N, K) float32 heightmaps around the vertices ``centre`` (N,) (flat indices) of
+        terrains ``which`` (N,) facing ``yaw`` (N,), relative to those vertices: the terrains
+        read at every point of the grid."""
         bins = np.rint(yaw * (YAW_BINS / (2 * np.pi))).astype(np.intp)
         index = self._table.take(bins, axis=0, mode="wrap")
         index += centre[:, None]
-        heights = self._flat.take(index)
-        heights -= self._flat[centre][:, None]
+        heights = np.empty(index.shape, np.float32)
+        flat = self._flat
+        for row, terrain in enumerate(which.tolist()):
+            flat[terrain].take(index[row], out=heights[row])
+        heights -= heights[:, self._head, None]  # the head's own vertex: offset (0, 0)
+        if self.scale != 1.0:
+            heights *= np.float32(self.scale)
         return heights
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:
@@ -212,11 +258,11 @@ class HeightStack:
         cells += 0.5
         return cells.astype(np.int32)
 
-    def _which(self, xy: np.ndarray, which: np.ndarray | None) -> np.ndarray:
-        return self._terrains[: len(xy)] if which is None else which
+    def _which(self, xy: np.ndarray, which: np.ndarray | None) -> Sequence[int]:
+        return self._terrains[: len(xy)].tolist() if which is None else which.tolist()
 
-    def _vertices(self, cells: np.ndarray, terrains: np.ndarray) -> np.ndarray:
-        return self._first[terrains] + cells @ self._strides
+    def _vertices(self, cells: np.ndarray) -> np.ndarray:
+        return self._first + cells @ self._strides
 
 
 def rough_columns(heights: np.ndarray, reach: int) -> np.ndarray:
@@ -224,11 +270,16 @@ def rough_columns(heights: np.ndarray, reach: int) -> np.ndarray:
     array) hold more than one height, for each column c; repeated edges add no new height."""
     level = (heights == heights[0]).all(axis=0)  # each column one height
     same = level[:-1] & level[1:] & (heights[0, :-1] == heights[0, 1:])  # columns c, c + 1
-    changes = np.concatenate(([0], np.cumsum(~same)))  # changes[c]: pairs before column c
-    ncol = heights.shape[1]
-    column = np.arange(ncol)
-    low, high = np.maximum(column - reach, 0), np.minimum(column + reach, ncol - 1)
-    return changes[high] > changes[low]
+    return spread(~same, reach)
+
+
+def spread(changes: np.ndarray, reach: int) -> np.ndarray:
+    """(ncol,) bool from (ncol - 1,) bool ``changes`` (columns c and c + 1 are not both level
+    at one height): whether a change lies within columns ``c - reach .. c + reach`` (clamped)."""
+    count = np.concatenate(([0], np.cumsum(changes)))  # count[c]: changes before column c
+    column = np.arange(len(count))
+    low, high = np.maximum(column - reach, 0), np.minimum(column + reach, len(count) - 1)
+    return count[high] > count[low]
 
 
 def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid) -> np.ndarray:
@@ -239,7 +290,7 @@ def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid)
     yaw = np.asarray(yaw, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or yaw.shape != (xy.shape[0],):
         raise ValueError(f"need xy (N, 2) and yaw (N,), got {xy.shape} and {yaw.shape}")
-    stack = HeightStack(terrain, 1, grid)
+    stack = HeightStack.allocate(terrain, 1, grid)
     stack.write(0, terrain.heights)
     return stack.heightmap(xy, yaw, np.zeros(len(xy), dtype=np.intp))
 

@@ -21,13 +21,10 @@ can be written into ``model.hfield_data`` in place without recompiling.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Literal, NamedTuple, TypeVar
+from typing import Annotated, Literal, NamedTuple, TypeVar
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
-
-if TYPE_CHECKING:
-    import mujoco
 
 ObstacleKind = Literal["hills", "steps", "rubble"]
 SegmentKind = Literal["flat", "hills", "steps", "rubble", "boxes"]
@@ -246,23 +243,6 @@ class Terrain:
         data = self._normalized(np.empty(self.heights.size, np.float32))
         return HField((*self._extent, base), self.nrow, self.ncol, data)
 
-    def write_to(self, model: mujoco.MjModel, hfield_id: int = 0) -> None:
-        """Write this terrain into hfield ``hfield_id`` of a compiled model, in place.
-
-        The hfield must have this terrain's nrow, ncol and size[:3]. Physics and ``mj_ray`` see
-        the change at once; a renderer needs ``mujoco.mjr_uploadHField`` to show it.
-        """
-        shape = (int(model.hfield_nrow[hfield_id]), int(model.hfield_ncol[hfield_id]))
-        if shape != self.heights.shape or not np.allclose(
-            model.hfield_size[hfield_id, :3], self._extent
-        ):
-            raise ValueError(
-                f"hfield {hfield_id} is {shape} of size {model.hfield_size[hfield_id]}, "
-                f"terrain needs {self.heights.shape} of size {self._extent}"
-            )
-        adr = int(model.hfield_adr[hfield_id])
-        self._normalized(model.hfield_data[adr : adr + self.heights.size])
-
     @property
     def _extent(self) -> tuple[float, float, float]:
         """The hfield's size[:3]: (radius_x, radius_y, elevation_z)."""
@@ -276,12 +256,12 @@ class Terrain:
 
 def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain:
     """Draw a new world from ``config``; deterministic for a given generator state."""
-    heights = np.zeros(config.grid_shape, dtype=np.float32)
+    heights = np.empty(config.grid_shape, dtype=np.float32)
     x_min, res = -config.size_x / 2, config.resolution
-    segments = []
-    for kind, c0, c1 in _layout(config, heights.shape[1] - 1, rng):
-        top = 0.0 if kind == "flat" else _BUILDERS[kind](heights[:, c0:c1], config, rng)
-        segments.append(Segment(kind, round(x_min + c0 * res, 9), round(x_min + c1 * res, 9), top))
+    segments = [
+        Segment(kind, round(x_min + c0 * res, 9), round(x_min + c1 * res, 9), top)
+        for kind, c0, c1, top in draw_terrain(config, rng, heights)
+    ]
     return Terrain(
         heights=heights,
         resolution=res,
@@ -289,6 +269,26 @@ def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain
         spawn=(x_min + config.start_flat / 2, 0.0),
         segments=tuple(segments),
     )
+
+
+def draw_terrain(
+    config: TerrainConfig, rng: np.random.Generator, out: np.ndarray, scale: float = 1.0
+) -> list[tuple[SegmentKind, int, int, float]]:
+    """Draw a new world from ``config`` straight into ``out``, a float32 (nrow, ncol) array or
+    view (such as a model's heightfield data), heights times ``scale``; every vertex is written.
+    Returns the segments as (kind, first column, end column, designed top in m); the last
+    column of vertices is flat. The draws are `generate_terrain`'s."""
+    spans = []
+    end = out.shape[1] - 1
+    for kind, c0, c1 in _layout(config, end, rng):
+        block = out[:, c0:c1]
+        if kind == "flat":
+            block[:] = 0.0
+            spans.append((kind, c0, c1, 0.0))
+        else:
+            spans.append((kind, c0, c1, _BUILDERS[kind](block, config, rng, scale)))
+    out[:, spans[-1][2] :] = 0.0
+    return spans
 
 
 def _cells(length: float, resolution: float) -> int:
@@ -323,17 +323,21 @@ def _layout(
     return spans
 
 
-def _hills(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+def _hills(
+    block: np.ndarray, config: TerrainConfig, rng: np.random.Generator, scale: float
+) -> float:
     """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
     height = _pick(config.hill_height, rng)
-    block[:] = height * np.sin(np.linspace(0.0, np.pi, block.shape[1]))
+    block[:] = height * scale * np.sin(np.linspace(0.0, np.pi, block.shape[1]))
     return height
 
 
-def _steps(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+def _steps(
+    block: np.ndarray, config: TerrainConfig, rng: np.random.Generator, scale: float
+) -> float:
     """num_steps treads of n / num_steps columns each at 0, h, ..., top, top, ..., h, 0."""
     tread = np.arange(config.num_steps)
-    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread)
+    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread) * scale
     block[:] = np.repeat(levels, block.shape[1] // config.num_steps)
     return config.steps_top
 
@@ -352,7 +356,9 @@ def _rubble_strips(
     return rows[:count], wave, clip
 
 
-def _rubble(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+def _rubble(
+    block: np.ndarray, config: TerrainConfig, rng: np.random.Generator, scale: float
+) -> float:
     """Strips along x, each min(triangle wave, clip) with the wave 0 -> peak -> 0 over two
     half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2)."""
     nrow, n = block.shape
@@ -362,7 +368,7 @@ def _rubble(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) 
     phase = np.outer(config.rubble_half_periods, np.arange(n) / (n - 1)) % 2.0
     waves = config.rubble_peak * (1.0 - np.abs(phase - 1.0))
     clips = np.array(config.rubble_clip)
-    profiles = np.minimum(waves[:, None, :], clips[:, None]).astype(np.float32)
+    profiles = (np.minimum(waves[:, None, :], clips[:, None]) * scale).astype(np.float32)
     block[:] = np.repeat(profiles[wave, clip], rows, axis=0)[:nrow]
     return float(clips[clip].max())
 

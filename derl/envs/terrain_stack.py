@@ -1,43 +1,42 @@
-"""Per-copy terrain for a batch: every copy walks its own heightfield, new for each episode.
+"""Per-copy terrain for a batch: every copy walks its own heightfield, new for every episode.
 
 A batch of simulations shares asset data such as ``hfield_data``, so each copy runs on its own
-shallow copy of the compiled model (`TerrainStack.models`, given to the batch); a new terrain
-is written into that copy's ``hfield_data`` in place (no recompile) and into a stacked, padded
-height array (`HeightStack`) that the heightmap observation and the fall test read for all copies
-at once.
-
-A terrain is renewed after every episode in which its copy could have perceived or touched an
-obstacle: the head came within `reach` m (the heightmap's range plus a body's size) of the first
-non-flat segment. An episode that saw only the flat start area learnt nothing about its terrain,
-so the next one may use it as fresh: early in training, when bodies fall within a few dozen
-steps, this avoids generating a million-cell terrain for each of them.
+copy of the compiled model (`TerrainStack.models`, given to the batch). Each episode starts on a
+fresh terrain, as in the released code (which rebuilt its model at every reset): it is drawn
+straight into that copy's ``hfield_data``, where the physics reads it, and the heightmap
+observation and the ground lookups read the same array (`HeightStack`, on the models' arrays):
+one write of each terrain and no recompile. For the heightmap's sake the heightfield is padded
+on every side by edge-valued cells (`derl.envs.heightmap.padding`): physically the world goes on
+flat at its edge heights, where episodes have ended already.
 """
 
 from __future__ import annotations
 
 import copy
 from collections.abc import Callable
-from functools import partial
 
 import mujoco
 import numpy as np
 
-from derl.envs.heightmap import HeightmapGrid, HeightStack
-from derl.envs.terrain import Terrain, TerrainConfig, generate_terrain
+from derl.envs.heightmap import HeightmapGrid, HeightStack, padding, spread
+from derl.envs.terrain import Terrain, TerrainConfig, draw_terrain
 
 HFIELD_NAME = "terrain"
 HFIELD_BASE = 0.1  # depth of the solid under z = 0, m
 
 
-def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig) -> None:
-    """Add the terrain's heightfield asset and geom (all zeros until a terrain is written)."""
-    nrow, ncol = config.grid_shape
+def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig, grid: HeightmapGrid | None) -> None:
+    """Add the terrain's heightfield asset (padded for ``grid``'s heightmap; all zeros until a
+    terrain is written) and its geom, centred at the origin."""
+    margin = padding(grid, config.resolution)
+    nrow, ncol = (n + 2 * margin for n in config.grid_shape)
+    edge = margin * config.resolution
     spec.add_hfield(
         name=HFIELD_NAME,
         nrow=nrow,
         ncol=ncol,
-        size=[config.size_x / 2, config.size_y / 2, config.max_height, HFIELD_BASE],
-        userdata=np.zeros(nrow * ncol).tolist(),
+        size=[config.size_x / 2 + edge, config.size_y / 2 + edge, config.max_height, HFIELD_BASE],
+        userdata=np.zeros(nrow * ncol, np.float32),
     )
     spec.worldbody.add_geom(
         name=HFIELD_NAME,
@@ -50,12 +49,13 @@ def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig) -> None:
 
 
 class TerrainStack(HeightStack):
-    """The terrains of ``count`` copies of ``model`` (their heights, `HeightStack`'s lookups on
-    them), and their heightfields in the copies' own models, `models` (run copy i on models[i]).
+    """The terrains of ``count`` copies of ``model`` (built with `add_hfield`): their
+    heightfields in the copies' own models, `models` (run copy i on models[i]), and
+    `HeightStack`'s lookups on them.
 
-    ``draw(rng)`` makes one terrain laid out like ``config`` (default: the obstacle corridor of
-    `generate_terrain`); its segments tell where its obstacles start. ``grid`` is the heightmap
-    that will be read from the stack (it sizes the padding).
+    ``draw(rng)`` makes one terrain laid out like ``config``; by default the obstacle corridor
+    of `derl.envs.terrain.generate_terrain` is drawn straight into the heightfield. ``grid`` is
+    the heightmap that will be read from the stack (None: none), which sizes the padding.
     """
 
     def __init__(
@@ -63,37 +63,41 @@ class TerrainStack(HeightStack):
         config: TerrainConfig,
         model: mujoco.MjModel,
         count: int,
-        grid: HeightmapGrid,
+        grid: HeightmapGrid | None,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
     ) -> None:
+        self.config = config
+        self.draw = draw
+        self.models = [copy.copy(model) for _ in range(count)]
+        self.hfield = model.hfield(HFIELD_NAME).id
+        adr = int(model.hfield_adr[self.hfield])
+        shape = (int(model.hfield_nrow[self.hfield]), int(model.hfield_ncol[self.hfield]))
+        arrays = [
+            m.hfield_data[adr : adr + shape[0] * shape[1]].reshape(shape) for m in self.models
+        ]
         layout = Terrain(
             np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
         )
-        super().__init__(layout, count, grid)
-        self.config = config
-        self.draw = draw or partial(generate_terrain, config)
-        self.models = [copy.copy(model) for _ in range(count)]
-        self.hfield = model.hfield(HFIELD_NAME).id
-        self.first_obstacle = np.full(count, -np.inf)  # x where each copy's course starts
-        self.furthest = np.full(count, np.inf)  # furthest head x in the current episode
+        super().__init__(layout, arrays, grid, scale=config.max_height)
+        self.first_obstacle = np.full(count, np.inf)
+        """x where each copy's first obstacle starts (inf: none; -inf: anywhere)."""
         self.generated = 0
 
-    def track(self, head_x: np.ndarray) -> None:
-        """Record how far each copy's head went (call every step)."""
-        np.maximum(self.furthest, head_x, out=self.furthest)
-
-    def renew(self, ids: np.ndarray, rng: np.random.Generator, reach: float) -> None:
-        """A fresh terrain for each copy in ``ids`` whose episode came within ``reach`` m of an
-        obstacle (or that has none yet)."""
-        seen = ids[self.furthest[ids] + reach >= self.first_obstacle[ids]]
-        for i in seen:
-            terrain = self.draw(rng)
-            terrain.write_to(self.models[i], self.hfield)
-            self.write(i, terrain.heights)
-            self.first_obstacle[i] = terrain.first_obstacle
-        self.generated += len(seen)
-        self.furthest[ids] = -np.inf
-
-    def forget(self) -> None:
-        """Make every copy's next reset draw a fresh terrain (a new seeded run)."""
-        self.furthest[:] = np.inf
+    def renew(self, ids: np.ndarray, rng: np.random.Generator) -> None:
+        """A fresh terrain for each copy in ``ids``."""
+        x_min, res = self.layout.x_min, self.layout.resolution
+        for i in ids.tolist():
+            if self.draw is not None:
+                terrain = self.draw(rng)
+                self.write(i, terrain.heights)
+                self.first_obstacle[i] = terrain.first_obstacle
+                continue
+            spans = draw_terrain(self.config, rng, self.interior[i], 1.0 / self.scale)
+            self.pad(i)
+            changes = np.zeros(self.layout.ncol - 1, bool)  # columns c, c + 1 not one level
+            obstacles = [(c0, c1) for kind, c0, c1, _ in spans if kind != "flat"]
+            for c0, c1 in obstacles:
+                changes[max(c0 - 1, 0) : c1] = True
+            self.rough[i] = spread(changes, self.margin)
+            self.first_obstacle[i] = x_min + obstacles[0][0] * res if obstacles else np.inf
+        self.generated += len(ids)

@@ -18,10 +18,13 @@ import numpy as np
 
 class FreeJoint(NamedTuple):
     """A free body's state in every copy: live (N, 7) position + quaternion, (N, 6) velocity
-    (linear in the world frame, then angular in the body's own frame: MuJoCo's qvel)."""
+    (linear in the world frame, then angular in the body's own frame: MuJoCo's qvel), and its
+    (N, 3, 3) orientation, columns the body's axes in the world (derived from the state: current
+    after each step and each placement, read-only)."""
 
     qpos: np.ndarray
     qvel: np.ndarray
+    rot: np.ndarray
 
 
 @runtime_checkable
