@@ -384,6 +384,40 @@ def test_first_obstacles_are_uniform_over_the_episodes_started(quadruped: Genome
     assert ((counts - expected) ** 2 / expected).sum() < 9.21  # chi-square, 2 dof, p = 0.01
 
 
+def test_terrain_is_written_ahead_of_the_body(quadruped: Genome) -> None:
+    """A VT copy's terrain is written as its body comes near: after a reset, the start and the
+    stretch ahead of it; a body carried along +x sees (heightmap, ground) what it would see were
+    the whole terrain written at the reset."""
+    corridor = TerrainConfig.variable(size_x=60.0, size_y=10.0)
+    config = EnvConfig(num_envs=2, fall_ratio=0.0)
+    env = UnimalEnv(quadruped, make_task("vt", terrain=corridor), config)
+    env.reset(0)
+    stack = env.task.terrains
+    assert (stack.written < stack.layout.ncol / 2).all()
+    seen, heads, yaws, grounds = [], [], [], []
+    for k in range(30):
+        env.qpos[:, env.root] = env.task.spawn[0] + 1.5 * k
+        env.qpos[:, env.root + 2] = 3.0
+        env.batch.forward()
+        result = env.step(np.zeros((2, env.action_dim), np.float32))
+        seen.append(result.obs["heightmap"])
+        heads.append(env.head_pos[:, :2].copy())
+        yaws.append(env.yaw)
+        grounds.append(env.task.arena.ground(env.head_pos[:, :2]))
+    assert (stack.written == stack.layout.ncol).all()  # the bodies went far enough
+    for i, heights in enumerate(stack.heights):
+        terrain = Terrain(heights, corridor.resolution, corridor.max_height)
+        xy = np.array([head[i] for head in heads])
+        yaw = np.array([y[i] for y in yaws])
+        np.testing.assert_allclose(
+            [obs[i] for obs in seen], sample(terrain, xy, yaw, env.task.arena.grid), atol=1e-5
+        )
+        vertex = np.rint((xy - [terrain.x_min, terrain.y_min]) / terrain.resolution).astype(int)
+        np.testing.assert_allclose(
+            [g[i] for g in grounds], heights[vertex[:, 1], vertex[:, 0]], atol=1e-6
+        )
+
+
 def test_reset_is_deterministic(quadruped: Genome) -> None:
     env = _env(quadruped, "mvt", n=2)
     first = env.reset(7)

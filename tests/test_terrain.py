@@ -11,11 +11,13 @@ from scipy.signal import sawtooth
 from derl.envs.heightmap import HeightmapGrid, HeightStack, rough_columns, sample
 from derl.envs.terrain import (
     Segment,
+    Span,
     Terrain,
     TerrainConfig,
     _rubble,
     _rubble_strips,
     generate_terrain,
+    render,
 )
 from derl.envs.terrain_stack import TerrainStack, add_hfield
 
@@ -122,7 +124,8 @@ def test_rubble_strips_are_clipped_triangle_waves(n: int) -> None:
     seen: set[tuple[int, int, float]] = set()
     for seed in range(8):
         block = np.zeros((1001, n), np.float32)
-        height = _rubble(block, config, np.random.default_rng(seed), 1.0)
+        height, strips, profiles = _rubble(n, 1001, config, np.random.default_rng(seed))
+        render([Span("rubble", 0, n, height, strips, profiles)], block, 0, n)
         rows, wave, clip = _rubble_strips(1001, config, np.random.default_rng(seed))
         assert set(rows.tolist()) <= set(range(10, 20))
         assert rows[:-1].sum() < 1001 <= rows.sum()  # the last strip is cut by the edge

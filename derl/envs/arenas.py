@@ -13,10 +13,16 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from scipy import ndimage
 
 from derl.envs.heightmap import HeightmapGrid
+from derl.envs.rewards import CONTROL_DT
 from derl.envs.task import Arena
 from derl.envs.terrain import Segment, Terrain, TerrainConfig
 from derl.envs.terrain_stack import TerrainStack, add_hfield
-from derl.envs.view import EnvView
+from derl.envs.view import MAX_SPEED, EnvView
+from derl.unimal.space import HEAD_RADIUS, LIMB_LENGTHS, LIMB_RADIUS, MAX_LIMBS
+
+BODY_REACH = HEAD_RADIUS + MAX_LIMBS * max(LIMB_LENGTHS) + LIMB_RADIUS
+"""m: no point of a body is further than this from its head's centre (a chain of the longest
+limbs)."""
 
 
 class Floor(Arena):
@@ -53,26 +59,42 @@ class Floor(Arena):
 class Heightfield(Arena):
     """A heightfield laid out like ``config``, one terrain per copy, new for every episode:
     ``draw(rng)`` makes one (default: `generate_terrain`'s corridor, drawn in place). ``grid``:
-    the heightmap the task observes (None: none)."""
+    the heightmap the task observes (None: none). ``lazy``: a corridor's columns are written as
+    its body comes near them (`TerrainStack.reach`: the heightmap's reach, the body's and a
+    step's travel ahead of its head), for worlds where nothing but the body touches the
+    terrain; otherwise all of it at each reset."""
 
     def __init__(
         self,
         config: TerrainConfig,
         grid: HeightmapGrid | None = None,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
+        lazy: bool = False,
     ) -> None:
         self.config, self.grid, self.draw = config, grid, draw
         self.half = (config.size_x / 2, config.size_y / 2)
+        reach = 0.0 if grid is None else grid.reach
+        self.ahead = reach + BODY_REACH + MAX_SPEED * CONTROL_DT if lazy else None
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_hfield(spec, self.config, self.grid)
 
     def bind(self, env: EnvView) -> None:
-        self.terrains = TerrainStack(self.config, env.model, env.num_envs, self.grid, self.draw)
+        self.terrains = TerrainStack(
+            self.config, env.model, env.num_envs, self.grid, self.draw, self.ahead
+        )
         env.set_models(self.terrains.models)
 
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
         self.terrains.renew(ids, env.rng)
+
+    def placed(self, env: EnvView, ids: np.ndarray) -> None:
+        if self.ahead is not None:
+            self.terrains.reach(env.head_pos[ids, 0], ids)
+
+    def update(self, env: EnvView) -> None:
+        if self.ahead is not None:
+            self.terrains.reach(env.head_pos[:, 0])
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)

@@ -24,19 +24,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from derl.envs.task import Arrays, Task
-from derl.envs.view import FreeJoint
+from derl.envs.view import MAX_SPEED, FreeJoint
 from derl.unimal import Genome, agent_spec
 from derl.unimal.geometry import layout
 from derl.unimal.mjcf import rest_height
 from derl.unimal.space import HEAD_RADIUS
 
 ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
-MAX_SPEED = 100.0
-"""m/s or rad/s: a copy with any velocity above it has blown up. MuJoCo itself only warns at
-1e10; below that a body can spin up in the air (Euler integration does not keep its angular
-momentum) and be flung tens of km in one step, a forward reward of millions. Trainings that do
-not blow up stay under 50 (the largest |qvel| over 150k steps of each of four bodies of a demo run:
-32-49), as in Gym's Hopper, whose healthy state is bounded by 100."""
 
 SLEEPERS = {
     int(policy)

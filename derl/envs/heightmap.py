@@ -195,17 +195,21 @@ class HeightStack:
         self.pad(i)
         self.rough[i] = rough_columns(heights, self.margin)
 
-    def pad(self, i: int) -> None:
-        """Repeat terrain ``i``'s edges into its padding (after its vertices changed)."""
+    def pad(self, i: int, start: int = 0, stop: int | None = None) -> None:
+        """Repeat terrain ``i``'s edges into its padding, next to its columns [start, stop)
+        (default: all), after they changed."""
         m, padded = self.margin, self.padded[i]
+        nrow, ncol = self.layout.nrow, self.layout.ncol
+        stop = ncol if stop is None else stop
         if not m:
             return
-        nrow, ncol = self.layout.nrow, self.layout.ncol
-        inner = slice(m, m + ncol)
+        inner = slice(m + start, m + stop)
         padded[:m, inner] = padded[m, inner]
         padded[m + nrow :, inner] = padded[m + nrow - 1, inner]
-        padded[:, :m] = padded[:, m : m + 1]
-        padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
+        if start == 0:
+            padded[:, :m] = padded[:, m : m + 1]
+        if stop == ncol:
+            padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
 
     def vertices(self, xy: np.ndarray) -> np.ndarray:
         """(N,) flat index in its terrain's `padded` array of the vertex nearest each point

@@ -254,13 +254,29 @@ class Terrain:
         return np.clip(out, 0.0, 1.0, out=out)
 
 
+class Span(NamedTuple):
+    """A stretch of a drawn corridor, before its heights are written (`render`): vertex columns
+    [c0, c1) of ``kind``, designed top ``top`` (m, as `Segment`), made of strips along x of
+    ``rows[j]`` rows each from row 0 (the last one cut at the edge) whose heights along x are
+    ``profiles[j]`` (m; one strip across the whole width for all but rubble)."""
+
+    kind: SegmentKind
+    c0: int
+    c1: int
+    top: float
+    rows: tuple[int, ...]
+    profiles: np.ndarray
+
+
 def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain:
     """Draw a new world from ``config``; deterministic for a given generator state."""
     heights = np.empty(config.grid_shape, dtype=np.float32)
+    spans = plan_terrain(config, rng)
+    render(spans, heights, 0, heights.shape[1])
     x_min, res = -config.size_x / 2, config.resolution
     segments = [
-        Segment(kind, round(x_min + c0 * res, 9), round(x_min + c1 * res, 9), top)
-        for kind, c0, c1, top in draw_terrain(config, rng, heights)
+        Segment(s.kind, round(x_min + s.c0 * res, 9), round(x_min + s.c1 * res, 9), s.top)
+        for s in spans
     ]
     return Terrain(
         heights=heights,
@@ -271,24 +287,37 @@ def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain
     )
 
 
-def draw_terrain(
-    config: TerrainConfig, rng: np.random.Generator, out: np.ndarray, scale: float = 1.0
-) -> list[tuple[SegmentKind, int, int, float]]:
-    """Draw a new world from ``config`` straight into ``out``, a float32 (nrow, ncol) array or
-    view (such as a model's heightfield data), heights times ``scale``; every vertex is written.
-    Returns the segments as (kind, first column, end column, designed top in m); the last
-    column of vertices is flat. The draws are `generate_terrain`'s."""
+def plan_terrain(config: TerrainConfig, rng: np.random.Generator) -> list[Span]:
+    """Every draw of a new world from ``config`` (those of `generate_terrain`), its heights not
+    yet written: a few hundred numbers, whatever the world's size."""
+    nrow, ncol = config.grid_shape
     spans = []
-    end = out.shape[1] - 1
-    for kind, c0, c1 in _layout(config, end, rng):
-        block = out[:, c0:c1]
+    for kind, c0, c1 in _layout(config, ncol - 1, rng):
         if kind == "flat":
-            block[:] = 0.0
-            spans.append((kind, c0, c1, 0.0))
+            spans.append(Span(kind, c0, c1, 0.0, (nrow,), np.zeros((1, c1 - c0))))
         else:
-            spans.append((kind, c0, c1, _BUILDERS[kind](block, config, rng, scale)))
-    out[:, spans[-1][2] :] = 0.0
+            spans.append(Span(kind, c0, c1, *_BUILDERS[kind](c1 - c0, nrow, config, rng)))
     return spans
+
+
+def render(spans: list[Span], out: np.ndarray, start: int, stop: int, scale: float = 1.0) -> None:
+    """Write vertex columns [start, stop) of the world ``spans`` plans into ``out``, a float32
+    (nrow, ncol) array or view (such as a model's heightfield data), heights times ``scale``.
+    Columns beyond the last span (the far edge's) are flat."""
+    nrow = out.shape[0]
+    for span in spans:
+        a, b = max(start, span.c0), min(stop, span.c1)
+        if a >= b:
+            continue
+        along = slice(a - span.c0, b - span.c0)
+        row = 0
+        profiles = (span.profiles[:, along] * scale).astype(np.float32)
+        for rows, profile in zip(span.rows, profiles, strict=True):
+            out[row : min(row + rows, nrow), a:b] = profile
+            row += rows
+    end = spans[-1].c1
+    if stop > end:
+        out[:, max(start, end) : stop] = 0.0
 
 
 def _cells(length: float, resolution: float) -> int:
@@ -324,22 +353,20 @@ def _layout(
 
 
 def _hills(
-    block: np.ndarray, config: TerrainConfig, rng: np.random.Generator, scale: float
-) -> float:
+    n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
+) -> tuple[float, tuple[int, ...], np.ndarray]:
     """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
     height = _pick(config.hill_height, rng)
-    block[:] = height * scale * np.sin(np.linspace(0.0, np.pi, block.shape[1]))
-    return height
+    return height, (nrow,), height * np.sin(np.linspace(0.0, np.pi, n))[None]
 
 
 def _steps(
-    block: np.ndarray, config: TerrainConfig, rng: np.random.Generator, scale: float
-) -> float:
+    n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
+) -> tuple[float, tuple[int, ...], np.ndarray]:
     """num_steps treads of n / num_steps columns each at 0, h, ..., top, top, ..., h, 0."""
     tread = np.arange(config.num_steps)
-    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread) * scale
-    block[:] = np.repeat(levels, block.shape[1] // config.num_steps)
-    return config.steps_top
+    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread)
+    return config.steps_top, (nrow,), np.repeat(levels, n // config.num_steps)[None]
 
 
 def _rubble_strips(
@@ -357,20 +384,18 @@ def _rubble_strips(
 
 
 def _rubble(
-    block: np.ndarray, config: TerrainConfig, rng: np.random.Generator, scale: float
-) -> float:
+    n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
+) -> tuple[float, tuple[int, ...], np.ndarray]:
     """Strips along x, each min(triangle wave, clip) with the wave 0 -> peak -> 0 over two
     half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2)."""
-    nrow, n = block.shape
     rows, wave, clip = _rubble_strips(nrow, config, rng)
     # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
-    # Few distinct (f, clip) pairs: the profiles are computed once each and copied into strips.
+    # Few distinct (f, clip) pairs: the profiles are computed once each and picked per strip.
     phase = np.outer(config.rubble_half_periods, np.arange(n) / (n - 1)) % 2.0
     waves = config.rubble_peak * (1.0 - np.abs(phase - 1.0))
     clips = np.array(config.rubble_clip)
-    profiles = (np.minimum(waves[:, None, :], clips[:, None]) * scale).astype(np.float32)
-    block[:] = np.repeat(profiles[wave, clip], rows, axis=0)[:nrow]
-    return float(clips[clip].max())
+    profiles = np.minimum(waves[:, None, :], clips[:, None])
+    return float(clips[clip].max()), tuple(rows.tolist()), profiles[wave, clip]
 
 
 _BUILDERS = {"hills": _hills, "steps": _steps, "rubble": _rubble}

@@ -13,16 +13,18 @@ flat at its edge heights, where episodes have ended already.
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Callable
 
 import mujoco
 import numpy as np
 
 from derl.envs.heightmap import HeightmapGrid, HeightStack, padding, spread
-from derl.envs.terrain import Terrain, TerrainConfig, draw_terrain
+from derl.envs.terrain import Span, Terrain, TerrainConfig, plan_terrain, render
 
 HFIELD_NAME = "terrain"
 HFIELD_BASE = 0.1  # depth of the solid under z = 0, m
+STRETCH = 2.0  # m: a lazily written corridor is written this far beyond what is needed now
 
 
 def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig, grid: HeightmapGrid | None) -> None:
@@ -54,8 +56,11 @@ class TerrainStack(HeightStack):
     `HeightStack`'s lookups on them.
 
     ``draw(rng)`` makes one terrain laid out like ``config``; by default the obstacle corridor
-    of `derl.envs.terrain.generate_terrain` is drawn straight into the heightfield. ``grid`` is
-    the heightmap that will be read from the stack (None: none), which sizes the padding.
+    of `derl.envs.terrain.generate_terrain` is planned (`plan_terrain`: its draws) and written
+    straight into the heightfield. With ``ahead`` (m), a corridor's columns are written only as
+    far as they can be touched or seen: ``ahead`` beyond each point of the copy that is read
+    (`ground`) or tracked (`reach`), plus `STRETCH`. ``grid`` is the heightmap
+    that will be read from the stack (None: none), which sizes the padding.
     """
 
     def __init__(
@@ -65,6 +70,7 @@ class TerrainStack(HeightStack):
         count: int,
         grid: HeightmapGrid | None,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
+        ahead: float | None = None,
     ) -> None:
         self.config = config
         self.draw = draw
@@ -79,25 +85,65 @@ class TerrainStack(HeightStack):
             np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
         )
         super().__init__(layout, arrays, grid, scale=config.max_height)
+        self.ahead = None if ahead is None else math.ceil(ahead / config.resolution)  # columns
+        self._stretch = round(STRETCH / config.resolution)
+        self.plans: list[list[Span]] = [[] for _ in range(count)]
+        self.written = np.full(count, layout.ncol)
+        """Columns of each copy's terrain written so far (from column 0)."""
         self.first_obstacle = np.full(count, np.inf)
         """x where each copy's first obstacle starts (inf: none; -inf: anywhere)."""
         self.generated = 0
 
     def renew(self, ids: np.ndarray, rng: np.random.Generator) -> None:
         """A fresh terrain for each copy in ``ids``."""
-        x_min, res = self.layout.x_min, self.layout.resolution
+        x_min, res, ncol = self.layout.x_min, self.layout.resolution, self.layout.ncol
         for i in ids.tolist():
             if self.draw is not None:
                 terrain = self.draw(rng)
                 self.write(i, terrain.heights)
                 self.first_obstacle[i] = terrain.first_obstacle
                 continue
-            spans = draw_terrain(self.config, rng, self.interior[i], 1.0 / self.scale)
-            self.pad(i)
-            changes = np.zeros(self.layout.ncol - 1, bool)  # columns c, c + 1 not one level
-            obstacles = [(c0, c1) for kind, c0, c1, _ in spans if kind != "flat"]
+            self.plans[i] = spans = plan_terrain(self.config, rng)
+            self.written[i] = 0
+            changes = np.zeros(ncol - 1, bool)  # columns c and c + 1 not both at one level
+            obstacles = [(s.c0, s.c1) for s in spans if s.kind != "flat"]
             for c0, c1 in obstacles:
                 changes[max(c0 - 1, 0) : c1] = True
             self.rough[i] = spread(changes, self.margin)
             self.first_obstacle[i] = x_min + obstacles[0][0] * res if obstacles else np.inf
+            if self.ahead is None:
+                self._write_columns(i, ncol)
         self.generated += len(ids)
+
+    def reach(self, x: np.ndarray, which: np.ndarray | None = None) -> None:
+        """Write the terrain of copy ``which[k]`` (default: k) as far as `ahead` beyond ``x[k]``
+        (m) if it is not yet: call it with where each body is after every step."""
+        if self.ahead is None:
+            return
+        which = self._terrains[: len(x)] if which is None else which
+        need = (x - self.layout.x_min) / self.layout.resolution + self.ahead
+        for k in np.flatnonzero(need > self.written[which]).tolist():
+            self._write_columns(int(which[k]), int(need[k]) + self._stretch)
+
+    def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        self.reach(xy[:, 0], which)
+        return super().ground(xy, which)
+
+    def complete(self, i: int) -> None:
+        """Write the rest of copy ``i``'s terrain (to show or check all of it)."""
+        self._write_columns(i, self.layout.ncol)
+
+    @property
+    def heights(self) -> np.ndarray:
+        for i in range(len(self.padded)):
+            self.complete(i)
+        return super().heights
+
+    def _write_columns(self, i: int, stop: int) -> None:
+        """Write copy ``i``'s planned terrain up to column ``stop`` (excluded)."""
+        start, stop = int(self.written[i]), min(stop, self.layout.ncol)
+        if stop <= start:
+            return
+        render(self.plans[i], self.interior[i], start, stop, 1.0 / self.scale)
+        self.pad(i, start, stop)
+        self.written[i] = stop

@@ -37,7 +37,9 @@ class FrameRecorder:
         """An RGB image (height, width, 3) of copy 0 now."""
         terrains = getattr(self.env.task.arena, "terrains", None)
         if terrains is not None and terrains.generated != self.uploaded:
-            # the copy's terrain changed: send it to the GPU (the Renderer has no public call)
+            # the copy's terrain changed: send all of it to the GPU (the Renderer has no public
+            # call)
+            terrains.complete(0)
             self.renderer._gl_context.make_current()
             mujoco.mjr_uploadHField(self.model, self.renderer._mjr_context, terrains.hfield)
             self.uploaded = terrains.generated

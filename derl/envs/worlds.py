@@ -45,7 +45,7 @@ def vt(
     walk along +x from the middle of the flat start area, seeing the heightmap."""
     terrain = terrain or TerrainConfig.variable()
     w = weights or REWARD_WEIGHTS["vt"]
-    arena = Heightfield(terrain, grid or HeightmapGrid())
+    arena = Heightfield(terrain, grid or HeightmapGrid(), lazy=True)
     return Task(
         name="vt",
         gym_name="VT",
