@@ -395,7 +395,7 @@ def test_terrain_is_written_ahead_of_the_body(quadruped: Genome) -> None:
     stack = env.task.terrains
     assert (stack.written < stack.layout.ncol / 2).all()
     seen, heads, yaws, grounds = [], [], [], []
-    for k in range(30):
+    for k in range(32):
         env.qpos[:, env.root] = env.task.spawn[0] + 1.5 * k
         env.qpos[:, env.root + 2] = 3.0
         env.batch.forward()
