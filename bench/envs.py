@@ -6,12 +6,15 @@ clock also counts other processes' turns on the core): the raw physics rate (the
 `mujoco.batch.Batch` stepping 4 substeps per control step, nothing else: the ceiling), the
 environment's rate with observations, rewards, endings and resets (random actions in [-1, 1],
 episodes ending as they do), their ratio, the time the heightmap lookups take per environment
-step (timed in a separate run, as they run between physics steps: with cold caches). Random
-bodies seldom leave the flat start area, where heightmaps are zeros without reading the
-terrain; for worlds with terrain, ``ratio_uneven`` and ``heightmap_uneven_ms_per_step`` are the
-ratio and the lookup time with every heightmap read point by point, as for bodies walking over
-obstacles. Then the cost of a new VT terrain (at a reset, and all of it) against the cost of an
-episode, and where the first obstacle lies over the episodes of a VT rollout.
+step (timed in a separate run, as they run between physics steps: with cold caches), and
+``physics_share``, the share of the environment's (wall) time spent in MuJoCo (its steps and the
+forward passes of the copies it resets): where resets change the physics (MVT's box, placed
+anew, slides and settles before it sleeps) the raw rate, without resets, is not the physics the
+environment runs, and this share is the ratio to it. Random bodies seldom leave the start
+area; for worlds with a heightmap, ``ratio_uneven`` and ``heightmap_uneven_ms_per_step`` are
+the ratio and the lookup time with every heightmap read point by point, as for bodies walking
+over obstacles. Then the cost of a new VT terrain (at a reset, and all of it) against the cost
+of an episode, and where the first obstacle lies over the episodes of a VT rollout.
 Run: python bench/envs.py [--repeats 5] [--steps 300]
 """
 
@@ -58,13 +61,15 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
 
     env.reset(0)
     environment(20)  # warm-up
-    terrain = hasattr(env.task, "terrains")
-    raw, full, uneven = [], [], []
+    terrain = hasattr(env.task.arena, "grid") and env.task.arena.grid is not None  # a heightmap
+    raw, full, uneven, share = [], [], [], []
     for _ in range(repeats):
         env.reset(1)
         raw.append(_rate(physics, steps, env.num_envs))
         env.reset(1)
+        physics_s, wall = env.physics_s, time.perf_counter()
         full.append(_rate(environment, steps, env.num_envs))
+        share.append((env.physics_s - physics_s) / (time.perf_counter() - wall))
         if terrain:
             with _uneven(env):
                 env.reset(1)
@@ -76,6 +81,7 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
         "raw_physics_steps_per_s": round(statistics.median(raw)),
         "env_steps_per_s": round(statistics.median(full)),
         "ratio": round(statistics.median(f / r for f, r in zip(full, raw, strict=True)), 3),
+        "physics_share": round(statistics.median(share), 3),
         "terrains_generated": getattr(getattr(env.task, "terrains", None), "generated", 0),
     }
     if terrain:

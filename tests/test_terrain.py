@@ -241,7 +241,7 @@ def test_terrains_drawn_in_place_are_what_mujoco_sees() -> None:
     model = spec.compile()
     stack = TerrainStack(config, model, 1, HeightmapGrid())
     rng = np.random.default_rng(3)
-    for seed in (0, 1):
+    for seed in (1, 2):  # rubble, hills
         stack.renew(np.array([0]), np.random.default_rng(seed))
         terrain = Terrain(stack.heights[0], config.resolution, config.max_height)
         drawn = generate_terrain(config, np.random.default_rng(seed))

@@ -325,8 +325,8 @@ def _cells(length: float, resolution: float) -> int:
 
 
 def _pick(values: tuple[T, ...], rng: np.random.Generator) -> T:
-    """One of ``values``, uniformly."""
-    return values[rng.integers(len(values))]
+    """One of ``values``, uniformly (`Generator.random`: a fifth of `Generator.integers`' cost)."""
+    return values[int(rng.random() * len(values))]
 
 
 def _layout(
@@ -376,10 +376,11 @@ def _rubble_strips(
     half-periods and clip height in the config's choices; strips are stacked from row 0 until
     they cover the block (the last one is cut)."""
     widths = np.array([_cells(w, config.resolution) for w in config.rubble_strip_width])
-    rows = widths[rng.integers(len(widths), size=-(-nrow // widths.min()))]  # enough strips
+    draws = rng.random((3, -(-nrow // widths.min())))  # enough strips
+    rows = widths[(draws[0] * len(widths)).astype(np.intp)]
     count = int(np.searchsorted(np.cumsum(rows), nrow)) + 1
-    wave = rng.integers(len(config.rubble_half_periods), size=count)
-    clip = rng.integers(len(config.rubble_clip), size=count)
+    wave = (draws[1, :count] * len(config.rubble_half_periods)).astype(np.intp)
+    clip = (draws[2, :count] * len(config.rubble_clip)).astype(np.intp)
     return rows[:count], wave, clip
 
 
