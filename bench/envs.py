@@ -190,7 +190,7 @@ def main() -> None:
         for limbs in (6, 10)
     ]
     terrain = bench_terrain(args.repeats)
-    terrain["first_obstacles"] = episodes = first_obstacles(6, args.steps)
+    terrain["first_obstacles"] = episodes = first_obstacles(6, 1000)
     vt = next(r for r in results if r["world"] == "vt")  # the 6-limb body
     episode_ms = 1000 * episodes["mean_episode_steps"] / vt["env_steps_per_s"]  # one copy's
     terrain["vt_episode_ms_per_copy"] = round(episode_ms, 2)
