@@ -401,3 +401,24 @@ def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
     rough = stack.rough[which, column]
     assert rough.any() and not rough.all()
     assert heightmaps[rough].any() and not heightmaps[~rough].any()
+
+
+def test_top_is_the_highest_vertex_of_the_square() -> None:
+    """`HeightStack.top`: the highest vertex within k cells of each point's nearest vertex (the
+    square cut at the terrain's edges), where a box of half side k cells comes to rest."""
+    rng = np.random.default_rng(0)
+    layout = Terrain(rng.uniform(0, 1, (41, 61)).astype(np.float32))
+    for grid in (None, HeightmapGrid()):  # unpadded and padded
+        stack = HeightStack.allocate(layout, 2, grid)
+        other = rng.uniform(0, 1, layout.heights.shape).astype(np.float32)
+        stack.write(0, layout.heights)
+        stack.write(1, other)
+        xy = rng.uniform((-3.2, -2.2), (3.2, 2.2), (50, 2))  # beyond the edges too
+        which = rng.integers(0, 2, 50)
+        tops = stack.top(xy, 0.2, which)
+        for (x, y), terrain, top in zip(xy, which, tops, strict=True):
+            heights = (layout.heights, other)[terrain]
+            c = int(np.clip(np.rint((x - layout.x_min) / 0.1), 0, 60))
+            r = int(np.clip(np.rint((y - layout.y_min) / 0.1), 0, 40))
+            square = heights[max(r - 2, 0) : r + 3, max(c - 2, 0) : c + 3]
+            assert top == pytest.approx(square.max())

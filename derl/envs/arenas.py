@@ -100,12 +100,7 @@ class Heightfield(Arena):
         return self.terrains.ground(xy, ids)
 
     def top(self, xy: np.ndarray, half: float, ids: np.ndarray | None = None) -> np.ndarray:
-        cells = round(half / self.config.resolution)
-        offsets = np.arange(-cells, cells + 1) * self.config.resolution
-        square = np.stack(np.meshgrid(offsets, offsets), axis=2).reshape(-1, 2)
-        points = (xy[:, None] + square).reshape(-1, 2)
-        which = np.repeat(np.arange(len(xy)) if ids is None else ids, len(square))
-        return self.terrains.ground(points, which).reshape(len(xy), -1).max(axis=1)
+        return self.terrains.top(xy, half, ids)
 
 
 # --- obstacle: boxes on a corridor --------------------------------------------------------------

@@ -223,6 +223,18 @@ class HeightStack:
         heights = [flat[t].item(v) for t, v in zip(self._which(xy, which), vertices, strict=True)]
         return np.array(heights) * self.scale
 
+    def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
+        """(N,) the highest vertex within ``half`` (m, rounded to whole cells) along each axis
+        of the vertex nearest each point (the square clamped to the terrain), in m."""
+        k = round(half / self.layout.resolution)
+        cells = self._cells(xy)[:, :, None] + np.arange(-k, k + 1, dtype=np.int32)  # (N, 2, S)
+        np.minimum(np.maximum(cells, 0, out=cells), self._last[:, None], out=cells)
+        row_length = self._strides[1]
+        square = cells[:, 1, :, None] * row_length + cells[:, 0, None, :] + self._first
+        flat = self._flat
+        tops = [flat[t].take(v).max() for t, v in zip(self._which(xy, which), square, strict=True)]
+        return np.array(tops, np.float64) * self.scale
+
     def heightmap(
         self, xy: np.ndarray, yaw: np.ndarray, which: np.ndarray | None = None
     ) -> np.ndarray:

@@ -129,6 +129,10 @@ class TerrainStack(HeightStack):
         self.reach(xy[:, 0], which)
         return super().ground(xy, which)
 
+    def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
+        self.reach(xy[:, 0] + half, which)
+        return super().top(xy, half, which)
+
     def complete(self, i: int) -> None:
         """Write the rest of copy ``i``'s terrain (to show or check all of it)."""
         self._write_columns(i, self.layout.ncol)
