@@ -10,9 +10,11 @@ Lookup. The grid is anchored at the vertex nearest the head, and its offsets, ro
 `YAW_BINS` evenly spaced yaws and rounded to whole cells, are precomputed as offsets of flat
 indices (`offset_table`, once per `HeightStack`: about 20 ms). A lookup for N bodies is then: the
 yaw bin and the head's vertex of each body (N numbers), one (N, K) gather from the table, an add,
-one gather from the heights, and the ground under the head subtracted: no per-point arithmetic.
-Heads whose whole grid lies on one height (a flat start area) skip it: their heightmap is
-zeros. (Right after a physics step, reading 32 heads' grids takes 0.1-0.3 ms, mostly cache misses.)
+one gather from each body's terrain (each copy's terrain is its own model's heightfield data),
+and the height under the head, the grid's own point (0, 0), subtracted: no per-point
+arithmetic. Heads whose whole grid lies on one height (a flat start area) skip it: their
+heightmap is zeros. (Right after a physics step, reading 32 heads' grids takes 0.1-0.3 ms,
+mostly cache misses.)
 
 Accuracy. The yaw is rounded to the nearest bin (0.125 degree at most), which moves the
 furthest point (5.7 m) by at most 1/8 of a cell, and the grid is anchored at the head's nearest
@@ -26,8 +28,9 @@ for only about a quarter of the points).
 Edges. Heights are stored padded on every side by `HeightStack.margin` cells that repeat the edge
 values, further than the grid reaches, so every point reads a vertex of its own terrain, and
 points outside the world read the nearest edge vertex (the world continues flat at its edge
-heights) instead of the original's -10 m gap: it keeps observations in the terrain's own range,
-and episodes end before bodies get there. A head outside the world counts as on its edge.
+heights; in an environment the heightfield itself is padded, so the physics agrees) instead of
+the original's -10 m gap: it keeps observations in the terrain's own range, and episodes end
+before bodies get there. A head outside the world counts as on its edge.
 """
 
 from __future__ import annotations
