@@ -352,11 +352,8 @@ def test_new_terrain_for_every_episode(quadruped: Genome) -> None:
     for i in range(2):
         assert not np.array_equal(before[i], after[i])
     np.testing.assert_array_equal(before[2], after[2])  # still running
-    m = stack.margin
     for i in range(3):
-        model_heights = stack.models[i].hfield_data.reshape(stack.padded[i].shape)
-        inner = model_heights[m:-m, m:-m] * SMALL_VT.max_height
-        np.testing.assert_allclose(inner, after[i], atol=1e-6)
+        np.testing.assert_array_equal(stack.models[i].hfield_data, stack.padded[i].ravel())
     spawn_view = stack.heightmap(np.array([env.task.spawn] * 3), np.zeros(3))
     assert not spawn_view.any()  # from the spawn point no obstacle is in sight
 

@@ -386,7 +386,7 @@ def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
     """Skipping heads above level stretches gives what reading every point gives."""
     config = TerrainConfig(size_x=30.0, size_y=10.0, start_flat=8.0)
     terrains = [generate_terrain(config, np.random.default_rng(seed)) for seed in range(4)]
-    stack = HeightStack.allocate(terrains[0], 4, HeightmapGrid())
+    stack = HeightStack(terrains[0], 4, HeightmapGrid())
     for i, terrain in enumerate(terrains):
         stack.write(i, terrain.heights)
     rng = np.random.default_rng(1)
@@ -395,8 +395,7 @@ def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
         xy = rng.uniform((-16.0, -6.0), (16.0, 6.0), (n, 2))
         yaw = rng.uniform(-np.pi, np.pi, n)
         heightmaps = stack.heightmap(xy, yaw, which)
-        every = np.arange(4) if which is None else which
-        np.testing.assert_array_equal(heightmaps, stack.lookup(stack.vertices(xy), every, yaw))
+        np.testing.assert_array_equal(heightmaps, stack.lookup(stack.vertices(xy, which), yaw))
     column = np.clip(np.rint((xy[:, 0] - terrains[0].x_min) / 0.1), 0, 300).astype(int)
     rough = stack.rough[which, column]
     assert rough.any() and not rough.all()
@@ -409,7 +408,7 @@ def test_top_is_the_highest_vertex_of_the_square() -> None:
     rng = np.random.default_rng(0)
     layout = Terrain(rng.uniform(0, 1, (41, 61)).astype(np.float32))
     for grid in (None, HeightmapGrid()):  # unpadded and padded
-        stack = HeightStack.allocate(layout, 2, grid)
+        stack = HeightStack(layout, 2, grid)
         other = rng.uniform(0, 1, layout.heights.shape).astype(np.float32)
         stack.write(0, layout.heights)
         stack.write(1, other)

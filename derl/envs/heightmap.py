@@ -10,11 +10,10 @@ Lookup. The grid is anchored at the vertex nearest the head, and its offsets, ro
 `YAW_BINS` evenly spaced yaws and rounded to whole cells, are precomputed as offsets of flat
 indices (`offset_table`, once per `HeightStack`: about 20 ms). A lookup for N bodies is then: the
 yaw bin and the head's vertex of each body (N numbers), one (N, K) gather from the table, an add,
-one gather from each body's terrain (each copy's terrain is its own model's heightfield data),
-and the height under the head, the grid's own point (0, 0), subtracted: no per-point
-arithmetic. Heads whose whole grid lies on one height (a flat start area) skip it: their
-heightmap is zeros. (Right after a physics step, reading 32 heads' grids takes 0.1-0.3 ms,
-mostly cache misses.)
+one gather from the heights, and the height under the head, the grid's own point (0, 0),
+subtracted: no per-point arithmetic. Heads whose whole grid lies on one height (a flat start
+area) skip it: their heightmap is zeros. (Right after a physics step, reading 32 heads' grids
+takes 0.1-0.3 ms, mostly cache misses.)
 
 Accuracy. The yaw is rounded to the nearest bin (0.125 degree at most), which moves the
 furthest point (5.7 m) by at most 1/8 of a cell, and the grid is anchored at the head's nearest
@@ -28,7 +27,7 @@ for only about a quarter of the points).
 Edges. Heights are stored padded on every side by `HeightStack.margin` cells that repeat the edge
 values, further than the grid reaches, so every point reads a vertex of its own terrain, and
 points outside the world read the nearest edge vertex (the world continues flat at its edge
-heights; in an environment the heightfield itself is padded, so the physics agrees) instead of
+heights; in an environment the heightfield is padded the same way, so the physics agrees) instead of
 the original's -10 m gap: it keeps observations in the terrain's own range, and episodes end
 before bodies get there. A head outside the world counts as on its edge.
 """
@@ -36,7 +35,6 @@ before bodies get there. A head outside the world counts as on its edge.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from functools import cached_property
 
 import numpy as np
@@ -135,62 +133,47 @@ def padding(grid: HeightmapGrid | None, resolution: float) -> int:
 
 class HeightStack:
     """M terrains laid out like ``layout`` (its shape, resolution and extent) and the heightmap
-    and ground lookups on them. Terrain i lives in ``arrays[i]``, a C-contiguous float32 array of
-    (nrow + 2 m, ncol + 2 m) vertices, m = `margin` = `padding` (grid): its vertices framed by m
-    cells on every side that repeat its edges (`pad`), heights in units of ``scale`` m. The arrays
-    may be the caller's: a model's heightfield data (normalised heights, ``scale`` its elevation),
-    so that the physics and the observations read one copy of each terrain.
+    and ground lookups on them, all at once. The terrains are stacked in one float32 array,
+    `padded` (M, nrow + 2 m, ncol + 2 m), m = `margin` = `padding` (grid): each terrain framed
+    by m cells on every side that repeat its edges (`pad`), heights in units of ``scale`` m.
 
-    Flat indices into a terrain are int32 (numpy gathers them faster than int64), which limits a
-    terrain to 2**31 vertices.
+    Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
+    stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
 
     A head whose grid lies on one height (a stretch of columns, each the same height from edge
     to edge, such as a flat start area) sees all zeros: its heightmap is not looked up, which
-    saves the cache misses of reading its terrain (`rough` tells which columns need it).
+    saves the cache misses of reading its part of the stack (`rough` tells which columns need it).
     """
 
     def __init__(
-        self,
-        layout: Terrain,
-        arrays: Sequence[np.ndarray],
-        grid: HeightmapGrid | None,
-        scale: float = 1.0,
+        self, layout: Terrain, count: int, grid: HeightmapGrid | None, scale: float = 1.0
     ) -> None:
         self.layout = layout
         self.margin = m = padding(grid, layout.resolution)
-        shape = (layout.nrow + 2 * m, layout.ncol + 2 * m)
-        if shape[0] * shape[1] > np.iinfo(np.int32).max:
-            raise ValueError(f"a terrain of {shape} vertices exceeds 2**31")
-        for array in arrays:
-            if array.shape != shape or array.dtype != np.float32 or not array.flags.c_contiguous:
-                raise ValueError(f"terrains must be C-contiguous float32 {shape}: {array.shape}")
-        self.padded = list(arrays)
-        self.interior = [array[m : m + layout.nrow, m : m + layout.ncol] for array in arrays]
-        """Terrain i's own vertices: a view of ``padded[i]`` (write `pad` (i) after a change)."""
+        nrow, ncol = layout.nrow, layout.ncol
+        self.padded = np.zeros((count, nrow + 2 * m, ncol + 2 * m), np.float32)
+        if self.padded.size > np.iinfo(np.int32).max:
+            raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
+        self.interior = self.padded[:, m : m + nrow, m : m + ncol]
+        """The terrains' own vertices: a view of `padded` (write `pad` (i) after a change)."""
         self.scale = float(scale)
-        self._flat = [array.reshape(-1) for array in arrays]
         # (M, ncol) whether a head above the column reads more than one height (all zeros: no)
-        self.rough = np.zeros((len(arrays), layout.ncol), bool)
-        row_length = shape[1]
+        self.rough = np.zeros((count, ncol), bool)
+        row_length = self.padded.shape[2]
+        self._flat = self.padded.reshape(-1)
         self._table = None if grid is None else offset_table(grid, layout.resolution, row_length)
         self._head = 0 if grid is None else grid.offsets.tolist().index([0.0, 0.0])
-        self._first = m * row_length + m  # flat index of each terrain's vertex (0, 0)
-        self._terrains = np.arange(len(arrays))
+        first = np.arange(count) * self.padded[0].size + m * row_length + m
+        self._first = first.astype(np.int32)  # flat index of each terrain's vertex (0, 0)
+        self._terrains = np.arange(count)
         self._strides = np.array([1, row_length], np.int32)  # flat index step per column, row
         self._origin = np.array([layout.x_min, layout.y_min])
-        self._last = np.array([layout.ncol - 1, layout.nrow - 1])
-
-    @classmethod
-    def allocate(cls, layout: Terrain, count: int, grid: HeightmapGrid | None) -> HeightStack:
-        """A stack of ``count`` terrains in arrays of its own, heights in metres (all 0)."""
-        m = padding(grid, layout.resolution)
-        shape = (layout.nrow + 2 * m, layout.ncol + 2 * m)
-        return cls(layout, [np.zeros(shape, np.float32) for _ in range(count)], grid)
+        self._last = np.array([ncol - 1, nrow - 1])
 
     @property
     def heights(self) -> np.ndarray:
         """(M, nrow, ncol) the terrains without their padding, in metres (a copy)."""
-        return np.stack(self.interior) * np.float32(self.scale)
+        return self.interior * np.float32(self.scale)
 
     def write(self, i: int, heights: np.ndarray) -> None:
         """Terrain ``i`` becomes ``heights`` (nrow, ncol), in metres."""
@@ -214,17 +197,14 @@ class HeightStack:
         if stop == ncol:
             padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
 
-    def vertices(self, xy: np.ndarray) -> np.ndarray:
-        """(N,) flat index in its terrain's `padded` array of the vertex nearest each point
-        (clamped to the terrain)."""
-        return self._vertices(self._cells(xy))
+    def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (clamped to the terrain)
+        on terrain ``which[n]`` (default: terrain n)."""
+        return self._vertices(self._cells(xy), self._which(xy, which))
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        """(N,) height of the vertex nearest each point, as the heightmap reads it; point n on
-        terrain ``which[n]`` (default: terrain n)."""
-        vertices, flat = self.vertices(xy).tolist(), self._flat
-        heights = [flat[t].item(v) for t, v in zip(self._which(xy, which), vertices, strict=True)]
-        return np.array(heights) * self.scale
+        """(N,) height of the vertex nearest each point, as the heightmap reads it, in m."""
+        return self._flat[self.vertices(xy, which)] * self.scale
 
     def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) the highest vertex within ``half`` (m, rounded to whole cells) along each axis
@@ -232,11 +212,9 @@ class HeightStack:
         k = round(half / self.layout.resolution)
         cells = self._cells(xy)[:, :, None] + np.arange(-k, k + 1, dtype=np.int32)  # (N, 2, S)
         np.minimum(np.maximum(cells, 0, out=cells), self._last[:, None], out=cells)
-        row_length = self._strides[1]
-        square = cells[:, 1, :, None] * row_length + cells[:, 0, None, :] + self._first
-        flat = self._flat
-        tops = [flat[t].take(v).max() for t, v in zip(self._which(xy, which), square, strict=True)]
-        return np.array(tops, np.float64) * self.scale
+        first = self._first[self._which(xy, which)][:, None, None]
+        square = first + cells[:, 1, :, None] * self._strides[1] + cells[:, 0, None, :]  # N, S, S
+        return self._flat[square].max(axis=(1, 2)) * self.scale
 
     def heightmap(
         self, xy: np.ndarray, yaw: np.ndarray, which: np.ndarray | None = None
@@ -244,27 +222,23 @@ class HeightStack:
         """(N, K) float32 heightmaps of heads at ``xy`` (N, 2) facing ``yaw`` (N,), head n on
         terrain ``which[n]`` (default: n), relative to the ground under each head. ``yaw`` is the
         angle of the head's x-axis projected on the ground, from world +x towards +y."""
-        cells, terrains = self._cells(xy), np.asarray(self._which(xy, which))
+        cells, terrains = self._cells(xy), self._which(xy, which)
         rough = np.flatnonzero(self.rough[terrains, cells[:, 0]])
         if len(rough) == len(xy):
-            return self.lookup(self._vertices(cells), terrains, yaw)
+            return self.lookup(self._vertices(cells, terrains), yaw)
         heights = np.zeros((len(xy), self._table.shape[1]), np.float32)
         if len(rough):
-            centre = self._vertices(cells[rough])
-            heights[rough] = self.lookup(centre, terrains[rough], yaw[rough])
+            centre = self._vertices(cells[rough], terrains[rough])
+            heights[rough] = self.lookup(centre, yaw[rough])
         return heights
 
-    def lookup(self, centre: np.ndarray, which: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-        """(N, K) float32 heightmaps around the vertices ``centre`` (N,) (flat indices) of
-        terrains ``which`` (N,) facing ``yaw`` (N,), relative to those vertices: the terrains
-        read at every point of the grid."""
+    def lookup(self, centre: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        """(N, K) float32 heightmaps around the vertices ``centre`` (N,) (flat indices) facing
+        ``yaw`` (N,), relative to those vertices: the stack read at every point of the grid."""
         bins = np.rint(yaw * (YAW_BINS / (2 * np.pi))).astype(np.intp)
         index = self._table.take(bins, axis=0, mode="wrap")
         index += centre[:, None]
-        heights = np.empty(index.shape, np.float32)
-        flat = self._flat
-        for row, terrain in enumerate(which.tolist()):
-            flat[terrain].take(index[row], out=heights[row])
+        heights = self._flat.take(index)
         heights -= heights[:, self._head, None]  # the head's own vertex: offset (0, 0)
         if self.scale != 1.0:
             heights *= np.float32(self.scale)
@@ -277,11 +251,11 @@ class HeightStack:
         cells += 0.5
         return cells.astype(np.int32)
 
-    def _which(self, xy: np.ndarray, which: np.ndarray | None) -> Sequence[int]:
-        return self._terrains[: len(xy)].tolist() if which is None else which.tolist()
+    def _which(self, xy: np.ndarray, which: np.ndarray | None) -> np.ndarray:
+        return self._terrains[: len(xy)] if which is None else which
 
-    def _vertices(self, cells: np.ndarray) -> np.ndarray:
-        return self._first + cells @ self._strides
+    def _vertices(self, cells: np.ndarray, terrains: np.ndarray) -> np.ndarray:
+        return self._first[terrains] + cells @ self._strides
 
 
 def rough_columns(heights: np.ndarray, reach: int) -> np.ndarray:
@@ -309,7 +283,7 @@ def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid)
     yaw = np.asarray(yaw, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or yaw.shape != (xy.shape[0],):
         raise ValueError(f"need xy (N, 2) and yaw (N,), got {xy.shape} and {yaw.shape}")
-    stack = HeightStack.allocate(terrain, 1, grid)
+    stack = HeightStack(terrain, 1, grid)
     stack.write(0, terrain.heights)
     return stack.heightmap(xy, yaw, np.zeros(len(xy), dtype=np.intp))
 

@@ -2,12 +2,12 @@
 
 A batch of simulations shares asset data such as ``hfield_data``, so each copy runs on its own
 copy of the compiled model (`TerrainStack.models`, given to the batch). Each episode starts on a
-fresh terrain, as in the released code (which rebuilt its model at every reset): it is drawn
-straight into that copy's ``hfield_data``, where the physics reads it, and the heightmap
-observation and the ground lookups read the same array (`HeightStack`, on the models' arrays):
-one write of each terrain and no recompile. For the heightmap's sake the heightfield is padded
-on every side by edge-valued cells (`derl.envs.heightmap.padding`): physically the world goes on
-flat at its edge heights, where episodes have ended already.
+fresh terrain, as in the released code (which rebuilt its model at every reset), without
+recompiling: it is written into a stacked height array (`HeightStack`), where the heightmap
+observation and the ground lookups read all copies' terrains in one gather each, and copied into
+that copy's ``hfield_data``, where the physics reads it. The heightfield is padded on every side
+as the stack is (`derl.envs.heightmap.padding`): physically the world goes on flat at its edge
+heights, where episodes have ended already, and one copy of a stretch serves both.
 """
 
 from __future__ import annotations
@@ -51,16 +51,16 @@ def add_hfield(spec: mujoco.MjSpec, config: TerrainConfig, grid: HeightmapGrid |
 
 
 class TerrainStack(HeightStack):
-    """The terrains of ``count`` copies of ``model`` (built with `add_hfield`): their
-    heightfields in the copies' own models, `models` (run copy i on models[i]), and
-    `HeightStack`'s lookups on them.
+    """The terrains of ``count`` copies of ``model`` (built with `add_hfield`): `HeightStack`'s
+    lookups on them, and their heightfields in the copies' own models, `models` (run copy i on
+    models[i]).
 
     ``draw(rng)`` makes one terrain laid out like ``config``; by default the obstacle corridor
     of `derl.envs.terrain.generate_terrain` is planned (`plan_terrain`: its draws) and written
-    straight into the heightfield. With ``ahead`` (m), a corridor's columns are written only as
+    stretch by stretch (`render`). With ``ahead`` (m), a corridor's columns are written only as
     far as they can be touched or seen: ``ahead`` beyond each point of the copy that is read
-    (`ground`) or tracked (`reach`), plus `STRETCH`. ``grid`` is the heightmap
-    that will be read from the stack (None: none), which sizes the padding.
+    (`ground`, `top`) or tracked (`reach`), plus `STRETCH`. ``grid`` is the heightmap that will
+    be read from the stack (None: none), which sizes the padding.
     """
 
     def __init__(
@@ -72,19 +72,19 @@ class TerrainStack(HeightStack):
         draw: Callable[[np.random.Generator], Terrain] | None = None,
         ahead: float | None = None,
     ) -> None:
+        layout = Terrain(
+            np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
+        )
+        super().__init__(layout, count, grid, scale=config.max_height)
         self.config = config
         self.draw = draw
         self.models = [copy.copy(model) for _ in range(count)]
         self.hfield = model.hfield(HFIELD_NAME).id
-        adr = int(model.hfield_adr[self.hfield])
+        adr, size = int(model.hfield_adr[self.hfield]), self.padded[0].size
         shape = (int(model.hfield_nrow[self.hfield]), int(model.hfield_ncol[self.hfield]))
-        arrays = [
-            m.hfield_data[adr : adr + shape[0] * shape[1]].reshape(shape) for m in self.models
-        ]
-        layout = Terrain(
-            np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
-        )
-        super().__init__(layout, arrays, grid, scale=config.max_height)
+        if shape != self.padded.shape[1:]:
+            raise ValueError(f"heightfield of {shape} vertices, not {self.padded.shape[1:]}")
+        self._hfields = [m.hfield_data[adr : adr + size].reshape(shape) for m in self.models]
         self.ahead = None if ahead is None else math.ceil(ahead / config.resolution)  # columns
         self._stretch = round(STRETCH / config.resolution)
         self.plans: list[list[Span]] = [[] for _ in range(count)]
@@ -101,6 +101,7 @@ class TerrainStack(HeightStack):
             if self.draw is not None:
                 terrain = self.draw(rng)
                 self.write(i, terrain.heights)
+                self._hfields[i][:] = self.padded[i]
                 self.first_obstacle[i] = terrain.first_obstacle
                 continue
             self.plans[i] = spans = plan_terrain(self.config, rng)
@@ -144,10 +145,14 @@ class TerrainStack(HeightStack):
         return super().heights
 
     def _write_columns(self, i: int, stop: int) -> None:
-        """Write copy ``i``'s planned terrain up to column ``stop`` (excluded)."""
+        """Write copy ``i``'s planned terrain up to column ``stop`` (excluded), in the stack and
+        in its heightfield."""
         start, stop = int(self.written[i]), min(stop, self.layout.ncol)
         if stop <= start:
             return
         render(self.plans[i], self.interior[i], start, stop, 1.0 / self.scale)
         self.pad(i, start, stop)
+        m, ncol = self.margin, self.layout.ncol
+        columns = slice(0 if start == 0 else m + start, None if stop == ncol else m + stop)
+        self._hfields[i][:, columns] = self.padded[i][:, columns]
         self.written[i] = stop
