@@ -17,6 +17,7 @@ from derl.envs.terrain import (
     _rubble,
     _rubble_strips,
     generate_terrain,
+    plan_terrain,
     render,
 )
 from derl.envs.terrain_stack import TerrainStack, add_hfield
@@ -124,8 +125,9 @@ def test_rubble_strips_are_clipped_triangle_waves(n: int) -> None:
     seen: set[tuple[int, int, float]] = set()
     for seed in range(8):
         block = np.zeros((1001, n), np.float32)
-        height, strips, profiles = _rubble(n, 1001, config, np.random.default_rng(seed))
-        render([Span("rubble", 0, n, height, strips, profiles)], block, 0, n)
+        span = Span("rubble", 0, n, *_rubble(n, 1001, config, np.random.default_rng(seed)))
+        render([span], block, (0, 1001), (0, n))
+        height = span.top
         rows, wave, clip = _rubble_strips(1001, config, np.random.default_rng(seed))
         assert set(rows.tolist()) <= set(range(10, 20))
         assert rows[:-1].sum() < 1001 <= rows.sum()  # the last strip is cut by the edge
@@ -421,3 +423,24 @@ def test_top_is_the_highest_vertex_of_the_square() -> None:
             r = int(np.clip(np.rint((y - layout.y_min) / 0.1), 0, 40))
             square = heights[max(r - 2, 0) : r + 3, max(c - 2, 0) : c + 3]
             assert top == pytest.approx(square.max())
+
+
+def test_a_plan_renders_the_same_in_pieces_and_framed() -> None:
+    """`render` of any rectangles of a framed array, in any order, gives the terrain that
+    `generate_terrain` draws, its frame repeating the edges."""
+    config = TerrainConfig(size_x=40.0, size_y=6.0, start_flat=4.0, obstacles=("rubble", "hills"))
+    rng = np.random.default_rng(5)
+    margin = 7
+    for seed in (0, 2, 3):  # each with rubble
+        spans = plan_terrain(config, np.random.default_rng(seed))
+        terrain = generate_terrain(config, np.random.default_rng(seed))
+        assert "rubble" in {s.kind for s in spans}
+        nrow, ncol = terrain.nrow + 2 * margin, terrain.ncol + 2 * margin
+        out = np.full((nrow, ncol), -1.0, np.float32)
+        row_cuts = np.unique(np.r_[0, rng.integers(1, nrow, 4), nrow])
+        col_cuts = np.unique(np.r_[0, rng.integers(1, ncol, 6), ncol])
+        blocks = list(itertools.product(itertools.pairwise(row_cuts), itertools.pairwise(col_cuts)))
+        for k in rng.permutation(len(blocks)):
+            render(spans, out, *blocks[k], margin=margin)
+        framed = np.pad(terrain.heights, margin, mode="edge")
+        np.testing.assert_array_equal(out, framed)

@@ -59,10 +59,11 @@ class Floor(Arena):
 class Heightfield(Arena):
     """A heightfield laid out like ``config``, one terrain per copy, new for every episode:
     ``draw(rng)`` makes one (default: `generate_terrain`'s corridor, drawn in place). ``grid``:
-    the heightmap the task observes (None: none). ``lazy``: a corridor's columns are written as
-    its body comes near them (`TerrainStack.reach`: the heightmap's reach, the body's and a
-    step's travel ahead of its head), for worlds where nothing but the body touches the
-    terrain; otherwise all of it at each reset."""
+    the heightmap the task observes (None: none). ``lazy``: a corridor is written only around
+    the points whose ground is read, as far as a heightmap reads or a body reaches in a step
+    (`TerrainStack.reach`); the environment reads the ground under every head at every step
+    (its fall test) and at every placement. For worlds where nothing but the body touches the
+    terrain; otherwise all of it is written at each reset."""
 
     def __init__(
         self,
@@ -73,8 +74,9 @@ class Heightfield(Arena):
     ) -> None:
         self.config, self.grid, self.draw = config, grid, draw
         self.half = (config.size_x / 2, config.size_y / 2)
-        reach = 0.0 if grid is None else grid.reach
-        self.ahead = reach + BODY_REACH + MAX_SPEED * CONTROL_DT if lazy else None
+        # a heightmap reads this far from the head; a body touches this far within a step
+        reach = max(0.0 if grid is None else grid.reach, BODY_REACH + MAX_SPEED * CONTROL_DT)
+        self.ahead = reach if lazy else None
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_hfield(spec, self.config, self.grid)
@@ -87,14 +89,6 @@ class Heightfield(Arena):
 
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
         self.terrains.renew(ids, env.rng)
-
-    def placed(self, env: EnvView, ids: np.ndarray) -> None:
-        if self.ahead is not None:
-            self.terrains.reach(env.head_pos[ids, 0], ids)
-
-    def update(self, env: EnvView) -> None:
-        if self.ahead is not None:
-            self.terrains.reach(env.head_pos[:, 0])
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)

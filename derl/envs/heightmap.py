@@ -133,9 +133,9 @@ def padding(grid: HeightmapGrid | None, resolution: float) -> int:
 
 class HeightStack:
     """M terrains laid out like ``layout`` (its shape, resolution and extent) and the heightmap
-    and ground lookups on them, all at once. The terrains are stacked in one float32 array,
-    `padded` (M, nrow + 2 m, ncol + 2 m), m = `margin` = `padding` (grid): each terrain framed
-    by m cells on every side that repeat its edges (`pad`), heights in units of ``scale`` m.
+    and ground lookups on them, all at once. The terrains are stacked in one float32 array of
+    heights in metres, `padded` (M, nrow + 2 m, ncol + 2 m), m = `margin` = `padding` (grid):
+    each terrain framed by m cells on every side that repeat its edges (`pad`).
 
     Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
     stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
@@ -145,9 +145,7 @@ class HeightStack:
     saves the cache misses of reading its part of the stack (`rough` tells which columns need it).
     """
 
-    def __init__(
-        self, layout: Terrain, count: int, grid: HeightmapGrid | None, scale: float = 1.0
-    ) -> None:
+    def __init__(self, layout: Terrain, count: int, grid: HeightmapGrid | None) -> None:
         self.layout = layout
         self.margin = m = padding(grid, layout.resolution)
         nrow, ncol = layout.nrow, layout.ncol
@@ -156,7 +154,6 @@ class HeightStack:
             raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
         self.interior = self.padded[:, m : m + nrow, m : m + ncol]
         """The terrains' own vertices: a view of `padded` (write `pad` (i) after a change)."""
-        self.scale = float(scale)
         # (M, ncol) whether a head above the column reads more than one height (all zeros: no)
         self.rough = np.zeros((count, ncol), bool)
         row_length = self.padded.shape[2]
@@ -172,30 +169,21 @@ class HeightStack:
 
     @property
     def heights(self) -> np.ndarray:
-        """(M, nrow, ncol) the terrains without their padding, in metres (a copy)."""
-        return self.interior * np.float32(self.scale)
+        """(M, nrow, ncol) the terrains without their padding (a read-only view: see `write`)."""
+        view = self.interior.view()
+        view.flags.writeable = False
+        return view
 
     def write(self, i: int, heights: np.ndarray) -> None:
-        """Terrain ``i`` becomes ``heights`` (nrow, ncol), in metres."""
-        np.multiply(heights, np.float32(1.0 / self.scale), out=self.interior[i])
-        self.pad(i)
-        self.rough[i] = rough_columns(heights, self.margin)
-
-    def pad(self, i: int, start: int = 0, stop: int | None = None) -> None:
-        """Repeat terrain ``i``'s edges into its padding, next to its columns [start, stop)
-        (default: all), after they changed."""
+        """Terrain ``i`` becomes ``heights`` (nrow, ncol); its padding repeats its edges."""
         m, padded = self.margin, self.padded[i]
         nrow, ncol = self.layout.nrow, self.layout.ncol
-        stop = ncol if stop is None else stop
-        if not m:
-            return
-        inner = slice(m + start, m + stop)
-        padded[:m, inner] = padded[m, inner]
-        padded[m + nrow :, inner] = padded[m + nrow - 1, inner]
-        if start == 0:
-            padded[:, :m] = padded[:, m : m + 1]
-        if stop == ncol:
-            padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
+        padded[m : m + nrow, m : m + ncol] = heights
+        padded[:m, m : m + ncol] = heights[0]
+        padded[m + nrow :, m : m + ncol] = heights[-1]
+        padded[:, :m] = padded[:, m : m + 1]
+        padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
+        self.rough[i] = rough_columns(heights, m)
 
     def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (clamped to the terrain)
@@ -204,7 +192,7 @@ class HeightStack:
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) height of the vertex nearest each point, as the heightmap reads it, in m."""
-        return self._flat[self.vertices(xy, which)] * self.scale
+        return self._flat[self.vertices(xy, which)].astype(np.float64)
 
     def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) the highest vertex within ``half`` (m, rounded to whole cells) along each axis
@@ -214,7 +202,7 @@ class HeightStack:
         np.minimum(np.maximum(cells, 0, out=cells), self._last[:, None], out=cells)
         first = self._first[self._which(xy, which)][:, None, None]
         square = first + cells[:, 1, :, None] * self._strides[1] + cells[:, 0, None, :]  # N, S, S
-        return self._flat[square].max(axis=(1, 2)) * self.scale
+        return self._flat[square].max(axis=(1, 2)).astype(np.float64)
 
     def heightmap(
         self, xy: np.ndarray, yaw: np.ndarray, which: np.ndarray | None = None
@@ -240,8 +228,6 @@ class HeightStack:
         index += centre[:, None]
         heights = self._flat.take(index)
         heights -= heights[:, self._head, None]  # the head's own vertex: offset (0, 0)
-        if self.scale != 1.0:
-            heights *= np.float32(self.scale)
         return heights
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:

@@ -256,15 +256,16 @@ class Terrain:
 
 class Span(NamedTuple):
     """A stretch of a drawn corridor, before its heights are written (`render`): vertex columns
-    [c0, c1) of ``kind``, designed top ``top`` (m, as `Segment`), made of strips along x of
-    ``rows[j]`` rows each from row 0 (the last one cut at the edge) whose heights along x are
-    ``profiles[j]`` (m; one strip across the whole width for all but rubble)."""
+    [c0, c1) of ``kind``, designed top ``top`` (m, as `Segment`), made of strips along x, strip j
+    ``rows[j]`` rows from row 0 on (the last one cut at the edge), whose heights along x are
+    ``profiles[pick[j]]`` (m; one strip across the whole width for all but rubble)."""
 
     kind: SegmentKind
     c0: int
     c1: int
     top: float
-    rows: tuple[int, ...]
+    rows: np.ndarray
+    pick: np.ndarray
     profiles: np.ndarray
 
 
@@ -272,7 +273,7 @@ def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain
     """Draw a new world from ``config``; deterministic for a given generator state."""
     heights = np.empty(config.grid_shape, dtype=np.float32)
     spans = plan_terrain(config, rng)
-    render(spans, heights, 0, heights.shape[1])
+    render(spans, heights, (0, heights.shape[0]), (0, heights.shape[1]))
     x_min, res = -config.size_x / 2, config.resolution
     segments = [
         Segment(s.kind, round(x_min + s.c0 * res, 9), round(x_min + s.c1 * res, 9), s.top)
@@ -291,33 +292,53 @@ def plan_terrain(config: TerrainConfig, rng: np.random.Generator) -> list[Span]:
     """Every draw of a new world from ``config`` (those of `generate_terrain`), its heights not
     yet written: a few hundred numbers, whatever the world's size."""
     nrow, ncol = config.grid_shape
+    whole, first = np.array([nrow]), np.zeros(1, np.intp)  # one strip: every row
     spans = []
     for kind, c0, c1 in _layout(config, ncol - 1, rng):
         if kind == "flat":
-            spans.append(Span(kind, c0, c1, 0.0, (nrow,), np.zeros((1, c1 - c0))))
+            spans.append(Span(kind, c0, c1, 0.0, whole, first, np.zeros((1, c1 - c0))))
+        elif kind == "rubble":
+            spans.append(Span(kind, c0, c1, *_rubble(c1 - c0, nrow, config, rng)))
         else:
-            spans.append(Span(kind, c0, c1, *_BUILDERS[kind](c1 - c0, nrow, config, rng)))
+            top, profile = _BUILDERS[kind](c1 - c0, config, rng)
+            spans.append(Span(kind, c0, c1, top, whole, first, profile[None]))
     return spans
 
 
-def render(spans: list[Span], out: np.ndarray, start: int, stop: int, scale: float = 1.0) -> None:
-    """Write vertex columns [start, stop) of the world ``spans`` plans into ``out``, a float32
-    (nrow, ncol) array or view (such as a model's heightfield data), heights times ``scale``.
-    Columns beyond the last span (the far edge's) are flat."""
-    nrow = out.shape[0]
+def render(
+    spans: list[Span],
+    out: np.ndarray,
+    rows: tuple[int, int],
+    cols: tuple[int, int],
+    margin: int = 0,
+    scale: float = 1.0,
+) -> None:
+    """Write rows [rows) and columns [cols) (indices of ``out``) of the world ``spans`` plans
+    into ``out``, a float32 array of its vertices framed by ``margin`` cells on every side that
+    repeat its edges, (nrow + 2 margin, ncol + 2 margin); heights times ``scale``. Columns
+    beyond the last span (the far edge's) are flat."""
+    r0, r1 = rows
+    block = out[r0:r1, cols[0] : cols[1]]
+    terrain_cols = np.clip(np.arange(*cols) - margin, 0, out.shape[1] - 2 * margin - 1)
+    first, last = int(terrain_cols[0]), int(terrain_cols[-1])
     for span in spans:
-        a, b = max(start, span.c0), min(stop, span.c1)
-        if a >= b:
+        if span.c1 <= first:
             continue
-        along = slice(a - span.c0, b - span.c0)
-        row = 0
-        profiles = (span.profiles[:, along] * scale).astype(np.float32)
-        for rows, profile in zip(span.rows, profiles, strict=True):
-            out[row : min(row + rows, nrow), a:b] = profile
-            row += rows
-    end = spans[-1].c1
-    if stop > end:
-        out[:, max(start, end) : stop] = 0.0
+        if span.c0 > last:
+            break
+        lo, hi = np.searchsorted(terrain_cols, (span.c0, span.c1))
+        # the strips' rows of `out`: the first and the last strip go on through the frame
+        edges = np.cumsum(span.rows) + margin
+        edges[-1] = out.shape[0]
+        j0, j1 = np.searchsorted(edges, (r0, r1), side="right")
+        profiles = span.profiles[:, terrain_cols[lo:hi] - span.c0] * scale
+        profiles = profiles.astype(np.float32)
+        start = r0
+        for j in range(j0, min(j1 + 1, len(edges))):
+            stop = min(int(edges[j]), r1)
+            block[start - r0 : stop - r0, lo:hi] = profiles[span.pick[j]]
+            start = stop
+    block[:, np.searchsorted(terrain_cols, spans[-1].c1) :] = 0.0
 
 
 def _cells(length: float, resolution: float) -> int:
@@ -352,21 +373,17 @@ def _layout(
     return spans
 
 
-def _hills(
-    n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
-) -> tuple[float, tuple[int, ...], np.ndarray]:
+def _hills(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
     height = _pick(config.hill_height, rng)
-    return height, (nrow,), height * np.sin(np.linspace(0.0, np.pi, n))[None]
+    return height, height * np.sin(np.linspace(0.0, np.pi, n))
 
 
-def _steps(
-    n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
-) -> tuple[float, tuple[int, ...], np.ndarray]:
+def _steps(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """num_steps treads of n / num_steps columns each at 0, h, ..., top, top, ..., h, 0."""
     tread = np.arange(config.num_steps)
     levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread)
-    return config.steps_top, (nrow,), np.repeat(levels, n // config.num_steps)[None]
+    return config.steps_top, np.repeat(levels, n // config.num_steps)
 
 
 def _rubble_strips(
@@ -386,17 +403,17 @@ def _rubble_strips(
 
 def _rubble(
     n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
-) -> tuple[float, tuple[int, ...], np.ndarray]:
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     """Strips along x, each min(triangle wave, clip) with the wave 0 -> peak -> 0 over two
-    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2)."""
+    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2): the top, each strip's
+    rows and profile, and the profiles (one per half-periods and clip pair)."""
     rows, wave, clip = _rubble_strips(nrow, config, rng)
     # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
-    # Few distinct (f, clip) pairs: the profiles are computed once each and picked per strip.
     phase = np.outer(config.rubble_half_periods, np.arange(n) / (n - 1)) % 2.0
     waves = config.rubble_peak * (1.0 - np.abs(phase - 1.0))
     clips = np.array(config.rubble_clip)
-    profiles = np.minimum(waves[:, None, :], clips[:, None])
-    return float(clips[clip].max()), tuple(rows.tolist()), profiles[wave, clip]
+    profiles = np.minimum(waves[:, None, :], clips[:, None]).reshape(-1, n)
+    return float(clips[clip].max()), rows, wave * len(clips) + clip, profiles
 
 
-_BUILDERS = {"hills": _hills, "steps": _steps, "rubble": _rubble}
+_BUILDERS = {"hills": _hills, "steps": _steps}

@@ -57,10 +57,11 @@ class TerrainStack(HeightStack):
 
     ``draw(rng)`` makes one terrain laid out like ``config``; by default the obstacle corridor
     of `derl.envs.terrain.generate_terrain` is planned (`plan_terrain`: its draws) and written
-    stretch by stretch (`render`). With ``ahead`` (m), a corridor's columns are written only as
-    far as they can be touched or seen: ``ahead`` beyond each point of the copy that is read
-    (`ground`, `top`) or tracked (`reach`), plus `STRETCH`. ``grid`` is the heightmap that will
-    be read from the stack (None: none), which sizes the padding.
+    a rectangle at a time (`render`). With ``ahead`` (m), a corridor is written only where it can
+    be touched or seen: from its back edge to ``ahead`` beyond, and to ``ahead`` on either side
+    of, each point of the copy that is read (`ground`, `top`) or tracked (`reach`), plus
+    `STRETCH`. ``grid`` is the heightmap that will be read from the stack (None: none), which
+    sizes the padding.
     """
 
     def __init__(
@@ -75,21 +76,24 @@ class TerrainStack(HeightStack):
         layout = Terrain(
             np.zeros(config.grid_shape, np.float32), config.resolution, config.max_height
         )
-        super().__init__(layout, count, grid, scale=config.max_height)
+        super().__init__(layout, count, grid)
         self.config = config
         self.draw = draw
         self.models = [copy.copy(model) for _ in range(count)]
         self.hfield = model.hfield(HFIELD_NAME).id
+        shape = self.padded.shape[1:]
+        if (model.hfield_nrow[self.hfield], model.hfield_ncol[self.hfield]) != shape:
+            raise ValueError(f"the heightfield is not {shape} vertices: build it with add_hfield")
         adr, size = int(model.hfield_adr[self.hfield]), self.padded[0].size
-        shape = (int(model.hfield_nrow[self.hfield]), int(model.hfield_ncol[self.hfield]))
-        if shape != self.padded.shape[1:]:
-            raise ValueError(f"heightfield of {shape} vertices, not {self.padded.shape[1:]}")
         self._hfields = [m.hfield_data[adr : adr + size].reshape(shape) for m in self.models]
-        self.ahead = None if ahead is None else math.ceil(ahead / config.resolution)  # columns
+        self._normalise = np.float32(1.0 / config.max_height)  # heightfield data: in [0, 1]
+        self.ahead = None if ahead is None else math.ceil(ahead / config.resolution)  # cells
+        self._reach_base = np.array([self.margin + (self.ahead or 0) + 1, self.margin], np.int32)
         self._stretch = round(STRETCH / config.resolution)
         self.plans: list[list[Span]] = [[] for _ in range(count)]
-        self.written = np.full(count, layout.ncol)
-        """Columns of each copy's terrain written so far (from column 0)."""
+        self.written = np.zeros((count, 3), np.intp)
+        """Each copy's written rectangle of `padded`: columns [0, c), rows [r0, r1): (c, r0, r1)."""
+        self.written[:] = (shape[1], 0, shape[0])
         self.first_obstacle = np.full(count, np.inf)
         """x where each copy's first obstacle starts (inf: none; -inf: anywhere)."""
         self.generated = 0
@@ -101,11 +105,11 @@ class TerrainStack(HeightStack):
             if self.draw is not None:
                 terrain = self.draw(rng)
                 self.write(i, terrain.heights)
-                self._hfields[i][:] = self.padded[i]
+                np.multiply(self.padded[i], self._normalise, out=self._hfields[i])
                 self.first_obstacle[i] = terrain.first_obstacle
                 continue
             self.plans[i] = spans = plan_terrain(self.config, rng)
-            self.written[i] = 0
+            self.written[i] = (0, self.padded.shape[1], 0)  # nothing
             changes = np.zeros(ncol - 1, bool)  # columns c and c + 1 not both at one level
             obstacles = [(s.c0, s.c1) for s in spans if s.kind != "flat"]
             for c0, c1 in obstacles:
@@ -113,30 +117,36 @@ class TerrainStack(HeightStack):
             self.rough[i] = spread(changes, self.margin)
             self.first_obstacle[i] = x_min + obstacles[0][0] * res if obstacles else np.inf
             if self.ahead is None:
-                self._write_columns(i, ncol)
+                self.complete(i)
         self.generated += len(ids)
 
-    def reach(self, x: np.ndarray, which: np.ndarray | None = None) -> None:
-        """Write the terrain of copy ``which[k]`` (default: k) as far as `ahead` beyond ``x[k]``
-        (m) if it is not yet: call it with where each body is after every step."""
+    def reach(self, xy: np.ndarray, which: np.ndarray | None = None) -> None:
+        """Write the terrain of copy ``which[k]`` (default: k) around ``xy[k]`` (m), as far as
+        `ahead`, where it is not yet."""
         if self.ahead is None:
             return
-        which = self._terrains[: len(x)] if which is None else which
-        need = (x - self.layout.x_min) / self.layout.resolution + self.ahead
-        for k in np.flatnonzero(need > self.written[which]).tolist():
-            self._write_columns(int(which[k]), int(need[k]) + self._stretch)
+        which = self._terrains[: len(xy)] if which is None else which
+        (nrow, ncol), ahead = self.padded.shape[1:], self.ahead
+        cells = self._cells(xy) + self._reach_base  # (stop column, middle row) of `padded`
+        have = self.written[which]
+        short = np.minimum(cells[:, 0], ncol) > have[:, 0]
+        short |= np.maximum(cells[:, 1] - ahead, 0) < have[:, 1]
+        short |= np.minimum(cells[:, 1] + ahead + 1, nrow) > have[:, 2]
+        for k in np.flatnonzero(short).tolist():
+            col, row = cells[k].tolist()
+            self._extend(int(which[k]), min(col, ncol), max(row - ahead, 0), row + ahead + 1)
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        self.reach(xy[:, 0], which)
+        self.reach(xy, which)
         return super().ground(xy, which)
 
     def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
-        self.reach(xy[:, 0] + half, which)
+        self.reach(xy, which)  # `ahead` is far more than an object's half size
         return super().top(xy, half, which)
 
     def complete(self, i: int) -> None:
         """Write the rest of copy ``i``'s terrain (to show or check all of it)."""
-        self._write_columns(i, self.layout.ncol)
+        self._extend(i, self.padded.shape[2], 0, self.padded.shape[1])
 
     @property
     def heights(self) -> np.ndarray:
@@ -144,15 +154,25 @@ class TerrainStack(HeightStack):
             self.complete(i)
         return super().heights
 
-    def _write_columns(self, i: int, stop: int) -> None:
-        """Write copy ``i``'s planned terrain up to column ``stop`` (excluded), in the stack and
-        in its heightfield."""
-        start, stop = int(self.written[i]), min(stop, self.layout.ncol)
-        if stop <= start:
-            return
-        render(self.plans[i], self.interior[i], start, stop, 1.0 / self.scale)
-        self.pad(i, start, stop)
-        m, ncol = self.margin, self.layout.ncol
-        columns = slice(0 if start == 0 else m + start, None if stop == ncol else m + stop)
-        self._hfields[i][:, columns] = self.padded[i][:, columns]
-        self.written[i] = stop
+    def _extend(self, i: int, stop: int, low: int, high: int) -> None:
+        """Grow copy ``i``'s written rectangle to columns [0, stop) and rows [low, high) of
+        `padded` (and `STRETCH` further), writing what it did not hold."""
+        (nrow, ncol), stretch = self.padded.shape[1:], self._stretch
+        old_stop, old_low, old_high = self.written[i].tolist()
+        new_stop = min(stop + stretch, ncol) if stop > old_stop else old_stop
+        new_low = max(low - stretch, 0) if low < old_low else old_low
+        new_high = min(high + stretch, nrow) if min(high, nrow) > old_high else old_high
+        if old_stop:  # more rows beside the columns written
+            if new_low < old_low:
+                self._render(i, (new_low, old_low), (0, old_stop))
+            if new_high > old_high:
+                self._render(i, (old_high, new_high), (0, old_stop))
+        if new_stop > old_stop:
+            self._render(i, (new_low, new_high), (old_stop, new_stop))
+        self.written[i] = (new_stop, new_low, new_high)
+
+    def _render(self, i: int, rows: tuple[int, int], cols: tuple[int, int]) -> None:
+        """Write a rectangle of copy ``i``'s planned terrain, in the stack and its heightfield."""
+        render(self.plans[i], self.padded[i], rows, cols, self.margin)
+        block = (slice(*rows), slice(*cols))
+        np.multiply(self.padded[i][block], self._normalise, out=self._hfields[i][block])
