@@ -20,6 +20,7 @@ can be written into ``model.hfield_data`` in place without recompiling.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Annotated, Literal, NamedTuple, TypeVar
 
@@ -296,7 +297,7 @@ def plan_terrain(config: TerrainConfig, rng: np.random.Generator) -> list[Span]:
     spans = []
     for kind, c0, c1 in _layout(config, ncol - 1, rng):
         if kind == "flat":
-            spans.append(Span(kind, c0, c1, 0.0, whole, first, np.zeros((1, c1 - c0))))
+            spans.append(Span(kind, c0, c1, 0.0, whole, first, _level(c1 - c0)))
         elif kind == "rubble":
             spans.append(Span(kind, c0, c1, *_rubble(c1 - c0, nrow, config, rng)))
         else:
@@ -376,14 +377,54 @@ def _layout(
 def _hills(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
     height = _pick(config.hill_height, rng)
-    return height, height * np.sin(np.linspace(0.0, np.pi, n))
+    return height, height * _half_sine(n)
 
 
 def _steps(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """num_steps treads of n / num_steps columns each at 0, h, ..., top, top, ..., h, 0."""
-    tread = np.arange(config.num_steps)
-    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread)
-    return config.steps_top, np.repeat(levels, n // config.num_steps)
+    return config.steps_top, _stairs(n, config.num_steps, config.step_height)
+
+
+# The profiles below depend on a span's length and the configuration only: computed once each
+# (plans are drawn at every reset), and read-only.
+
+
+@functools.cache
+def _level(n: int) -> np.ndarray:
+    return _frozen(np.zeros((1, n)))
+
+
+@functools.cache
+def _half_sine(n: int) -> np.ndarray:
+    return _frozen(np.sin(np.linspace(0.0, np.pi, n)))
+
+
+@functools.cache
+def _stairs(n: int, num_steps: int, step_height: float) -> np.ndarray:
+    tread = np.arange(num_steps)
+    levels = step_height * np.minimum(tread, num_steps - 1 - tread)
+    return _frozen(np.repeat(levels, n // num_steps))
+
+
+@functools.cache
+def _clipped_waves(
+    n: int, half_periods: tuple[int, ...], clips: tuple[float, ...], peak: float
+) -> np.ndarray:
+    """(len(half_periods) * len(clips), n): each pair's profile, clips varying fastest."""
+    # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
+    phase = np.outer(half_periods, np.arange(n) / (n - 1)) % 2.0
+    waves = peak * (1.0 - np.abs(phase - 1.0))
+    return _frozen(np.minimum(waves[:, None, :], np.array(clips)[:, None]).reshape(-1, n))
+
+
+@functools.cache
+def _strip_widths(widths: tuple[float, ...], resolution: float) -> np.ndarray:
+    return _frozen(np.array([_cells(w, resolution) for w in widths]))
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
 
 
 def _rubble_strips(
@@ -392,7 +433,7 @@ def _rubble_strips(
     """Rubble's draws for a block of ``nrow`` rows: each strip's rows, and the indices of its
     half-periods and clip height in the config's choices; strips are stacked from row 0 until
     they cover the block (the last one is cut)."""
-    widths = np.array([_cells(w, config.resolution) for w in config.rubble_strip_width])
+    widths = _strip_widths(config.rubble_strip_width, config.resolution)
     draws = rng.random((3, -(-nrow // widths.min())))  # enough strips
     rows = widths[(draws[0] * len(widths)).astype(np.intp)]
     count = int(np.searchsorted(np.cumsum(rows), nrow)) + 1
@@ -408,12 +449,14 @@ def _rubble(
     half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2): the top, each strip's
     rows and profile, and the profiles (one per half-periods and clip pair)."""
     rows, wave, clip = _rubble_strips(nrow, config, rng)
-    # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
-    phase = np.outer(config.rubble_half_periods, np.arange(n) / (n - 1)) % 2.0
-    waves = config.rubble_peak * (1.0 - np.abs(phase - 1.0))
-    clips = np.array(config.rubble_clip)
-    profiles = np.minimum(waves[:, None, :], clips[:, None]).reshape(-1, n)
-    return float(clips[clip].max()), rows, wave * len(clips) + clip, profiles
+    clips = config.rubble_clip
+    profiles = _clipped_waves(n, config.rubble_half_periods, clips, config.rubble_peak)
+    return (
+        float(max(clips[k] for k in set(clip.tolist()))),
+        rows,
+        wave * len(clips) + clip,
+        profiles,
+    )
 
 
 _BUILDERS = {"hills": _hills, "steps": _steps}
