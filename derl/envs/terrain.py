@@ -257,16 +257,14 @@ class Terrain:
 
 class Span(NamedTuple):
     """A stretch of a drawn corridor, before its heights are written (`render`): vertex columns
-    [c0, c1) of ``kind``, designed top ``top`` (m, as `Segment`), made of strips along x, strip j
-    ``rows[j]`` rows from row 0 on (the last one cut at the edge), whose heights along x are
-    ``profiles[pick[j]]`` (m; one strip across the whole width for all but rubble)."""
+    [c0, c1) of ``kind``, designed top ``top`` (m, as `Segment`), row r's heights along x
+    ``profiles[pick[r]]`` (float32, m; ``pick`` None: ``profiles[0]`` in every row)."""
 
     kind: SegmentKind
     c0: int
     c1: int
     top: float
-    rows: np.ndarray
-    pick: np.ndarray
+    pick: np.ndarray | None
     profiles: np.ndarray
 
 
@@ -293,16 +291,15 @@ def plan_terrain(config: TerrainConfig, rng: np.random.Generator) -> list[Span]:
     """Every draw of a new world from ``config`` (those of `generate_terrain`), its heights not
     yet written: a few hundred numbers, whatever the world's size."""
     nrow, ncol = config.grid_shape
-    whole, first = np.array([nrow]), np.zeros(1, np.intp)  # one strip: every row
     spans = []
     for kind, c0, c1 in _layout(config, ncol - 1, rng):
         if kind == "flat":
-            spans.append(Span(kind, c0, c1, 0.0, whole, first, _level(c1 - c0)))
+            spans.append(Span(kind, c0, c1, 0.0, None, _level(c1 - c0)))
         elif kind == "rubble":
             spans.append(Span(kind, c0, c1, *_rubble(c1 - c0, nrow, config, rng)))
         else:
             top, profile = _BUILDERS[kind](c1 - c0, config, rng)
-            spans.append(Span(kind, c0, c1, top, whole, first, profile[None]))
+            spans.append(Span(kind, c0, c1, top, None, profile[None]))
     return spans
 
 
@@ -312,34 +309,36 @@ def render(
     rows: tuple[int, int],
     cols: tuple[int, int],
     margin: int = 0,
-    scale: float = 1.0,
 ) -> None:
     """Write rows [rows) and columns [cols) (indices of ``out``) of the world ``spans`` plans
     into ``out``, a float32 array of its vertices framed by ``margin`` cells on every side that
-    repeat its edges, (nrow + 2 margin, ncol + 2 margin); heights times ``scale``. Columns
-    beyond the last span (the far edge's) are flat."""
-    r0, r1 = rows
-    block = out[r0:r1, cols[0] : cols[1]]
-    terrain_cols = np.clip(np.arange(*cols) - margin, 0, out.shape[1] - 2 * margin - 1)
-    first, last = int(terrain_cols[0]), int(terrain_cols[-1])
+    repeat its edges, (nrow + 2 margin, ncol + 2 margin). Columns beyond the last span (the far
+    edge's) are flat."""
+    (r0, r1), (c0, c1) = rows, cols
+    block = out[r0:r1, c0:c1]
+    nrow, ncol = out.shape[0] - 2 * margin, out.shape[1] - 2 * margin
+    first, last = (min(max(c - margin, 0), ncol - 1) for c in (c0, c1 - 1))  # terrain columns
+    terrain_rows = None  # of the block's rows (the frame repeats the edge rows)
     for span in spans:
         if span.c1 <= first:
             continue
         if span.c0 > last:
             break
-        lo, hi = np.searchsorted(terrain_cols, (span.c0, span.c1))
-        # the strips' rows of `out`: the first and the last strip go on through the frame
-        edges = np.cumsum(span.rows) + margin
-        edges[-1] = out.shape[0]
-        j0, j1 = np.searchsorted(edges, (r0, r1), side="right")
-        profiles = span.profiles[:, terrain_cols[lo:hi] - span.c0] * scale
-        profiles = profiles.astype(np.float32)
-        start = r0
-        for j in range(j0, min(j1 + 1, len(edges))):
-            stop = min(int(edges[j]), r1)
-            block[start - r0 : stop - r0, lo:hi] = profiles[span.pick[j]]
-            start = stop
-    block[:, np.searchsorted(terrain_cols, spans[-1].c1) :] = 0.0
+        # the block's columns of the span (the frame's left part repeats the first column)
+        lo = 0 if span.c0 == 0 else max(span.c0 + margin - c0, 0)
+        hi = min(span.c1 + margin - c0, c1 - c0)
+        along = c0 + lo - margin - span.c0  # the span's column at the block's column lo
+        if along >= 0:
+            profiles = span.profiles[:, along : along + hi - lo]
+        else:
+            profiles = span.profiles[:, np.maximum(np.arange(along, along + hi - lo), 0)]
+        if span.pick is None:
+            block[:, lo:hi] = profiles[0]
+            continue
+        if terrain_rows is None:
+            terrain_rows = np.clip(np.arange(r0, r1) - margin, 0, nrow - 1)
+        block[:, lo:hi] = profiles[span.pick[terrain_rows]]
+    block[:, max(spans[-1].c1 + margin - c0, 0) :] = 0.0
 
 
 def _cells(length: float, resolution: float) -> int:
@@ -377,7 +376,7 @@ def _layout(
 def _hills(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
     height = _pick(config.hill_height, rng)
-    return height, height * _half_sine(n)
+    return height, (height * _half_sine(n)).astype(np.float32)
 
 
 def _steps(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
@@ -391,7 +390,7 @@ def _steps(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[flo
 
 @functools.cache
 def _level(n: int) -> np.ndarray:
-    return _frozen(np.zeros((1, n)))
+    return _frozen(np.zeros((1, n), np.float32))
 
 
 @functools.cache
@@ -403,7 +402,7 @@ def _half_sine(n: int) -> np.ndarray:
 def _stairs(n: int, num_steps: int, step_height: float) -> np.ndarray:
     tread = np.arange(num_steps)
     levels = step_height * np.minimum(tread, num_steps - 1 - tread)
-    return _frozen(np.repeat(levels, n // num_steps))
+    return _frozen(np.repeat(levels, n // num_steps).astype(np.float32))
 
 
 @functools.cache
@@ -414,7 +413,8 @@ def _clipped_waves(
     # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
     phase = np.outer(half_periods, np.arange(n) / (n - 1)) % 2.0
     waves = peak * (1.0 - np.abs(phase - 1.0))
-    return _frozen(np.minimum(waves[:, None, :], np.array(clips)[:, None]).reshape(-1, n))
+    profiles = np.minimum(waves[:, None, :], np.array(clips)[:, None]).reshape(-1, n)
+    return _frozen(profiles.astype(np.float32))
 
 
 @functools.cache
@@ -444,19 +444,15 @@ def _rubble_strips(
 
 def _rubble(
     n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
-) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Strips along x, each min(triangle wave, clip) with the wave 0 -> peak -> 0 over two
-    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2): the top, each strip's
-    rows and profile, and the profiles (one per half-periods and clip pair)."""
+    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2): the top, each row's
+    profile, and the profiles (one per pair of half-periods and clip)."""
     rows, wave, clip = _rubble_strips(nrow, config, rng)
     clips = config.rubble_clip
     profiles = _clipped_waves(n, config.rubble_half_periods, clips, config.rubble_peak)
-    return (
-        float(max(clips[k] for k in set(clip.tolist()))),
-        rows,
-        wave * len(clips) + clip,
-        profiles,
-    )
+    top = max(clips[k] for k in set(clip.tolist()))
+    return top, np.repeat(wave * len(clips) + clip, rows)[:nrow], profiles
 
 
 _BUILDERS = {"hills": _hills, "steps": _steps}
