@@ -32,7 +32,7 @@
    (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack), flushed
    after every message and after groups of 4 and 16 (the coordinator's group commit).
 4. `recovery`: a synthetic 4,000-body journal of the paper's profile (made by driving the
-   coordinator's own handlers), and the time `Coordinator(run, run_dir, config)` takes to
+   coordinator's own handlers), and the time opening its `Coordinator` takes to
    replay it: the restart time of a paper-sized run.
 5. `bus_share`: the bus's share of a trainer's wall time: every publish a real trainer makes
    during a real short training (learn() with the worker's progress cadence, through a real
@@ -467,11 +467,17 @@ class _NoBus:
         pass
 
 
-def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
+def _open_coordinator(run: str, run_dir: Path, config: EvolutionConfig):
+    """A run's coordinator, as `derl coordinator` makes it (without its bus)."""
+    from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import Coordinator
 
+    return Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config))
+
+
+def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
     seed_run_dir(run_dir, config.population)
-    coordinator = Coordinator(run, run_dir, config)
+    coordinator = _open_coordinator(run, run_dir, config)
     coordinator.bus = _NoBus()
     return coordinator
 
@@ -514,7 +520,7 @@ class Driver:
         coordinator, state = self.coordinator, self.coordinator.state
         ready = WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
         coordinator._ready(ready)
-        coordinator._flush()  # as the serve loop does after each group (here: each message)
+        coordinator.ledger.flush()  # as the serve loop does after each group (here: each message)
         coordinator._publish_released()
         job = state.job_of(node)
         return None if job is None else job.order
@@ -527,8 +533,8 @@ class Driver:
         profiled)."""
         coordinator = self.coordinator
         times: list[float] = []
-        target = coordinator.born + births
-        while coordinator.born < target:
+        target = coordinator.policy.born + births
+        while coordinator.policy.born < target:
             tournaments = coordinator.state.evolution.initial_born
             if not self.busy or (self.idle and tournaments and not self.retried):
                 self.retried = tournaments  # idle workers ask again once tournaments start
@@ -544,8 +550,8 @@ class Driver:
             if profiler is not None:
                 profiler.enable()
             start = time.thread_time()
-            coordinator._fitness(decode(data))  # decoding is the coordinator's part
-            coordinator._flush()
+            coordinator._handle(decode(data))  # decoding is the coordinator's part
+            coordinator.ledger.flush()
             coordinator._publish_released()
             following = self._ready(job.node)
             times.append(time.thread_time() - start)
@@ -669,7 +675,6 @@ def _ack(run: str, job: TrainJob):
 
 
 def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> dict[str, object]:
-    from derl.nodes.coordinator.node import Coordinator
     from derl.nodes.journal.segments import segments
 
     config = load_profile("paper").model_copy(update={"total": bodies_total})
@@ -685,14 +690,14 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        restarted = Coordinator("recovery", run_dir, config)
+        restarted = _open_coordinator("recovery", run_dir, config)
         times.append(time.perf_counter() - start)
         restarted.close()
-        assert restarted.born == bodies_total, restarted.born
+        assert restarted.policy.born == bodies_total, restarted.policy.born
         segments(run_dir)[-1].unlink()  # the empty segment each start opens
     return {
         "bodies": bodies_total,
-        "journal_messages": restarted.replayed,
+        "journal_messages": restarted.ledger.replayed,
         "journal_mb": round(journal.stat().st_size / 1e6, 1),
         "recovery_s_median": round(statistics.median(times), 2),
         "recovery_s_all": [round(t, 2) for t in times],

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 import yaml
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
-from derl.nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
+from derl.nodes.coordinator.study import StudyState
+from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
 from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for, write_profile
 
 from derl.analysis import RetrainJob, RetrainPlan

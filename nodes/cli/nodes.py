@@ -12,6 +12,7 @@ import logging
 import signal
 import subprocess
 import threading
+from functools import partial
 from pathlib import Path
 
 import zenoh
@@ -67,6 +68,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _coordinator(args: argparse.Namespace) -> int:
+    from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import serve
     from derl.nodes.coordinator.study import serve_study
 
@@ -76,8 +78,9 @@ def _coordinator(args: argparse.Namespace) -> int:
             finished = serve_study(args.run, args.study, options_from(args), args.study_runs,
                                    config)  # fmt: skip
         else:
-            finished = serve(args.run, run_directory(args.run_dir), profile_from(args),
-                             options_from(args))  # fmt: skip
+            run_dir, config = run_directory(args.run_dir), profile_from(args)
+            policy = partial(EvolutionPolicy, args.run, run_dir, config)
+            finished = serve(args.run, run_dir, policy, options_from(args))
     except zenoh.ZError as error:
         fail_on_bus(error)
     return 0 if finished is True else 1
