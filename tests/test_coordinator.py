@@ -36,6 +36,7 @@ from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import Coordinator
 from derl.nodes.coordinator.run_files import INITIAL_FILE, PROFILE_FILE
 from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -453,3 +454,11 @@ def test_a_run_saved_when_ppo_held_every_ppoconfig_field_resumes_as_it_ran(tmp_p
             config.num_envs, config.train_steps, config.training_seed, 1e-4)  # fmt: skip
     finally:
         coordinator.close()
+
+
+def test_a_run_directory_of_another_profile_is_refused(tmp_path: Path) -> None:
+    """The coordinator raises (the command line prints it and exits, `derl run` stops at once):
+    a run directory of another profile is `Refused`, naming both."""
+    (tmp_path / PROFILE_FILE).write_text(load_profile("smoke").model_dump_json())
+    with pytest.raises(Refused, match="holds a run of profile smoke in ft with seed 0, not demo"):
+        EvolutionPolicy(run_id(), tmp_path, load_profile("demo"))

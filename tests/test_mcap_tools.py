@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from derl.messages import FitnessReport, MessageBase, encode
 from derl.messages.examples import examples
+from derl.nodes.errors import REFUSED
 from derl.nodes.journal.segments import Journal, JournalWriter, segments
 from derl.nodes.tools.logs import LogError, export_json, info, read_log, repair
 from mcap.reader import make_reader
@@ -210,7 +211,7 @@ def test_a_damaged_segment_stops_the_coordinator_and_its_advice_resumes_the_run(
                    "tcp/127.0.0.1:0"]  # fmt: skip
     done = _derl(*coordinator)
     said = done.stderr.strip().splitlines()[-1]
-    assert done.returncode == 1 and f"{first} is damaged" in said, done.stderr
+    assert done.returncode == REFUSED and f"{first} is damaged" in said, done.stderr
     advice = re.search(r"`derl (log repair \S+ \S+)`", said)
     assert advice is not None, said
     command = advice[1].split()

@@ -2,7 +2,7 @@
 again (the coordinator alone, on the same endpoint, resuming from its journal), every body is
 born once, the run finishes, and the progress view (a Zenoh peer of the coordinator's endpoint)
 follows the run across the restart. A run stopped with Ctrl-C prints the command that resumes
-it."""
+it. A run its coordinator refuses stops at once with the coordinator's reason."""
 
 from __future__ import annotations
 
@@ -15,6 +15,9 @@ from pathlib import Path
 import pytest
 from derl.messages import RunStatus
 from derl.nodes.cli.run import TrainingRate
+from derl.nodes.errors import REFUSED
+from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.launch.supervisor import Supervisor
 from nodes_fixtures import (
     Processes,
     assert_born_once,
@@ -25,6 +28,8 @@ from nodes_fixtures import (
     pid_alive,
     wait_for,
 )
+
+from derl.evolution import load_profile
 
 
 def _pids(log: str) -> dict[str, list[int]]:
@@ -108,3 +113,33 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         assert_born_once(run_dir, 8)
     finally:
         processes.close()
+
+
+def test_a_run_its_coordinator_refuses_stops_at_once_with_the_reason(tmp_path: Path) -> None:
+    """A refusal no restart can change (here a run directory of another profile) stops `derl run`
+    at once, with the coordinator's reason as its last line and the refusal's exit status; it
+    used to restart the coordinator 10 times over 3 minutes, then print the failed command as
+    the one that resumes the run."""
+    run_dir = tmp_path / "smoke-run"
+    run_dir.mkdir()
+    (run_dir / "profile.json").write_text(load_profile("smoke").model_dump_json())
+    argv = ["run", "--profile", "demo", "--run-dir", str(run_dir), "--port", "0", "--workers", "1"]
+    processes = Processes(tmp_path / "test-logs")
+    try:
+        run = processes.start("run", derl_argv(*argv))
+        assert processes.finish(run, 60) == REFUSED, processes.log("run")
+    finally:
+        processes.close()
+    lines = processes.log("run").strip().splitlines()
+    assert lines[-1].startswith("derl: coordinator refused: ") and (
+        f"{run_dir} holds a run of profile smoke" in lines[-1]
+    ), lines
+    assert not [line for line in lines if "restart 1/" in line or "resumes the run" in line]
+
+
+def test_a_node_whose_exit_says_no_restart_helps_is_not_restarted(tmp_path: Path) -> None:
+    """A worker that exits with a `FINAL` status (here 2: a usage error) is not started again."""
+    command = NodeCommand(host="local", name="w", role="trainer",
+                          args=("trainer", "--no-such-flag"), max_restarts=3)  # fmt: skip
+    assert Supervisor([command], tmp_path).run(poll_s=0.1) == 1
+    assert (tmp_path / "w.log").read_text().count("--- derl launch, start") == 1

@@ -1,4 +1,5 @@
-"""`derl`: one entry point whose subcommands are registered by the modules of `nodes.cli`."""
+"""`derl`: one entry point whose subcommands are registered by the modules of `nodes.cli`, and the
+one place where what went wrong (`DerlError`) becomes a line on stderr and an exit status."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from derl.nodes.cli import (
     unimal,
     watch,
 )
+from derl.nodes.errors import DerlError
 
 
 class Parser(argparse.ArgumentParser):
@@ -66,4 +68,8 @@ def main(argv: list[str] | None = None) -> int:
         stream=sys.stderr,
     )
     args = build_parser().parse_args(argv)
-    return args.handler(args)
+    try:
+        return args.handler(args)
+    except DerlError as error:
+        print(f"derl: {' '.join(str(error).split())}", file=sys.stderr)
+        raise SystemExit(error.code) from None

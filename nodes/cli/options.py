@@ -1,30 +1,28 @@
 """Flags shared by the commands (how a node joins the bus, which profile a run uses), and the one
-way a command reports bad input: one line on stderr and a non-zero exit status (`fail`)."""
+way a command reports bad input (`fail`: a `DerlError`, printed by `main` in one line)."""
 
 from __future__ import annotations
 
 import argparse
 import re
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, TypeGuard, get_args
 
 import yaml
 import zenoh
+from derl.nodes.errors import IN_USE, DerlError
 from derl.nodes.runtime.bus import ZenohOptions
 from pydantic import BaseModel, ValidationError
 
 from derl.validation import problems
 
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
-IN_USE = 2  # exit status when a port or a run directory is taken by another process
 
 
 def fail(message: str, code: int = 1) -> NoReturn:
-    """Print `derl: message` on stderr (one line) and exit with `code`."""
-    print(f"derl: {' '.join(message.split())}", file=sys.stderr)
-    raise SystemExit(code)
+    """End the command: `derl: message` on stderr (one line) and exit status `code` (`main`)."""
+    raise DerlError(message, code)
 
 
 def at_least_one(text: str) -> int:

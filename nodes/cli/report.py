@@ -121,13 +121,13 @@ def _report(args: argparse.Namespace) -> int:
             **{name: value for name, value in given.items() if value is not None},
         )
     except ValueError as error:
-        raise SystemExit(f"derl: {error}") from None
+        fail(str(error))
     start = time.monotonic()
     runs = _runs_or_study(args.runs)
     try:
         files = write_report(runs, args.out, config)
     except ValueError as error:
-        raise SystemExit(f"derl: {error}") from None
+        fail(str(error))
     for note in files.notes:
         console.print(f"note: {note}", highlight=False)
     console.print(

@@ -22,17 +22,17 @@ from pathlib import Path
 
 from derl.messages import RunStatus
 from derl.nodes.cli.options import (
-    IN_USE,
     add_profile_arguments,
     at_least_one,
     fail,
     profile_from,
     run_directory,
 )
+from derl.nodes.errors import IN_USE
 from derl.nodes.launch.commands import NodeCommand
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.runtime.rundir import lock_run_dir
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -73,11 +73,8 @@ def _run(args: argparse.Namespace) -> int:
     run_dir = run_directory(
         args.run_dir or Path("runs") / f"{config.name}-{config.world}{replicate}"
     )
-    try:
-        with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
-            pass
-    except RunDirLocked as error:
-        fail(str(error), IN_USE)
+    with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
+        pass
     port = listenable(args.port)
     run = local_run_id(run_dir)
     endpoint = f"tcp/127.0.0.1:{port}"

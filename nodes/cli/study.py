@@ -17,7 +17,7 @@ import argparse
 import signal
 from pathlib import Path
 
-from derl.nodes.cli.options import IN_USE, at_least_one, fail, run_directory, study_profile_from
+from derl.nodes.cli.options import at_least_one, fail, run_directory, study_profile_from
 from derl.nodes.cli.run import (
     DEFAULT_PORT,
     listenable,
@@ -27,7 +27,7 @@ from derl.nodes.cli.run import (
     supervise,
 )
 from derl.nodes.launch.supervisor import Supervisor
-from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.runtime.rundir import lock_run_dir
 from rich.console import Console
 
 console = Console()
@@ -67,11 +67,8 @@ def _study(args: argparse.Namespace) -> int:
             if not path.exists():
                 fail(f"no run directory or log at {path}")
     study_dir = run_directory(args.study_dir)
-    try:
-        with lock_run_dir(study_dir):
-            setup = prepare_study(study_dir, args.runs, config)
-    except RunDirLocked as error:
-        fail(str(error), IN_USE)
+    with lock_run_dir(study_dir):
+        setup = prepare_study(study_dir, args.runs, config)
     worlds = sorted({job.task for job in read_plan(study_dir).jobs})
     console.print(
         f"study {study_dir}: {len(setup.runs)} runs ({', '.join(worlds)}), "

@@ -48,6 +48,7 @@ from derl.nodes.coordinator.run_files import (
     write_results,
 )
 from derl.nodes.coordinator.state import CoordinatorState, Job, tournament_message
+from derl.nodes.errors import Refused
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
@@ -285,8 +286,8 @@ def _log_failed_link(done: Future[None]) -> None:
 
 
 def check_jobs(run: str, config: EvolutionConfig) -> None:
-    """Exit with the reason if a job of this configuration would not be a valid message, so
-    every value a job carries is checked before anything starts."""
+    """`Refused` with the reason if a job of this configuration would not be a valid message,
+    so every value a job carries is checked before anything starts."""
     try:
         ids = {"run": run, "job": "check", "node": "check", "genome": GENOME}
         TrainJob(**ids, child="check", task=config.world, ppo=config.training_ppo(),
@@ -296,4 +297,4 @@ def check_jobs(run: str, config: EvolutionConfig) -> None:
                 EvalJob(**ids, agent="check", task=task, ppo=config.evaluation_ppo(task, seed),
                         lease_s=config.lease_s)  # fmt: skip
     except (ValueError, ValidationError) as error:
-        raise SystemExit(f"derl: run {run!r} cannot start: {error}") from None
+        raise Refused(f"run {run!r} cannot start: {error}") from None

@@ -1,7 +1,7 @@
 """The coordinator's ledger: its state, the journal that rebuilds it, and every message committed.
 
 Opening a ledger replays the run directory's journal into the state (only what the state knows:
-`CoordinatorState.known`; an exit if the journal is damaged or another run's), then opens a new
+`CoordinatorState.known`; `Refused` if the journal is damaged or another run's), then opens a new
 journal segment and the checkpoint files. From then on everything the coordinator accepts or says
 is committed here: appended to the journal, applied to the state (the same handlers that rebuilt
 it) and, if it is to be published, kept as a reply of the current group. `flush` writes the group
@@ -28,6 +28,7 @@ from derl.messages import (
 )
 from derl.nodes.coordinator.outbox import Outbox, Reply
 from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.errors import Refused
 from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segments
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 
@@ -47,10 +48,10 @@ class Ledger:
                         state.apply(msg)
                         self.replayed += 1
             except JournalDamaged as damage:
-                raise SystemExit(f"derl: {damage}") from None
+                raise Refused(str(damage)) from None
         if state.run not in (None, run):  # its own messages would not change the state
-            raise SystemExit(f"derl: {run_dir} holds the journal of run {state.run!r}, not "
-                             f"{run!r}: resume it with --run {state.run}")  # fmt: skip
+            raise Refused(f"{run_dir} holds the journal of run {state.run!r}, not {run!r}: "
+                          f"resume it with --run {state.run}")  # fmt: skip
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
         self.replies: list[Reply] = []  # the group's: published once it is on disk

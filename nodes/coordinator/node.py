@@ -47,7 +47,7 @@ from derl.messages import (
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.policy import Policy
 from derl.nodes.runtime.bus import MSGPACK, Bus, Inlet, ZenohOptions, open_session
-from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.runtime.rundir import lock_run_dir
 
 log = logging.getLogger("derl.coordinator")
 
@@ -372,12 +372,9 @@ class Coordinator:
 def serve(run: str, run_dir: Path, policy: Callable[[], Policy], options: ZenohOptions) -> bool:
     """The coordinator of `run` in `run_dir`, with the policy `policy()` makes, until the run is
     finished (True) or it is stopped (False); the run directory is locked from before the policy
-    reads its files until the end."""
-    try:
-        with lock_run_dir(run_dir):
-            coordinator = Coordinator(run, run_dir, policy())
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                signal.signal(sig, lambda *_: coordinator.stop.set())
-            return coordinator.serve(options)
-    except RunDirLocked as locked:
-        raise SystemExit(f"derl: {locked}") from None
+    reads its files until the end (`RunDirLocked` if another process holds it)."""
+    with lock_run_dir(run_dir):
+        coordinator = Coordinator(run, run_dir, policy())
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: coordinator.stop.set())
+        return coordinator.serve(options)

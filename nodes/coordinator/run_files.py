@@ -17,6 +17,7 @@ import logging
 from pathlib import Path
 
 from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.errors import Refused
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 from derl.nodes.runtime.rundir import write_atomic
 from pydantic import ValidationError
@@ -36,7 +37,7 @@ SUMMARY_FILE = "summary.json"
 
 def run_config(run_dir: Path, given: EvolutionConfig) -> EvolutionConfig:
     """The run's configuration: the one saved with it when it resumes, else `given`, saved now;
-    an exit when the saved one is not valid or of another profile, world or seed."""
+    `Refused` when the saved one is not valid or of another profile, world or seed."""
     path = run_dir / PROFILE_FILE
     if not path.exists():
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -45,12 +46,10 @@ def run_config(run_dir: Path, given: EvolutionConfig) -> EvolutionConfig:
     try:
         saved = EvolutionConfig.model_validate_json(path.read_text(), context=SAVED)
     except ValidationError as error:
-        raise SystemExit(
-            f"derl: {path} is not a valid run configuration: {problems(error)}"
-        ) from None
+        raise Refused(f"{path} is not a valid run configuration: {problems(error)}") from None
     if (saved.name, saved.world, saved.seed) != (given.name, given.world, given.seed):
-        raise SystemExit(
-            f"derl: {run_dir} holds a run of profile {saved.name} in {saved.world} with "
+        raise Refused(
+            f"{run_dir} holds a run of profile {saved.name} in {saved.world} with "
             f"seed {saved.seed}, not {given.name} in {given.world} with seed {given.seed}; "
             "resume it with the same profile and seed or use a new --run-dir"
         )

@@ -39,6 +39,7 @@ from derl.nodes.coordinator.study_files import (
     selected_bodies,
     study_agent,
 )
+from derl.nodes.errors import Refused
 from derl.nodes.journal.history import EvalKey
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.nodes.runtime.rundir import write_atomic
@@ -136,9 +137,9 @@ class StudyPolicy:
 
     def _check_job(self, agent: str, job: RetrainJob) -> None:
         if len(agent) > 128:
-            raise SystemExit(f"derl: study agent name {agent!r} is longer than 128 characters")
+            raise Refused(f"study agent name {agent!r} is longer than 128 characters")
         if job.steps is None and self.config.retrain_steps is None:
-            raise SystemExit(f"derl: {job.run} records no lifetime budget: set retrain_steps")
+            raise Refused(f"{job.run} records no lifetime budget: set retrain_steps")
 
     def start(self, ledger: Ledger) -> None:
         self.ledger = ledger

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
+from derl.nodes.errors import DerlError, Refused
 from derl.nodes.journal.history import load_history, load_runs
 from derl.nodes.runtime.rundir import write_atomic
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -75,18 +76,18 @@ def _read(path: Path, model: type[M], context: dict[str, object] | None = None) 
     try:
         return model.model_validate_json(path.read_text(), context=context)
     except FileNotFoundError:
-        raise SystemExit(f"derl: {path.parent} is not a study (no {path.name}): start it with "
-                         "`derl study RUN_DIR... --study-dir DIR`") from None  # fmt: skip
+        raise Refused(f"{path.parent} is not a study (no {path.name}): start it with "
+                      "`derl study RUN_DIR... --study-dir DIR`") from None  # fmt: skip
     except OSError as error:
-        raise SystemExit(f"derl: {path} is not readable: {error}") from None
+        raise Refused(f"{path} is not readable: {error}") from None
     except ValidationError as error:
-        raise SystemExit(f"derl: {path} is not valid: {problems(error)}") from None
+        raise Refused(f"{path} is not valid: {problems(error)}") from None
 
 
 def prepare_study(study_dir: Path, runs: list[Path], config: StudyConfig) -> StudySetup:
     """Make `study_dir` a study of `runs` with `config`: its setup and its retraining plan,
     chosen now from the runs' journals. A study begun there already keeps its own (and says so
-    where `runs` or `config` differ); SystemExit with the reason when the runs cannot be read."""
+    where `runs` or `config` differ); `Refused` with the reason when the runs cannot be read."""
     from derl.analysis import plan
 
     if (study_dir / SETUP_FILE).exists():
@@ -99,14 +100,18 @@ def prepare_study(study_dir: Path, runs: list[Path], config: StudyConfig) -> Stu
             log.warning("%s keeps its settings (profile %s)", study_dir, setup.config.name)
         return setup
     if not runs:
-        raise SystemExit(f"derl: {study_dir} is not a study yet: give the run directories")
+        raise Refused(f"{study_dir} is not a study yet: give the run directories")
     for path in runs:
         if path.is_dir() and not (path / "summary.json").exists():
             log.warning("%s is not finished (no summary.json): its surviving lineages are those "
                         "of its population now", path)  # fmt: skip
-    chosen = plan(load_runs(runs), config.per_lineage, config.seeds, config.seed)
+    try:
+        logs = load_runs(runs)
+    except DerlError as error:  # a run directory without a journal, or without a birth
+        raise Refused(str(error)) from None
+    chosen = plan(logs, config.per_lineage, config.seeds, config.seed)
     if not chosen.jobs:
-        raise SystemExit("derl: the runs have no surviving lineage to select from")
+        raise Refused("the runs have no surviving lineage to select from")
     setup = StudySetup(config=config, runs=tuple(p.resolve() for p in runs))
     study_dir.mkdir(parents=True, exist_ok=True)
     write_atomic(study_dir / PLAN_FILE, chosen.model_dump_json(indent=2) + "\n")

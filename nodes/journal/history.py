@@ -26,6 +26,7 @@ from derl.messages import (
     Tournament,
     TrainJob,
 )
+from derl.nodes.errors import DerlError
 from derl.nodes.journal.segments import JournalDamaged, read_segment, replay, segments
 from derl.nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
@@ -126,15 +127,15 @@ def journal_run(run_dir: Path) -> str | None:
 
 def load_history(path: Path) -> RunHistory:
     """The history of a run directory's journal, or of one MCAP file (a segment, a recording);
-    SystemExit with the reason when there is none."""
+    `DerlError` with the reason when there is none."""
     if path.is_dir():
         if not segments(path):
-            raise SystemExit(f"derl: {path} holds no journal (journal/segment-NNNN.mcap)")
+            raise DerlError(f"{path} holds no journal (journal/segment-NNNN.mcap)")
         messages = replay(path)
     elif path.is_file():
         messages = read_segment(path)
     else:
-        raise SystemExit(f"derl: no run directory or log at {path}")
+        raise DerlError(f"no run directory or log at {path}")
     history = RunHistory()
     for msg in messages:
         history.apply(msg)
@@ -169,7 +170,7 @@ def run_log(path: Path) -> RunLog:
             )
         )
     if not bodies:
-        raise SystemExit(f"derl: no body was born in {path}")
+        raise DerlError(f"no body was born in {path}")
     first = next(iter(history.first_job.values()))
     evaluations = tuple(
         Evaluation(

@@ -19,10 +19,12 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+from derl.nodes.errors import InUse
+
 LOCK_FILE = ".lock"
 
 
-class RunDirLocked(RuntimeError):
+class RunDirLocked(InUse):
     """Another process holds the run directory's lock."""
 
 
