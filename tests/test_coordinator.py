@@ -462,3 +462,11 @@ def test_a_run_directory_of_another_profile_is_refused(tmp_path: Path) -> None:
     (tmp_path / PROFILE_FILE).write_text(load_profile("smoke").model_dump_json())
     with pytest.raises(Refused, match="holds a run of profile smoke in ft with seed 0, not demo"):
         EvolutionPolicy(run_id(), tmp_path, load_profile("demo"))
+
+
+def test_a_run_whose_jobs_would_not_be_valid_messages_is_refused(tmp_path: Path) -> None:
+    """Every value a job carries is checked before anything starts (here the run id, which every
+    message and key carries)."""
+    with pytest.raises(Refused, match="run 'no spaces' cannot start"):
+        EvolutionPolicy("no spaces", tmp_path, load_profile("smoke"))
+    assert not (tmp_path / INITIAL_FILE).exists()

@@ -37,7 +37,6 @@ from derl.messages import (
     PopulationSnapshot,
     TrainJob,
 )
-from derl.messages.examples import GENOME
 from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_evaluation
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.policy import Progress
@@ -52,6 +51,8 @@ from derl.nodes.errors import Refused
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
+from derl.unimal import Genome
+from derl.unimal.space import DENSITIES
 
 log = logging.getLogger("derl.coordinator")
 
@@ -287,9 +288,11 @@ def _log_failed_link(done: Future[None]) -> None:
 
 def check_jobs(run: str, config: EvolutionConfig) -> None:
     """`Refused` with the reason if a job of this configuration would not be a valid message,
-    so every value a job carries is checked before anything starts."""
+    so every value a job carries is checked before anything starts (with a bare head for its
+    body: the configuration is checked, not a body)."""
+    head = Genome(head_density=DENSITIES[0], limb_density=DENSITIES[0])
     try:
-        ids = {"run": run, "job": "check", "node": "check", "genome": GENOME}
+        ids = {"run": run, "job": "check", "node": "check", "genome": head}
         TrainJob(**ids, child="check", task=config.world, ppo=config.training_ppo(),
                  lease_s=config.lease_s)  # fmt: skip
         for task in config.eval_tasks:
