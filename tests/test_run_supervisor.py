@@ -31,6 +31,8 @@ from nodes_fixtures import (
 
 from derl.evolution import load_profile
 
+COORDINATOR = "local-coordinator-0"  # the node names of launch/local.yaml
+
 
 def _pids(log: str) -> dict[str, list[int]]:
     started: dict[str, list[int]] = {}
@@ -48,26 +50,26 @@ def test_run_restarts_a_killed_trainer_and_a_killed_coordinator(tmp_path: Path) 
                                                str(run_dir), "--port", str(port)))  # fmt: skip
         # the trainer that got the first job (the other may not be ready by then)
         first = wait_for(lambda: jobs(run_dir), 120, "the first job")[0].node
-        other = {"trainer-0": "trainer-1", "trainer-1": "trainer-0"}[first]
+        other = {"local-trainer-0": "local-trainer-1", "local-trainer-1": "local-trainer-0"}[first]
         os.killpg(_pids(processes.log("run"))[first][0], signal.SIGKILL)
         wait_for(lambda: f"{first} exited with -9: restart 1/" in processes.log("run"), 10,
                  "derl run noticing the killed trainer")  # fmt: skip
         wait_for(lambda: len(births(run_dir)) >= 2, 120, "two births")
         assert len(births(run_dir)) < 8, "the run ended before the coordinator could be killed"
-        os.killpg(_pids(processes.log("run"))["coordinator"][0], signal.SIGKILL)
-        wait_for(lambda: "coordinator exited with -9: restart 1/" in processes.log("run"), 10,
+        os.killpg(_pids(processes.log("run"))[COORDINATOR][0], signal.SIGKILL)
+        wait_for(lambda: f"{COORDINATOR} exited with -9: restart 1/" in processes.log("run"), 10,
                  "derl run noticing the killed coordinator")  # fmt: skip
         wait_for(lambda: run.poll() is not None, 240, "derl run to finish the run")
         log = processes.log("run")
         assert run.returncode == 0, log
         pids = _pids(log)
-        assert len(pids["coordinator"]) == 2 and len(pids[first]) == 2, pids
-        assert len(pids[other]) == 1 and len(pids["evaluator-0"]) == 1, pids  # untouched
+        assert len(pids[COORDINATOR]) == 2 and len(pids[first]) == 2, pids
+        assert len(pids[other]) == 1 and len(pids["local-evaluator-0"]) == 1, pids  # untouched
         assert_born_once(run_dir, 8)
         # the progress view heard the restarted coordinator; the rate is the run's mean, not 0
         assert re.search(r"done: 8 bodies, best [ic]\d+ \(.+\), [1-9][\d,]* env steps/s", log), log
         assert f"tcp/127.0.0.1:{port}" in log
-        coordinator_log = (run_dir / "logs" / "coordinator.log").read_text()
+        coordinator_log = (run_dir / "logs" / f"{COORDINATOR}.log").read_text()
         assert "journaled messages replayed" in coordinator_log.split("start 1:")[-1]
         assert not [pid for ps in pids.values() for pid in ps if pid_alive(pid)]
     finally:
@@ -131,7 +133,7 @@ def test_a_run_its_coordinator_refuses_stops_at_once_with_the_reason(tmp_path: P
     finally:
         processes.close()
     lines = processes.log("run").strip().splitlines()
-    assert lines[-1].startswith("derl: coordinator refused: ") and (
+    assert lines[-1].startswith("derl: the coordinator refused: ") and (
         f"{run_dir} holds a run of profile smoke" in lines[-1]
     ), lines
     assert not [line for line in lines if "restart 1/" in line or "resumes the run" in line]

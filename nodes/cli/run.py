@@ -1,13 +1,15 @@
 """`derl run`: a whole run on this host: coordinator, K trainers and an evaluator, on loopback.
 
-Each node is its own process (its log in RUN_DIR/logs/), connected through the coordinator's
-loopback endpoint (port 7447 unless --port says otherwise: a monitor connects there, across
-restarts) with multicast off. The nodes are supervised like `derl launch`'s ``restart:
-on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that dies is started again, and a
-coordinator that dies is started again alone, resumes from its journal and hears the trainers'
-reports again (they re-send until acknowledged). It ends when the coordinator finishes the run;
-meanwhile it shows bodies born, best fitness, steps/s and time left. Ctrl-C stops every node;
-running it again on the same run directory resumes the run from its journal.
+The nodes are those of the local launch graph (`nodes.launch.local`: `launch/local.yaml`) with
+this run's numbers. Each node is its own process (its log in RUN_DIR/logs/), connected through the
+coordinator's loopback endpoint (port 7447 unless --port says otherwise: a monitor connects there,
+across restarts) with multicast off. They are supervised as `derl launch` does
+(`nodes.launch.supervisor`): a trainer or evaluator that dies is started again, and a coordinator
+that dies is started again alone, resumes from its journal and hears the trainers' reports again
+(they re-send until acknowledged); a coordinator that refuses to start stops the run at once. It
+ends when the coordinator finishes the run; meanwhile it shows bodies born, best fitness, steps/s
+and time left. Ctrl-C stops every node; running it again on the same run directory resumes the
+run from its journal.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from derl.nodes.cli.options import (
     run_directory,
 )
 from derl.nodes.errors import IN_USE
-from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.launch.commands import build_commands
+from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.rundir import lock_run_dir
@@ -39,7 +42,6 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 console = Console()
 
 DEFAULT_PORT = 7447  # Zenoh's own default: `derl monitor --connect tcp/127.0.0.1:7447`
-MAX_RESTARTS = 10  # of each node, after 1, 2, 4 ... 30 s
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -78,11 +80,10 @@ def _run(args: argparse.Namespace) -> int:
     port = listenable(args.port)
     run = local_run_id(run_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
-    env = ("--env", args.env) if args.env else ()
-    seed = ("--seed", str(args.seed)) if args.seed is not None else ()
-    coordinator = ("--profile", args.profile, *env, *seed, "--run-dir", str(run_dir))
     workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
-    supervisor = Supervisor(local_nodes(run, endpoint, coordinator, workers), run_dir / "logs")
+    graph = local_launch(run, endpoint, workers, run_dir=run_dir, profile=args.profile,
+                         env=args.env, seed=args.seed)  # fmt: skip
+    supervisor = Supervisor(build_commands(graph), run_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
@@ -93,6 +94,8 @@ def _run(args: argparse.Namespace) -> int:
     )
     code, status = supervise(supervisor, run, endpoint, config.total)
     if code != 0:
+        env = ("--env", args.env) if args.env else ()
+        seed = ("--seed", str(args.seed)) if args.seed is not None else ()
         again = shlex.join(["derl", "run", "--profile", args.profile, *env, *seed, "--run-dir",
                             str(run_dir)])  # fmt: skip
         console.print(f"stopped; `{again}` resumes the run", highlight=False, soft_wrap=True)
@@ -126,23 +129,6 @@ def local_run_id(run_dir: Path) -> str:
     from derl.nodes.journal.history import journal_run
 
     return journal_run(run_dir) or re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
-
-
-def local_nodes(
-    run: str, endpoint: str, coordinator: tuple[str, ...], workers: dict[str, int]
-) -> list[NodeCommand]:
-    """A coordinator (`coordinator`: its own arguments) listening on `endpoint` and `workers`
-    (role -> count) connected to it, each restarted when it fails."""
-    nodes = [("coordinator", "coordinator",
-              ("coordinator", "--run", run, *coordinator, "--listen", endpoint))]  # fmt: skip
-    for role, count in workers.items():
-        for k in range(count):
-            name = f"{role}-{k}"
-            nodes.append((role, name, (role, "--run", run, "--connect", endpoint, "--name", name)))
-    return [
-        NodeCommand(host="local", name=name, role=role, args=line, max_restarts=MAX_RESTARTS)
-        for role, name, line in nodes
-    ]
 
 
 def supervise(

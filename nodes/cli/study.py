@@ -21,11 +21,12 @@ from derl.nodes.cli.options import at_least_one, fail, run_directory, study_prof
 from derl.nodes.cli.run import (
     DEFAULT_PORT,
     listenable,
-    local_nodes,
     local_run_id,
     port_number,
     supervise,
 )
+from derl.nodes.launch.commands import build_commands
+from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.rundir import lock_run_dir
 from rich.console import Console
@@ -80,8 +81,8 @@ def _study(args: argparse.Namespace) -> int:
     port = listenable(args.port)
     run = local_run_id(study_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
-    nodes = local_nodes(run, endpoint, ("--study", str(study_dir)), {"evaluator": args.workers})
-    supervisor = Supervisor(nodes, study_dir / "logs")
+    graph = local_launch(run, endpoint, {"evaluator": args.workers}, study=study_dir)
+    supervisor = Supervisor(build_commands(graph), study_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(

@@ -7,8 +7,9 @@ host named ``local`` or after this machine, else every host without ``ssh``) and
 ``ssh`` host, one ``ssh -tt HOST 'cd WORKDIR && exec derl launch FILE --host NAME'`` that starts
 that host's nodes there (so the launch file must be at the same path under WORKDIR).
 
-Endpoints: in a peer mesh every process listens on its host's ``listen`` endpoint (process k of
-the host on port + k, or on port 0 when the port is 0) and connects to the seed, except the
+Endpoints: in a peer mesh every process listens on its node entry's ``listen`` endpoint (process
+k of the entry on port + k), else on its host's (process k of the host on port + k), else on a
+free loopback port (port 0 stays 0: a free port each), and connects to the seed, except the
 process that is the seed; gossip completes the mesh. In a router topology the router host runs
 ``derl router`` on the router endpoint and every other node is a Zenoh client of it.
 """
@@ -31,6 +32,7 @@ from derl.nodes.launch.model import (
     split_endpoint,
     with_port,
 )
+from derl.nodes.runtime.bus import LOOPBACK_ANY_PORT
 
 SSH = ("ssh", "-tt", "-o", "BatchMode=yes")  # a tty: the remote node gets SIGHUP when ssh ends
 
@@ -92,7 +94,7 @@ def _host_commands(launch: LaunchFile, host: HostSpec) -> list[NodeCommand]:
             args = [
                 spec.role,
                 *_role_args(launch, spec, name),
-                *_bus_args(launch, host, process, name),
+                *_bus_args(launch, host, process, name, _listen(host, spec, process, k)),
             ]
             commands.append(
                 NodeCommand(
@@ -144,7 +146,19 @@ def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     return ["--run", launch.run, "--name", name, "--threads", str(spec.threads)]
 
 
-def _bus_args(launch: LaunchFile, host: HostSpec, process: int, name: str) -> list[str]:
+def _listen(host: HostSpec, spec: NodeSpec, process: int, k: int) -> str:
+    """Where process `k` of `spec` (process `process` of `host`) listens in a peer mesh."""
+    if spec.listen:
+        base, offset = spec.listen, k
+    else:
+        base, offset = host.listen or LOOPBACK_ANY_PORT[0], process
+    _, _, port = split_endpoint(base)
+    return with_port(base, port + offset if port else 0)
+
+
+def _bus_args(
+    launch: LaunchFile, host: HostSpec, process: int, name: str, listen: str
+) -> list[str]:
     config = host.zenoh_config or launch.zenoh_config
     if launch.certs is not None:
         config = launch.certs / name / NODE_CONFIG  # its own identity (`derl certs`)
@@ -154,9 +168,6 @@ def _bus_args(launch: LaunchFile, host: HostSpec, process: int, name: str) -> li
         if host.name == topology.host and process == _router_index(host):
             return ["--listen", host.listen or topology.endpoint, *args]
         return ["--mode", "client", "--connect", topology.endpoint, *args]
-    listen = host.listen or "tcp/127.0.0.1:0"
-    _, _, port = split_endpoint(listen)
-    listen = with_port(listen, port + process if port else 0)
     connect = [] if _is_seed(listen, host, topology.seed) else ["--connect", topology.seed]
     return ["--listen", listen, *connect, *args]
 

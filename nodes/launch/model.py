@@ -86,6 +86,11 @@ class NodeSpec(_Strict):
         "on-failure", description="when a process that ended is started again"
     )
     max_restarts: int = Field(3, ge=0, description="restarts of each process, at most")
+    listen: Endpoint | None = Field(
+        None,
+        description="where these processes listen in a peer mesh, process k on port + k (port "
+        "0: a free one each); default: the host's `listen`",
+    )
 
 
 class PeerMesh(_Strict):
@@ -180,6 +185,9 @@ class LaunchFile(_Strict):
             )
         routers = [(h.name, n.count) for h in self.hosts for n in h.nodes if n.role == "router"]
         if isinstance(self.topology, RouterTopology):
+            if any(n.listen for h in self.hosts for n in h.nodes):
+                raise ValueError("a node's `listen` is for a peer mesh: in a router topology "
+                                 "every node is a client of the router")  # fmt: skip
             if self.topology.host not in names:
                 raise ValueError(f"router host {self.topology.host!r} is not among the hosts")
             if routers != [(self.topology.host, 1)]:
@@ -191,7 +199,8 @@ class LaunchFile(_Strict):
             if routers:
                 raise ValueError("`role: router` nodes need `topology: {kind: router, ...}`")
             for host in self.hosts:
-                if host.nodes and host.listen is None and not host.local_address:
+                unreachable = [n for n in host.nodes if (n.listen or host.listen) is None]
+                if unreachable and not host.local_address:
                     raise ValueError(
                         f"host {host.name!r}: in a peer mesh every host needs a `listen` "
                         "endpoint the other hosts can reach (peers without one do not mesh)"

@@ -106,7 +106,8 @@ class Supervisor:
                 slot.finished = True
                 reason = self._reason(command)
                 if command.role in STOPS_ALL:
-                    raise DerlError(f"{command.name} refused: {reason}", code)
+                    who = "the coordinator" if command.role == "coordinator" else command.name
+                    raise DerlError(f"{who} refused: {reason}", code)
                 log.error("%s refused (exit status %d, not restarted): %s", command.name, code,
                           reason)  # fmt: skip
                 continue
