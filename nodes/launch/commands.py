@@ -7,11 +7,10 @@ host named ``local`` or after this machine, else every host without ``ssh``) and
 ``ssh`` host, one ``ssh -tt HOST 'cd WORKDIR && exec derl launch FILE --host NAME'`` that starts
 that host's nodes there (so the launch file must be at the same path under WORKDIR).
 
-Endpoints: in a peer mesh every process listens on its node entry's ``listen`` endpoint (process
-k of the entry on port + k), else on its host's (process k of the host on port + k), else on a
-free loopback port (port 0 stays 0: a free port each), and connects to the seed, except the
-process that is the seed; gossip completes the mesh. In a router topology the router host runs
-``derl router`` on the router endpoint and every other node is a Zenoh client of it.
+Endpoints: in a peer mesh every process listens where its host says (`HostSpec.mesh_endpoints`)
+and connects to the seed, except the process that is the seed; gossip completes the mesh. In a
+router topology the router host runs ``derl router`` on the router endpoint and every other node
+is a Zenoh client of it.
 """
 
 from __future__ import annotations
@@ -24,15 +23,12 @@ from pathlib import Path
 
 from derl.nodes.launch.model import (
     ROLES,
-    WILDCARD_HOSTS,
     HostSpec,
     LaunchFile,
     NodeSpec,
     RouterTopology,
-    split_endpoint,
-    with_port,
+    is_seed,
 )
-from derl.nodes.runtime.bus import LOOPBACK_ANY_PORT
 
 SSH = ("ssh", "-tt", "-o", "BatchMode=yes")  # a tty: the remote node gets SIGHUP when ssh ends
 
@@ -87,14 +83,15 @@ def build_commands(launch: LaunchFile, hosts: list[str] | None = None) -> list[N
 
 def _host_commands(launch: LaunchFile, host: HostSpec) -> list[NodeCommand]:
     commands = []
-    process = 0  # index of the process on this host (listen port offset)
+    process = 0  # index of the process on this host
+    listens = host.mesh_endpoints()
     for spec in host.nodes:
         for k in range(spec.count):
             name = f"{host.name}-{spec.role}-{k}"
             args = [
                 spec.role,
                 *_role_args(launch, spec, name),
-                *_bus_args(launch, host, process, name, _listen(host, spec, process, k)),
+                *_bus_args(launch, host, process, name, listens[process]),
             ]
             commands.append(
                 NodeCommand(
@@ -146,16 +143,6 @@ def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     return ["--run", launch.run, "--name", name, "--threads", str(spec.threads)]
 
 
-def _listen(host: HostSpec, spec: NodeSpec, process: int, k: int) -> str:
-    """Where process `k` of `spec` (process `process` of `host`) listens in a peer mesh."""
-    if spec.listen:
-        base, offset = spec.listen, k
-    else:
-        base, offset = host.listen or LOOPBACK_ANY_PORT[0], process
-    _, _, port = split_endpoint(base)
-    return with_port(base, port + offset if port else 0)
-
-
 def _bus_args(
     launch: LaunchFile, host: HostSpec, process: int, name: str, listen: str
 ) -> list[str]:
@@ -168,7 +155,7 @@ def _bus_args(
         if host.name == topology.host and process == _router_index(host):
             return ["--listen", host.listen or topology.endpoint, *args]
         return ["--mode", "client", "--connect", topology.endpoint, *args]
-    connect = [] if _is_seed(listen, host, topology.seed) else ["--connect", topology.seed]
+    connect = [] if is_seed(listen, host, topology.seed) else ["--connect", topology.seed]
     return ["--listen", listen, *connect, *args]
 
 
@@ -179,19 +166,6 @@ def _router_index(host: HostSpec) -> int:
             return index
         index += spec.count
     return -1
-
-
-def _is_seed(listen: str, host: HostSpec, seed: str) -> bool:
-    """Whether the process listening on `listen` is the mesh's seed (it connects to nobody)."""
-    if listen == seed:
-        return True
-    proto, listen_host, port = split_endpoint(listen)
-    seed_proto, seed_host, seed_port = split_endpoint(seed)
-    return (
-        (proto, port) == (seed_proto, seed_port)
-        and listen_host in WILDCARD_HOSTS
-        and host.address == seed_host
-    )
 
 
 def plan(

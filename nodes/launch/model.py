@@ -31,6 +31,7 @@ from typing import Annotated, Literal
 
 import yaml
 from derl.messages.types import Id
+from derl.nodes.runtime.bus import LOOPBACK_ANY_PORT
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 ROLES = ("router", "coordinator", "trainer", "evaluator")  # also the start order on a host
@@ -65,6 +66,20 @@ def split_endpoint(endpoint: str) -> tuple[str, str, int]:
 def with_port(endpoint: str, port: int) -> str:
     proto, host, _ = split_endpoint(endpoint)
     return f"{proto}/{host}:{port}"
+
+
+def is_seed(listen: str, host: HostSpec, seed: str) -> bool:
+    """Whether the process of `host` listening on `listen` is the mesh's seed (it connects to
+    nobody)."""
+    if listen == seed:
+        return True
+    proto, listen_host, port = split_endpoint(listen)
+    seed_proto, seed_host, seed_port = split_endpoint(seed)
+    return (
+        (proto, port) == (seed_proto, seed_port)
+        and listen_host in WILDCARD_HOSTS
+        and host.address == seed_host
+    )
 
 
 # --- the file ------------------------------------------------------------------------------
@@ -123,6 +138,21 @@ class HostSpec(_Strict):
     @property
     def local_address(self) -> bool:
         return self.address in LOCAL_ADDRESSES
+
+    def mesh_endpoints(self) -> list[str]:
+        """Where each of this host's processes listens in a peer mesh, in order: process k of a
+        node entry on the entry's `listen` port + k, else process k of the host on the host's
+        `listen` port + k, else a free loopback port (port 0 stays 0: a free port each)."""
+        endpoints = []
+        for spec in self.nodes:
+            for k in range(spec.count):
+                if spec.listen:
+                    base, offset = spec.listen, k
+                else:
+                    base, offset = self.listen or LOOPBACK_ANY_PORT[0], len(endpoints)
+                _, _, port = split_endpoint(base)
+                endpoints.append(with_port(base, port + offset if port else 0))
+        return endpoints
 
     @property
     def remote(self) -> str | None:
@@ -205,9 +235,8 @@ class LaunchFile(_Strict):
                         f"host {host.name!r}: in a peer mesh every host needs a `listen` "
                         "endpoint the other hosts can reach (peers without one do not mesh)"
                     )
-            from derl.nodes.launch.commands import build_commands  # (it imports this module)
-
-            if not any("--connect" not in c.args for c in build_commands(self)):
+            seed = self.topology.seed
+            if not any(is_seed(at, h, seed) for h in self.hosts for at in h.mesh_endpoints()):
                 raise ValueError(
                     f"no node listens on the seed {self.topology.seed}: give the seed's host "
                     f"`listen: {self.topology.seed}` (its first node is the seed)"
