@@ -1,12 +1,16 @@
 """The code's shape, checked: no import cycle among derl's modules (module-level or inside a
 function), nothing below the command line exits the process (it raises a
 `derl.nodes.errors.DerlError`, which `derl.nodes.cli.main` alone turns into a line and an exit
-status), and no production code relies on the example messages."""
+status), no production code relies on the example messages, and the documents describe the
+folders and files that exist."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
+
+from derl.nodes.tools.module_tree import module_tree
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"derl": "derl", "derl.messages": "messages", "derl.nodes": "nodes"}  # name: folder
@@ -130,3 +134,46 @@ def test_only_the_protocol_reference_uses_the_example_messages() -> None:
         if "derl.messages.examples" in _imports_of(name, path, modules)
     }
     assert users == {"nodes/tools/reference.py"}
+
+
+def _tree(document: str, section: str) -> set[str]:
+    """The folders named by the first code block after the heading `section`: a line indented
+    two spaces per level, starting with a folder (or several, comma-separated)."""
+    block = document.split(f"\n{section}\n", 1)[1].split("```\n", 2)[1]
+    folders: set[str] = set()
+    parents: list[str] = []
+    for line in block.splitlines():
+        indent = len(line) - len(line.lstrip())
+        names = [name.strip() for name in line.strip().split("  ")[0].split(",")]
+        if indent % 2 or indent > 8 or not all(re.fullmatch(r"[\w.]+/", n) for n in names):
+            continue  # a description's next line
+        del parents[indent // 2 :]
+        folders.update("".join([*parents, name]) for name in names)
+        parents.append(names[0])
+    return folders
+
+
+def test_the_architecture_names_every_package_folder_and_only_those() -> None:
+    named = _tree((ROOT / "docs" / "architecture.md").read_text(), "## Packages")
+    packages = {entry.path for entry in module_tree() if entry.path.endswith("/")}
+    assert {f for f in named if f.split("/")[0] in PACKAGES.values()} == packages
+    assert [f for f in named if not (ROOT / f).is_dir()] == []
+
+
+def test_the_docs_name_only_files_that_exist() -> None:
+    """Every file of the repository a document names exists (docs/fidelity.md names the
+    released code's files too: not checked)."""
+    path = re.compile(r"\b(?:derl|messages|nodes|launch|bench|tests|examples|docs)/[\w./-]*"
+                      r"\.(?:py|yaml|md|json5?|sbatch|toml)\b")  # fmt: skip
+    missing = [
+        f"{document.name}: {name}"
+        for document in sorted((ROOT / "docs").glob("*.md"))
+        if document.name != "fidelity.md"
+        for name in sorted(set(path.findall(document.read_text())))
+        if not (ROOT / name).exists()
+    ]
+    assert missing == []
+
+
+def test_every_module_says_what_it_is_for() -> None:
+    assert [entry.path for entry in module_tree() if not entry.job] == []
