@@ -74,7 +74,7 @@ class Coordinator:
     """The node loop of run `run` in `run_dir`, with `policy` deciding what messages mean."""
 
     def __init__(self, run: str, run_dir: Path, policy: Policy) -> None:
-        self.run, self.run_dir, self.policy = run, run_dir, policy
+        self.run, self.policy = run, policy
         self.state = policy.state
         self.ledger = Ledger(run, run_dir, policy.state)
         policy.start(self.ledger)
