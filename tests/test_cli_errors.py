@@ -1,10 +1,12 @@
 """Bad input on the command line gets one clear line and a non-zero exit, never a traceback or a
 hang: one row per mistake a user makes (a budget below one rollout, an impossible genome, zero
 workers or copies, a port in use, a missing run directory or log, a run directory that is a
-file, a misspelt key in a profile or a launch file, a job's own setting among a profile's PPO
-hyperparameters, an unknown message type, a folder with no trained body, a study with no runs,
-of a missing run or not made yet, a run directory of another run id, a monitor that hears
-nothing of its run, a missing or misspelt Zenoh config, an argument no option takes)."""
+file, a misspelt key in a profile or a launch file, a profile file that is empty or starts from
+no built-in profile, a tournament larger than the population, a job's own setting among a
+profile's PPO hyperparameters, an unknown message type, a folder with no trained body, a study
+with no runs, of a missing run or not made yet, a run directory of another run id, a monitor
+that hears nothing of its run or is asked to listen a negative time, a report of a file that is
+no log, a missing or misspelt Zenoh config, an argument no option takes)."""
 
 from __future__ import annotations
 
@@ -45,6 +47,10 @@ def _files(tmp: Path, genome: Genome) -> None:
               "trainer", "cont": 2}]}]}  # fmt: skip
     (tmp / "launch.yaml").write_text(yaml.safe_dump(launch))
     (tmp / "a-file").write_text("")
+    (tmp / "smok.yaml").write_text("profile: smok\n")  # a misspelt built-in profile
+    (tmp / "empty.yaml").write_text("# nothing set yet\n")
+    (tmp / "big-tournament.yaml").write_text("profile: smoke\ntournament: 20\n")
+    (tmp / "page.html").write_text("<html><body>not a log</body></html>\n")
     (tmp / "typo.json5").write_text('{"trasport": {}}')
     no_joints = genome.model_dump(mode="json")
     no_joints["limbs"][0]["joints"] = []
@@ -67,6 +73,17 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                     "derl unimal sample: error: unrecognized arguments: 3"),
     "misspelt profile key": (["run", "--profile", "typo.yaml"], 1,
                              "unknown key 'populaton'; valid keys: name, world, population"),
+    "an unknown built-in profile": (["run", "--profile", "smok.yaml"], 1,
+                                    "`profile: smok` is not a built-in profile; choose smoke, "
+                                    "demo, paper"),
+    "an empty profile file": (["run", "--profile", "empty.yaml"], 1,
+                              "the file holds no settings: start it with `profile: NAME`"),
+    "a tournament larger than the population": (["run", "--profile", "big-tournament.yaml"], 1,
+                                                "tournament (20) > population (4)"),
+    "a negative monitor time": (["monitor", "--once", "-1"], 2,
+                                "--once: must be more than 0 seconds, not -1"),
+    "a report of a file that is no log": (["report", "page.html", "--out", "r"], 1,
+                                          "page.html is not an MCAP log"),
     "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,
                                   "unknown key 'ppo.num_envs'; valid keys: rollout_steps, gamma"),
     "misspelt launch key": (["launch", "launch.yaml", "--dry-run"], 1,

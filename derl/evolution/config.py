@@ -94,6 +94,11 @@ class EvolutionConfig(BaseModel):
             raise ValueError(f"unknown eval tasks {sorted(unknown)}; choose from {sorted(TASKS)}")
         if self.total < self.population:
             raise ValueError(f"total ({self.total}) < population ({self.population})")
+        if self.tournament > self.population:
+            raise ValueError(
+                f"tournament ({self.tournament}) > population ({self.population}): a tournament "
+                "draws T of the P most recent births"
+            )
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
         self.training_ppo()  # the budget holds whole rollouts, the minibatch fits, ...
@@ -158,10 +163,19 @@ def load_settings(
             raise ValueError(
                 f"no profile {name_or_path!r}: use {', '.join(builtin)} or a YAML file"
             )
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text())
+        if data is None:  # an empty file would silently be a run with every default
+            raise ValueError(
+                f"the file holds no settings: start it with `profile: NAME` ({', '.join(builtin)}) "
+                "and add the keys to change"
+            )
         if not isinstance(data, dict):
-            raise ValueError(f"{path}: a profile is a mapping of settings")
+            raise ValueError("a profile is a mapping of settings")
         parent = data.pop("profile", None)
+        if parent is not None and (not isinstance(parent, str) or parent not in builtin):
+            raise ValueError(
+                f"`profile: {parent}` is not a built-in profile; choose {', '.join(builtin)}"
+            )
         base = {**(builtin[parent].model_dump() if parent else {}), "name": path.stem, **data}
     chosen = {k: v for k, v in overrides.items() if v is not None}
     return model.model_validate({**base, **chosen})

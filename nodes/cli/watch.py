@@ -13,6 +13,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import math
 import os
 import signal
 import sys
@@ -23,7 +24,7 @@ from typing import TYPE_CHECKING
 
 from derl.messages import InvalidKey
 from derl.messages.keys import ARITY
-from derl.nodes.cli.options import add_bus_arguments, options_from
+from derl.nodes.cli.options import add_bus_arguments, at_least_one, options_from
 
 if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
@@ -37,7 +38,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--once",
         nargs="?",
         const=3.0,
-        type=float,
+        type=_seconds,
         metavar="S",
         help="listen S seconds (default 3), print one snapshot and exit (1 if nothing of the "
         "run was heard)",
@@ -62,18 +63,18 @@ def register(commands: argparse._SubParsersAction) -> None:
     key_help = "key expression: derl/... as is, else relative to the run (fitness = fitness/**)"
     listing = verbs.add_parser("list", help="keys heard, with message type, count and rate")
     listing.add_argument("key", nargs="?", help=f"{key_help}; default all keys")
-    listing.add_argument("--duration", type=float, default=3.0, help="seconds to listen (3)")
+    listing.add_argument("--duration", type=_seconds, default=3.0, help="seconds to listen (3)")
     listing.set_defaults(handler=_clearly(_topic_list))
     echo = verbs.add_parser("echo", help="print each message as one JSON line")
     echo.add_argument("key", help=key_help)
-    echo.add_argument("--count", type=int, help="stop after N messages")
-    echo.add_argument("--duration", type=float, help="stop after S seconds")
+    echo.add_argument("--count", type=at_least_one, help="stop after N messages")
+    echo.add_argument("--duration", type=_seconds, help="stop after S seconds")
     echo.add_argument("--raw", action="store_true", help="every sample, undecoded, valid or not")
     echo.set_defaults(handler=_clearly(_echo))
     rate = verbs.add_parser("hz", help="rate of samples and min/max/std of their intervals")
     rate.add_argument("key", help=key_help)
-    rate.add_argument("--duration", type=float, default=10.0, help="seconds to measure (10)")
-    rate.add_argument("--window", type=int, default=1000, help="intervals kept (1000)")
+    rate.add_argument("--duration", type=_seconds, default=10.0, help="seconds to measure (10)")
+    rate.add_argument("--window", type=at_least_one, default=1000, help="intervals kept (1000)")
     rate.set_defaults(handler=_clearly(_hz))
     for verb in (listing, echo, rate):
         add_bus_arguments(verb, run_required=False)
@@ -86,7 +87,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     record.add_argument("out", type=Path, metavar="OUT.mcap", help="new file")
     record.add_argument("keys", nargs="*", metavar="KEY", help=f"{key_help}; default derl/**")
-    record.add_argument("--duration", type=float, help="stop after S seconds (else on Ctrl-C)")
+    record.add_argument("--duration", type=_seconds, help="stop after S seconds (else on Ctrl-C)")
     add_bus_arguments(record, run_required=False)
     record.set_defaults(handler=_clearly(_record))
 
@@ -131,9 +132,27 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _non_negative(text: str) -> float:
-    value = float(text)
+    value = _number(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"{text} is negative")
+    return value
+
+
+def _seconds(text: str) -> float:
+    """An argparse type: a duration in seconds, > 0."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 seconds, not {text}")
+    return value
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if math.isnan(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number")
     return value
 
 
