@@ -3,10 +3,11 @@ hang: one row per mistake a user makes (a budget below one rollout, an impossibl
 workers or copies, a port in use, a missing run directory or log, a run directory that is a
 file, a misspelt key in a profile or a launch file, a profile file that is empty or starts from
 no built-in profile, a tournament larger than the population, a job's own setting among a
-profile's PPO hyperparameters, an unknown message type, a folder with no trained body, a study
-with no runs, of a missing run or not made yet, a run directory of another run id, a monitor
-that hears nothing of its run or is asked to listen a negative time, a report of a file that is
-no log, a missing or misspelt Zenoh config, an argument no option takes)."""
+profile's PPO hyperparameters, a misspelt key or a wrong value in --set, an unknown message
+type, a folder with no trained body, a study with no runs, of a missing run or not made yet, a
+run directory of another run id, a monitor that hears nothing of its run or is asked to listen
+a negative time, a report of a file that is no log, a missing or misspelt Zenoh config, an
+argument no option takes)."""
 
 from __future__ import annotations
 
@@ -84,6 +85,15 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                 "--once: must be more than 0 seconds, not -1"),
     "a report of a file that is no log": (["report", "page.html", "--out", "r"], 1,
                                           "page.html is not an MCAP log"),
+    "a misspelt key in --set": (["run", "--set", "ppo.lrr=1e-4"], 1,
+                                "profile smoke with --set ppo.lrr=1e-4: unknown key 'ppo.lrr'; "
+                                "valid keys: rollout_steps, gamma"),
+    "a --set without a value": (["study", "--study-dir", "s", "--set", "seeds"], 2,
+                                "argument --set: 'seeds' is not KEY=VALUE (e.g. ppo.lr=1e-4)"),
+    "a --set of a wrong value": (["coordinator", "--run", "r", "--run-dir", "c", "--set",
+                                  "total=many"], 1,
+                                 "profile smoke with --set total=many: total: Input should be a "
+                                 "valid integer"),
     "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,
                                   "unknown key 'ppo.num_envs'; valid keys: rollout_steps, gamma"),
     "misspelt launch key": (["launch", "launch.yaml", "--dry-run"], 1,

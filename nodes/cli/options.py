@@ -4,11 +4,13 @@ way a command reports bad input: one line on stderr and a non-zero exit status (
 from __future__ import annotations
 
 import argparse
+import hashlib
 import re
+import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn, TypeGuard, get_args
+from typing import NamedTuple, NoReturn, TypeGuard, get_args
 
 import yaml
 import zenoh
@@ -19,6 +21,7 @@ from derl.validation import problems
 
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
 IN_USE = 2  # exit status when a port or a run directory is taken by another process
+SUFFIX_CHARS = 64  # of a default directory name, for its --set changes
 
 
 def fail(message: str, code: int = 1) -> NoReturn:
@@ -78,6 +81,7 @@ def fail_on_bus(error: zenoh.ZError) -> NoReturn:
 
 def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
+    add_set_argument(parser)
     parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
     parser.add_argument(
         "--seed",
@@ -87,23 +91,88 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_set_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--set",
+        action="append",
+        type=setting,
+        default=[],
+        metavar="KEY=VALUE",
+        help="change one setting of the profile, e.g. --set ppo.lr=1e-4 --set total=200: a "
+        "dotted key, a YAML value, checked like the profile file (repeatable)",
+    )
+
+
+class Setting(NamedTuple):
+    """One ``--set KEY=VALUE``: the dotted key, the value read as YAML, and the text given."""
+
+    key: str
+    value: object
+    text: str
+
+
+def setting(text: str) -> Setting:
+    """An argparse type: ``KEY=VALUE``, the value read as YAML."""
+    key, equals, value = text.partition("=")
+    key = key.strip()
+    if not equals or not key:
+        raise argparse.ArgumentTypeError(f"{text!r} is not KEY=VALUE (e.g. ppo.lr=1e-4)")
+    if key == PROFILE_KEY:
+        raise argparse.ArgumentTypeError("the profile is chosen with --profile")
+    try:
+        return Setting(key, yaml.safe_load(value), text)
+    except yaml.YAMLError as error:
+        raise argparse.ArgumentTypeError(
+            f"{text}: the value is not YAML ({getattr(error, 'problem', error)})"
+        ) from None
+
+
+def set_arguments(changes: list[Setting]) -> list[str]:
+    """The command-line arguments that make `changes` again (a node's, or to resume)."""
+    return [part for change in changes for part in ("--set", change.text)]
+
+
+def set_suffix(changes: list[Setting]) -> str:
+    """What a default directory name adds for `changes` (`-total=200-ppo.lr=1e-4`), so a run
+    with other settings does not resume one without them; a hash where it would be long."""
+    if not changes:
+        return ""
+    text = re.sub(r"[^A-Za-z0-9_.=+-]", "_", "-".join(change.text for change in changes))
+    if len(text) > SUFFIX_CHARS:
+        text = text[: SUFFIX_CHARS - 9] + "-" + hashlib.sha1(text.encode()).hexdigest()[:8]
+    return f"-{text}"
+
+
+def _described(args: argparse.Namespace, kind: str) -> str:
+    """What a profile error names: the profile and the --set changes made to it."""
+    changes = shlex.join(set_arguments(args.set))
+    return f"{kind} {args.profile}" + (f" with {changes}" if changes else "")
+
+
+def _changes(args: argparse.Namespace) -> list[tuple[str, object]]:
+    return [(change.key, change.value) for change in args.set]
+
+
 def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
-    """The run's profile from --profile/--env, or exit with the reason it is not valid."""
+    """The run's profile from --profile/--set/--env/--seed, or exit with the reason it is not
+    valid."""
     from derl.evolution import EvolutionConfig, load_profile
 
     return _profile_or_exit(
-        f"profile {args.profile}",
+        _described(args, "profile"),
         EvolutionConfig,
-        lambda: load_profile(args.profile, world=args.env, seed=args.seed),
+        lambda: load_profile(args.profile, _changes(args), world=args.env, seed=args.seed),
     )
 
 
 def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
-    """The study's profile from --profile, or exit with the reason it is not valid."""
+    """The study's profile from --profile/--set, or exit with the reason it is not valid."""
     from derl.analysis.study import StudyConfig, load_study_profile
 
     return _profile_or_exit(
-        f"study profile {args.profile}", StudyConfig, lambda: load_study_profile(args.profile)
+        _described(args, "study profile"),
+        StudyConfig,
+        lambda: load_study_profile(args.profile, _changes(args)),
     )
 
 

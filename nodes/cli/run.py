@@ -28,6 +28,8 @@ from derl.nodes.cli.options import (
     fail,
     profile_from,
     run_directory,
+    set_arguments,
+    set_suffix,
 )
 from derl.nodes.launch.commands import NodeCommand
 from derl.nodes.launch.supervisor import Supervisor
@@ -46,7 +48,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="run evolution on this host (all nodes, supervised)")
     add_profile_arguments(run)
     run.add_argument("--workers", type=at_least_one, default=2, help="trainer processes (2)")
-    run.add_argument("--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>]")
+    run.add_argument(
+        "--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>][-<KEY=VALUE>...]"
+    )
     run.add_argument(
         "--port",
         type=port_number,
@@ -70,9 +74,8 @@ def port_number(text: str) -> int:
 def _run(args: argparse.Namespace) -> int:
     config = profile_from(args)
     replicate = "" if args.seed is None else f"-s{args.seed}"
-    run_dir = run_directory(
-        args.run_dir or Path("runs") / f"{config.name}-{config.world}{replicate}"
-    )
+    default = f"{config.name}-{config.world}{replicate}{set_suffix(args.set)}"
+    run_dir = run_directory(args.run_dir or Path("runs") / default)
     try:
         with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
             pass
@@ -83,7 +86,8 @@ def _run(args: argparse.Namespace) -> int:
     endpoint = f"tcp/127.0.0.1:{port}"
     env = ("--env", args.env) if args.env else ()
     seed = ("--seed", str(args.seed)) if args.seed is not None else ()
-    coordinator = ("--profile", args.profile, *env, *seed, "--run-dir", str(run_dir))
+    profile = ("--profile", args.profile, *set_arguments(args.set), *env, *seed)
+    coordinator = (*profile, "--run-dir", str(run_dir))
     workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
     supervisor = Supervisor(local_nodes(run, endpoint, coordinator, workers), run_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -96,8 +100,7 @@ def _run(args: argparse.Namespace) -> int:
     )
     code, status = supervise(supervisor, run, endpoint, config.total)
     if code != 0:
-        again = shlex.join(["derl", "run", "--profile", args.profile, *env, *seed, "--run-dir",
-                            str(run_dir)])  # fmt: skip
+        again = shlex.join(["derl", "run", *profile, "--run-dir", str(run_dir)])
         console.print(f"stopped; `{again}` resumes the run", highlight=False, soft_wrap=True)
         return code
     best = "-"

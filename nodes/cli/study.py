@@ -17,7 +17,14 @@ import argparse
 import signal
 from pathlib import Path
 
-from derl.nodes.cli.options import IN_USE, at_least_one, fail, run_directory, study_profile_from
+from derl.nodes.cli.options import (
+    IN_USE,
+    add_set_argument,
+    at_least_one,
+    fail,
+    run_directory,
+    study_profile_from,
+)
 from derl.nodes.cli.run import (
     DEFAULT_PORT,
     listenable,
@@ -45,6 +52,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     study.add_argument("--study-dir", type=Path, required=True, help="journal and results")
     study.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
+    add_set_argument(study)
     study.add_argument("--workers", type=at_least_one, default=2, help="evaluator processes (2)")
     study.add_argument(
         "--port",
