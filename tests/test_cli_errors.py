@@ -5,8 +5,9 @@ file, a misspelt key in a profile or a launch file, a profile file that is empty
 no built-in profile, a tournament larger than the population, a job's own setting among a
 profile's PPO hyperparameters, a misspelt key or a wrong value in --set, an unknown message
 type, a folder with no trained body, a study with no runs, of a missing run or not made yet, a
-run directory of another run id, a monitor that hears nothing of its run or is asked to listen
-a negative time, a report of a file that is no log, a missing or misspelt Zenoh config, an
+run directory of another run id, a monitor or a topic that hears nothing (the line says how it
+joined the bus: by default the local run's endpoint, $DERL_PORT here) or is asked to listen a
+negative time, a report of a file that is no log, a missing or misspelt Zenoh config, an
 argument no option takes)."""
 
 from __future__ import annotations
@@ -121,7 +122,18 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "coordinator of no study": (["coordinator", "--run", "r", "--study", "s"], 1,
                                 "s is not a study (no study.json)"),
     "a monitor that hears nothing": (["monitor", "--once", "1", "--run", "r"], 1,
-                                     "heard nothing of run r in 1 s"),
+                                     "heard nothing of run r in 1 s (peer, connected to "
+                                     "tcp/127.0.0.1:{local}, where nothing listens)"),
+    "a monitor that finds no run": (["monitor", "--once", "1"], 1,
+                                    "no run heard in 2 s (no derl/*/status, no live node) (peer, "
+                                    "connected to tcp/127.0.0.1:{local}, where nothing listens)"),
+    "a topic list that hears nothing": (["topic", "list", "--duration", "1"], 1,
+                                        "nothing heard on derl/** in 1 s (peer, connected to "
+                                        "tcp/127.0.0.1:{local}, where nothing listens)"),
+    "an echo that hears nothing": (["topic", "echo", "status", "--run", "r", "--duration", "1",
+                                    "--connect", "tcp/127.0.0.1:{port}"], 1,
+                                   "nothing heard on status in 1 s (peer, connected to "
+                                   "tcp/127.0.0.1:{port}); is the run on another endpoint?"),
     "a missing Zenoh config": (["trainer", "--run", "r", "--zenoh-config", "missing.json5"], 1,
                                "--zenoh-config missing.json5: No such file or directory"),
     "misspelt Zenoh config key": (["trainer", "--run", "r", "--zenoh-config", "typo.json5"], 1,
@@ -136,12 +148,17 @@ def test_bad_input_gets_one_line_and_an_exit_status(
 ) -> None:
     arguments, status, says = CASES[name]
     _files(tmp_path, quadruped)
-    argv = derl_argv(*(a.format(port=busy_port) for a in arguments))
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    local = free_port()  # the local run's port ($DERL_PORT), where nothing listens
+
+    def filled(text: str) -> str:
+        return text.replace("{port}", str(busy_port)).replace("{local}", str(local))
+
+    argv = derl_argv(*map(filled, arguments))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "DERL_PORT": str(local)}
     done = subprocess.run(argv, capture_output=True, text=True, cwd=tmp_path, env=env,
                           timeout=60)  # fmt: skip
     lines = done.stderr.strip().splitlines()
     assert done.returncode == status, done.stderr
-    assert lines and says in lines[-1], done.stderr
+    assert lines and filled(says) in lines[-1], done.stderr
     assert "Traceback" not in done.stderr
     assert len([line for line in lines if line.startswith("derl")]) == 1, done.stderr

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 import re
 import shlex
+import socket
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +24,9 @@ from derl.validation import problems
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
 IN_USE = 2  # exit status when a port or a run directory is taken by another process
 SUFFIX_CHARS = 64  # of a default directory name, for its --set changes
+DEFAULT_PORT = 7447  # Zenoh's own default: the local run's port unless $DERL_PORT says another
+PORT_ENV = "DERL_PORT"
+PROBE_S = 0.5  # how long to try a TCP connection to tell whether something listens
 
 
 def fail(message: str, code: int = 1) -> NoReturn:
@@ -56,6 +61,94 @@ def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True
     group.add_argument("--mode", choices=["peer", "client"], default="peer")
     group.add_argument("--zenoh-config", type=Path, help="Zenoh JSON5 config (TLS, ACL, ...)")
     group.add_argument("--multicast", action="store_true", help="turn multicast scouting on")
+
+
+def port_number(text: str) -> int:
+    """An argparse type: a TCP port, 0 to 65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port number (0-65535)")
+    return port
+
+
+def add_port_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    """`--port`: where this host's coordinator listens on 127.0.0.1, by default the local run's
+    port, where the watching tools connect when given no endpoint."""
+
+    def port(text: str) -> int:  # a default from $DERL_PORT is checked as the flag is
+        try:
+            return port_number(text)
+        except argparse.ArgumentTypeError as error:
+            if text == os.environ.get(PORT_ENV):
+                raise argparse.ArgumentTypeError(f"{error} (${PORT_ENV})") from None
+            raise
+
+    parser.add_argument(
+        "--port",
+        type=port,
+        default=os.environ.get(PORT_ENV) or str(DEFAULT_PORT),
+        help=f"{what} (default ${PORT_ENV}, else {DEFAULT_PORT}: where `derl monitor`, "
+        "`topic` ... connect when given no endpoint; 0: a free one)",
+    )
+
+
+def local_endpoint() -> str:
+    """The local run's endpoint: 127.0.0.1 at $DERL_PORT, else 7447 (`derl run`'s default)."""
+    text = os.environ.get(PORT_ENV) or str(DEFAULT_PORT)
+    try:
+        port = port_number(text)
+    except argparse.ArgumentTypeError as error:
+        fail(f"{PORT_ENV}={text}: {error}")
+    return f"tcp/127.0.0.1:{port}"
+
+
+def watch_options(args: argparse.Namespace) -> ZenohOptions:
+    """How a watching tool joins the bus: as its flags say, else connected to the local run's
+    endpoint (`local_endpoint`), where `derl run` listens."""
+    options = options_from(args)
+    if options.listen or options.connect or options.config_file:
+        return options
+    return options.model_copy(update={"connect": (local_endpoint(),)})
+
+
+def publish_options(args: argparse.Namespace) -> ZenohOptions:
+    """How a tool that publishes a run (`derl replay`) joins the bus: as its flags say, else on
+    the local run's endpoint, connected to it when something listens there (a live run), else
+    listening on it, so that watchers given no endpoint hear it."""
+    options = watch_options(args)
+    local = local_endpoint()
+    if options.connect != (local,) or listening(local) or options.mode != "peer":
+        return options
+    return options.model_copy(update={"connect": (), "listen": (local,)})
+
+
+def listening(endpoint: str) -> bool | None:
+    """Whether something accepts TCP connections at a ``tcp/HOST:PORT`` endpoint (None: not such
+    an endpoint)."""
+    match = re.fullmatch(r"tcp/\[?([^\]/]+?)\]?:(\d+)", endpoint)
+    if match is None:
+        return None
+    try:
+        with socket.create_connection((match[1], int(match[2])), timeout=PROBE_S):
+            return True
+    except OSError:
+        return False
+
+
+def how_joined(options: ZenohOptions) -> str:
+    """How a tool joined the bus, in words, for a message saying it heard nothing: its mode,
+    the endpoints it connected to (those where nothing listens marked) or listened on."""
+    parts = [options.mode]
+    for endpoint in options.connect:
+        quiet = listening(endpoint) is False
+        parts.append(f"connected to {endpoint}{', where nothing listens' if quiet else ''}")
+    parts += [f"listening on {endpoint}" for endpoint in options.listen]
+    if options.config_file:
+        parts.append(f"config {options.config_file}")
+    return ", ".join(parts)
 
 
 def options_from(args: argparse.Namespace, mode: str | None = None) -> ZenohOptions:

@@ -1,13 +1,14 @@
 """`derl run`: a whole run on this host: coordinator, K trainers and an evaluator, on loopback.
 
 Each node is its own process (its log in RUN_DIR/logs/), connected through the coordinator's
-loopback endpoint (port 7447 unless --port says otherwise: a monitor connects there, across
-restarts) with multicast off. The nodes are supervised like `derl launch`'s ``restart:
-on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that dies is started again, and a
-coordinator that dies is started again alone, resumes from its journal and hears the trainers'
-reports again (they re-send until acknowledged). It ends when the coordinator finishes the run;
-meanwhile it shows bodies born, best fitness, steps/s and time left. Ctrl-C stops every node;
-running it again on the same run directory resumes the run from its journal.
+loopback endpoint (port 7447 unless --port or $DERL_PORT says otherwise: a bare `derl monitor`
+connects there, across restarts) with multicast off. The nodes are supervised like `derl
+launch`'s ``restart: on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that dies
+is started again, and a coordinator that dies is started again alone, resumes from its journal
+and hears the trainers' reports again (they re-send until acknowledged). It ends when the
+coordinator finishes the run; meanwhile it shows bodies born, best fitness, steps/s and time
+left. Ctrl-C stops every node; running it again on the same run directory resumes the run from
+its journal.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ from pathlib import Path
 from derl.messages import RunStatus
 from derl.nodes.cli.options import (
     IN_USE,
+    add_port_argument,
     add_profile_arguments,
     at_least_one,
     fail,
+    local_endpoint,
     profile_from,
     run_directory,
     set_arguments,
@@ -40,7 +43,6 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 console = Console()
 
-DEFAULT_PORT = 7447  # Zenoh's own default: `derl monitor --connect tcp/127.0.0.1:7447`
 MAX_RESTARTS = 10  # of each node, after 1, 2, 4 ... 30 s
 
 
@@ -51,24 +53,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     run.add_argument(
         "--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>][-<KEY=VALUE>...]"
     )
-    run.add_argument(
-        "--port",
-        type=port_number,
-        default=DEFAULT_PORT,
-        help=f"the coordinator's port on 127.0.0.1, where monitors connect (default "
-        f"{DEFAULT_PORT}; 0: a free one)",
-    )
+    add_port_argument(run, "the coordinator's port on 127.0.0.1")
     run.set_defaults(handler=_run)
-
-
-def port_number(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"{port} is not a port number (0-65535)")
-    return port
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -94,8 +80,8 @@ def _run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
         f"run [bold]{run}[/] ({config.name}, {config.world}): {config.total} bodies, "
-        f"{args.workers} trainers; coordinator on {endpoint} "
-        f"(derl monitor --connect {endpoint} --run {run}); logs in {supervisor.log_dir}",
+        f"{args.workers} trainers; coordinator on {endpoint} ({watch_command(endpoint, run)}); "
+        f"logs in {supervisor.log_dir}",
         highlight=False,
     )
     code, status = supervise(supervisor, run, endpoint, config.total)
@@ -112,6 +98,13 @@ def _run(args: argparse.Namespace) -> int:
         rate = f", {status.steps_per_s:,.0f} env steps/s on average"
     console.print(f"done: {born} bodies, best {best}{rate}; results in {run_dir}")
     return 0
+
+
+def watch_command(endpoint: str, run: str) -> str:
+    """The monitor's command line for the run at `endpoint`: bare on the local run's endpoint."""
+    if endpoint == local_endpoint():
+        return "derl monitor"
+    return f"derl monitor --connect {endpoint} --run {run}"
 
 
 def listenable(port: int) -> int:

@@ -3,8 +3,11 @@
 Only argument parsing and printing; the work is done by `nodes.tools.monitor`,
 `nodes.tools.foxglove`, `nodes.tools.topic`, `nodes.tools.recorder` and `nodes.tools.logs`. Every
 command that joins the bus takes the nodes' connection flags (`--connect`, `--mode client`,
-`--zenoh-config`; multicast stays off), stops cleanly on SIGINT/SIGTERM, and reports bad input (a
-damaged log, no run on the bus, an existing output file) in one line on stderr with exit status 1.
+`--zenoh-config`; multicast stays off); given none, it connects to the local run's endpoint,
+where `derl run` listens (127.0.0.1 at $DERL_PORT, else 7447), and a replay listens there when
+no run does. Each stops cleanly on SIGINT/SIGTERM, and reports bad input (a damaged log, several
+runs and no --run, an existing output file) in one line on stderr with exit status 1, and so
+does a watcher that heard nothing, naming how it joined the bus.
 """
 
 from __future__ import annotations
@@ -24,7 +27,14 @@ from typing import TYPE_CHECKING
 
 from derl.messages import InvalidKey
 from derl.messages.keys import ARITY
-from derl.nodes.cli.options import add_bus_arguments, at_least_one, options_from
+from derl.nodes.cli.options import (
+    add_bus_arguments,
+    at_least_one,
+    how_joined,
+    publish_options,
+    watch_options,
+)
+from derl.nodes.runtime.bus import ZenohOptions
 
 if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
@@ -167,16 +177,22 @@ def _kinds(text: str) -> frozenset[str]:
 
 
 def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]:
-    """`handler`, with expected failures reported in one line instead of a traceback."""
+    """`handler`, with expected failures reported in one line instead of a traceback; when
+    nothing was heard, the line says how the tool joined the bus."""
 
     @functools.wraps(handler)
     def run(args: argparse.Namespace) -> int:
         from derl.nodes.tools.logs import LogError
         from derl.nodes.tools.recorder import ReplayRefused
-        from derl.nodes.tools.topic import RunNotFound
+        from derl.nodes.tools.topic import NothingHeard, RunNotFound
 
         try:
             return handler(args)
+        except NothingHeard as error:
+            print(f"derl {args.command}: {error} ({how_joined(_joined(args))}); is the run on "
+                  "another endpoint? --connect EP (or --mode client, --zenoh-config FILE)",
+                  file=sys.stderr)  # fmt: skip
+            return 1
         except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError) as error:
             print(f"derl {args.command}: {error}", file=sys.stderr)
             return 1
@@ -185,6 +201,11 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
             return 1
 
     return run
+
+
+def _joined(args: argparse.Namespace) -> ZenohOptions:
+    """How the command joins the bus: a replay publishes, every other tool watches."""
+    return publish_options(args) if args.command == "replay" else watch_options(args)
 
 
 def _stop_on_signals() -> threading.Event:
@@ -196,12 +217,11 @@ def _stop_on_signals() -> threading.Event:
 
 def _monitor(args: argparse.Namespace) -> int:
     from derl.nodes.tools.monitor import monitor
+    from derl.nodes.tools.topic import NothingHeard
 
-    view = monitor(options_from(args), args.run, args.once, _stop_on_signals())
+    view = monitor(watch_options(args), args.run, args.once, _stop_on_signals())
     if args.once is not None and not view.heard:  # a script must tell "no run" from a quiet one
-        print(f"derl monitor: heard nothing of run {view.run} in {args.once:g} s: is it running? "
-              "check --connect/--mode", file=sys.stderr)  # fmt: skip
-        return 1
+        raise NothingHeard(f"heard nothing of run {view.run} in {args.once:g} s")
     return 0
 
 
@@ -212,7 +232,7 @@ def _foxglove(args: argparse.Namespace) -> int:
         print(f"serving run {run} on ws://{args.host}:{server.port} (Ctrl-C stops)", flush=True)
 
     try:
-        serve(options_from(args), args.run, args.host, args.port, _stop_on_signals(), started)
+        serve(watch_options(args), args.run, args.host, args.port, _stop_on_signals(), started)
     except CannotServe as error:
         print(f"derl foxglove: {error}", file=sys.stderr)
         return 1
@@ -220,25 +240,31 @@ def _foxglove(args: argparse.Namespace) -> int:
 
 
 def _topic_list(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.topic import topic_list
+    from derl.nodes.tools.topic import NothingHeard, topic_list
 
     key = args.key or ("**" if args.run else "derl/**")
-    topic_list(options_from(args), key, args.run, args.duration, _stop_on_signals())
+    if not topic_list(watch_options(args), key, args.run, args.duration, _stop_on_signals()):
+        raise NothingHeard(f"nothing heard on {key} in {args.duration:g} s")
     return 0
 
 
 def _echo(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.topic import echo
+    from derl.nodes.tools.topic import NothingHeard, echo
 
     stop = _stop_on_signals()
-    echo(options_from(args), args.key, args.run, args.count, args.duration, args.raw, stop)
+    if not echo(watch_options(args), args.key, args.run, args.count, args.duration, args.raw,
+                stop):  # fmt: skip
+        within = f"in {args.duration:g} s" if args.duration else "before it was stopped"
+        raise NothingHeard(f"nothing heard on {args.key} {within}")
     return 0
 
 
 def _hz(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.topic import hz
+    from derl.nodes.tools.topic import NothingHeard, hz
 
-    hz(options_from(args), args.key, args.run, args.duration, args.window, _stop_on_signals())
+    stop = _stop_on_signals()
+    if not hz(watch_options(args), args.key, args.run, args.duration, args.window, stop):
+        raise NothingHeard(f"nothing heard on {args.key} in {args.duration:g} s")
     return 0
 
 
@@ -248,7 +274,7 @@ def _record(args: argparse.Namespace) -> int:
     if args.out.exists():
         raise FileExistsError(f"{args.out} exists; choose another name")
     keys = args.keys or (["**"] if args.run else ["derl/**"])
-    done = record(options_from(args), args.out, keys, args.run, args.duration, _stop_on_signals())
+    done = record(watch_options(args), args.out, keys, args.run, args.duration, _stop_on_signals())
     rejected = ", ".join(f"{why} {n}" for why, n in done.rejected.items()) or "none"
     print(
         f"recorded {done.messages} messages in {done.seconds:.1f} s into {args.out}; "
@@ -261,7 +287,7 @@ def _replay(args: argparse.Namespace) -> int:
     from derl.nodes.tools.recorder import replay
 
     done = replay(
-        options_from(args),
+        publish_options(args),
         args.log,
         _stop_on_signals(),
         rate=args.rate,
