@@ -7,8 +7,8 @@ profile's PPO hyperparameters, a misspelt key or a wrong value in --set, an unkn
 type, a folder with no trained body, a study with no runs, of a missing run or not made yet, a
 run directory of another run id, a monitor or a topic that hears nothing (the line says how it
 joined the bus: by default the local run's endpoint, $DERL_PORT here) or is asked to listen a
-negative time, a report of a file that is no log, a missing or misspelt Zenoh config, an
-argument no option takes)."""
+negative time, a report of a file that is no log, an export with nothing to write, a missing or
+misspelt Zenoh config, an argument no option takes)."""
 
 from __future__ import annotations
 
@@ -103,6 +103,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "no run directory": (["report", "missing", "--out", "r"], 1,
                          "no run directory or log at missing"),
     "no log": (["log", "info", "missing.mcap"], 1, "missing.mcap: no such file"),
+    "an export of nothing": (["export", "other"], 1,
+                             "say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both"),
     "no trained body": (["rollout", "."], 2, "holds no trained body"),
     "unknown message type": (["schema", "Nope"], 2, "unknown message type 'Nope'; valid:"),
     "router's port in use": (["router", "--listen", "tcp/127.0.0.1:{port}"], 2,

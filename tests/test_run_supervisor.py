@@ -26,6 +26,7 @@ from nodes_fixtures import (
     pid_alive,
     wait_for,
 )
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 
 def _pids(log: str) -> dict[str, list[int]]:
@@ -96,8 +97,9 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
     run_dir = tmp_path / "my run"
     processes = Processes(tmp_path / "test-logs")
     try:
+        board = tmp_path / "tb"
         argv = ["run", "--profile", "smoke", "--set", "total=6", "--set", "ppo.lr=1e-4", "--seed",
-                "3", "--run-dir", str(run_dir)]  # fmt: skip
+                "3", "--run-dir", str(run_dir), "--tensorboard", str(board)]  # fmt: skip
         run = processes.start("run", derl_argv(*argv, "--port", str(free_port())))
         wait_for(lambda: births(run_dir), 120, "a birth")
         run.send_signal(signal.SIGINT)
@@ -105,7 +107,7 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         said = re.search(r"stopped; `(derl run .+)` resumes the run", processes.log("run"))
         assert said is not None, processes.log("run")
         assert said[1] == (f"derl run --profile smoke --set total=6 --set ppo.lr=1e-4 --seed 3 "
-                           f"--run-dir '{run_dir}'")  # fmt: skip
+                           f"--run-dir '{run_dir}' --tensorboard {board}")  # fmt: skip
         again = processes.start("again", derl_argv(*shlex.split(said[1])[1:], "--port",
                                                    str(free_port())))  # fmt: skip
         assert again.wait(timeout=240) == 0, processes.log("again")
@@ -114,5 +116,10 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         assert (saved["total"], saved["ppo"]["lr"]) == (6, 1e-4)
         resumed = (run_dir / "logs" / "coordinator.log").read_text().split("start 0:")[-1]
         assert "saved settings" not in resumed  # the resume asked for the run's own settings
+        # the run's curves in TensorBoard, each birth once across the two watchers
+        events = EventAccumulator(str(board / "my-run"), size_guidance={"scalars": 0})
+        events.Reload()
+        assert [e.step for e in events.Scalars("birth/fitness")] == list(range(6))
+        assert events.Scalars("run/born")[-1].value == 6
     finally:
         processes.close()

@@ -51,6 +51,13 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_profile_arguments(run)
     run.add_argument("--workers", type=at_least_one, default=2, help="trainer processes (2)")
     run.add_argument(
+        "--tensorboard",
+        type=Path,
+        metavar="LOGDIR",
+        help="also write the run's curves to TensorBoard event files in LOGDIR/<run> "
+        "(`derl tensorboard`; pip install 'derl[tensorboard]')",
+    )
+    run.add_argument(
         "--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>][-<KEY=VALUE>...]"
     )
     add_port_argument(run, "the coordinator's port on 127.0.0.1")
@@ -75,7 +82,11 @@ def _run(args: argparse.Namespace) -> int:
     profile = ("--profile", args.profile, *set_arguments(args.set), *env, *seed)
     coordinator = (*profile, "--run-dir", str(run_dir))
     workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
-    supervisor = Supervisor(local_nodes(run, endpoint, coordinator, workers), run_dir / "logs")
+    nodes = local_nodes(run, endpoint, coordinator, workers)
+    board = ("--tensorboard", str(args.tensorboard)) if args.tensorboard else ()
+    if args.tensorboard:
+        nodes.append(tensorboard_node(run, endpoint, args.tensorboard))
+    supervisor = Supervisor(nodes, run_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
@@ -86,7 +97,7 @@ def _run(args: argparse.Namespace) -> int:
     )
     code, status = supervise(supervisor, run, endpoint, config.total)
     if code != 0:
-        again = shlex.join(["derl", "run", *profile, "--run-dir", str(run_dir)])
+        again = shlex.join(["derl", "run", *profile, "--run-dir", str(run_dir), *board])
         console.print(f"stopped; `{again}` resumes the run", highlight=False, soft_wrap=True)
         return code
     best = "-"
@@ -142,6 +153,19 @@ def local_nodes(
         NodeCommand(host="local", name=name, role=role, args=line, max_restarts=MAX_RESTARTS)
         for role, name, line in nodes
     ]
+
+
+def tensorboard_node(run: str, endpoint: str, logdir: Path) -> NodeCommand:
+    """`derl tensorboard` of the run, restarted when it fails; exit if the extra is missing."""
+    from derl.nodes.tools.tensorboard import NoTensorBoard, require_extra
+
+    try:
+        require_extra()
+    except NoTensorBoard as error:
+        fail(f"--tensorboard: {error}")
+    line = ("tensorboard", "--run", run, "--connect", endpoint, "--logdir", str(logdir))
+    return NodeCommand(host="local", name="tensorboard", role="tensorboard", args=line,
+                       max_restarts=MAX_RESTARTS)  # fmt: skip
 
 
 def supervise(

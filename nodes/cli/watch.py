@@ -1,13 +1,14 @@
-"""`derl monitor|foxglove|topic|record|replay|export|log`: the watch-and-replay tools' commands.
+"""`derl monitor|foxglove|tensorboard|topic|record|replay|export|log`: the watch-and-replay tools.
 
 Only argument parsing and printing; the work is done by `nodes.tools.monitor`,
-`nodes.tools.foxglove`, `nodes.tools.topic`, `nodes.tools.recorder` and `nodes.tools.logs`. Every
-command that joins the bus takes the nodes' connection flags (`--connect`, `--mode client`,
-`--zenoh-config`; multicast stays off); given none, it connects to the local run's endpoint,
-where `derl run` listens (127.0.0.1 at $DERL_PORT, else 7447), and a replay listens there when
-no run does. Each stops cleanly on SIGINT/SIGTERM, and reports bad input (a damaged log, several
-runs and no --run, an existing output file) in one line on stderr with exit status 1, and so
-does a watcher that heard nothing, naming how it joined the bus.
+`nodes.tools.foxglove`, `nodes.tools.tensorboard`, `nodes.tools.topic`, `nodes.tools.recorder` and
+`nodes.tools.logs`. Every command that joins the bus takes the nodes' connection flags
+(`--connect`, `--mode client`, `--zenoh-config`; multicast stays off); given none, it connects to
+the local run's endpoint, where `derl run` listens (127.0.0.1 at $DERL_PORT, else 7447), and a
+replay listens there when no run does. Each stops cleanly on SIGINT/SIGTERM, and reports bad
+input (a damaged log, several runs and no --run, an existing output file, a missing extra) in one
+line on stderr with exit status 1, and so does a watcher that heard nothing, naming how it joined
+the bus.
 """
 
 from __future__ import annotations
@@ -68,6 +69,18 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_bus_arguments(live, run_required=False)
     live.set_defaults(handler=_clearly(_foxglove))
 
+    board = commands.add_parser(
+        "tensorboard",
+        help="write a run's curves live to TensorBoard event files",
+        description="Write the run's scalars (per birth: fitness, cost of work, generation, "
+        "steps to the learning criterion; the run's births, best fitness, failures, evaluations "
+        "and steps/s) into LOGDIR/<run> until the run is done or Ctrl-C; view them with "
+        "`tensorboard --logdir LOGDIR`. Needs the extra: pip install 'derl[tensorboard]'.",
+    )
+    board.add_argument("--logdir", type=Path, required=True, help="TensorBoard's log directory")
+    add_bus_arguments(board, run_required=False)
+    board.set_defaults(handler=_clearly(_tensorboard))
+
     topic = commands.add_parser("topic", help="list, echo or time live keys (like ros2 topic)")
     verbs = topic.add_subparsers(dest="topic_verb", required=True, metavar="VERB")
     key_help = "key expression: derl/... as is, else relative to the run (fitness = fitness/**)"
@@ -124,9 +137,16 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_bus_arguments(replay, run_required=False)
     replay.set_defaults(handler=_clearly(_replay))
 
-    export = commands.add_parser("export", help="a json+jsonschema copy of a log, for Foxglove")
+    export = commands.add_parser(
+        "export",
+        help="a log for Foxglove (json+jsonschema) or TensorBoard (event files)",
+        description="Write a copy of a log that Foxglove opens (--json: json + jsonschema "
+        "channels), or its run's scalars as TensorBoard event files in LOGDIR/<run> "
+        "(--tensorboard: the tags `derl tensorboard` writes live), or both.",
+    )
     export.add_argument("log", type=Path, metavar="LOG", help="an MCAP file or a run directory")
-    export.add_argument("--json", type=Path, required=True, metavar="OUT.mcap", dest="out")
+    export.add_argument("--json", type=Path, metavar="OUT.mcap", dest="out")
+    export.add_argument("--tensorboard", type=Path, metavar="LOGDIR")
     export.set_defaults(handler=_clearly(_export))
 
     logs = commands.add_parser("log", help="inspect or repair MCAP logs")
@@ -184,6 +204,7 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
     def run(args: argparse.Namespace) -> int:
         from derl.nodes.tools.logs import LogError
         from derl.nodes.tools.recorder import ReplayRefused
+        from derl.nodes.tools.tensorboard import NoTensorBoard
         from derl.nodes.tools.topic import NothingHeard, RunNotFound
 
         try:
@@ -193,7 +214,8 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
                   "another endpoint? --connect EP (or --mode client, --zenoh-config FILE)",
                   file=sys.stderr)  # fmt: skip
             return 1
-        except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError) as error:
+        except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError,
+                NoTensorBoard) as error:  # fmt: skip
             print(f"derl {args.command}: {error}", file=sys.stderr)
             return 1
         except BrokenPipeError:  # the reader of our output went away (`| head`)
@@ -307,10 +329,29 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.logs import export_json
+    from derl.nodes.tools.logs import LogError, export_json
+    from derl.nodes.tools.tensorboard import export
 
-    written = export_json(args.log, args.out)
-    print(f"exported {written} messages to {args.out} (json + jsonschema)")
+    if args.out is None and args.tensorboard is None:
+        raise LogError("say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both")
+    if args.out is not None:
+        written = export_json(args.log, args.out)
+        print(f"exported {written} messages to {args.out} (json + jsonschema)")
+    if args.tensorboard is not None:
+        directory = export(args.log, args.tensorboard)
+        print(f"exported the run's scalars to {directory} (tensorboard --logdir "
+              f"{args.tensorboard})")  # fmt: skip
+    return 0
+
+
+def _tensorboard(args: argparse.Namespace) -> int:
+    from derl.nodes.tools.tensorboard import watch
+
+    def started(run: str, directory: Path) -> None:
+        print(f"writing run {run}'s scalars to {directory} (tensorboard --logdir {args.logdir}; "
+              "Ctrl-C stops)", flush=True)  # fmt: skip
+
+    watch(watch_options(args), args.run, args.logdir, _stop_on_signals(), started)
     return 0
 
 

@@ -35,6 +35,8 @@ RING = 256
 """Samples a watcher may fall behind by before the oldest are dropped."""
 DISCOVERY_S = 2.0
 """How long to look for runs: the coordinator publishes its status every second."""
+ASK_S = 2.0
+"""How long to wait for the answers to a query (`ask`)."""
 
 
 class Tap:
@@ -119,6 +121,20 @@ def live_runs(session: zenoh.Session, seconds: float = DISCOVERY_S) -> dict[str,
     finally:
         ring.undeclare()
     return found
+
+
+def ask(
+    session: zenoh.Session,
+    key_expr: str,
+    on_sample: Callable[[zenoh.Sample, float], None],
+    timeout: float = ASK_S,
+) -> None:
+    """Hand `on_sample(sample, arrival)` what the run's queryables hold on `key_expr`: the
+    coordinator answers ``births/*`` with the births it remembers (those before a watcher came,
+    and any that went by unheard)."""
+    for reply in session.get(key_expr, timeout=timeout):
+        if reply.ok is not None:
+            on_sample(reply.ok, time.monotonic())
 
 
 class RunNotFound(LookupError):
