@@ -73,6 +73,7 @@ def _train(args: argparse.Namespace) -> int:
             f"rollouts ({config.iterations} of {config.batch_size:,} = {config.num_envs} copies "
             f"x {config.rollout_steps} steps)",
             highlight=False,
+            soft_wrap=True,
         )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / GENOME).write_text(genome.model_dump_json(indent=2) + "\n")
