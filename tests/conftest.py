@@ -14,7 +14,7 @@ from derl.unimal import Genome, Joint, Limb
 
 # The local run's port (`derl run`'s default, where watchers given no endpoint connect): one of
 # this test process's own, never a user's run on 7447 nor another test process's.
-os.environ["DERL_PORT"] = str(free_port())
+os.environ["DERL_LOCAL_PORT"] = str(free_port())
 
 XY = (Joint(axis="x", range=(-30, 60), gear=200), Joint(axis="y", range=(-45, 0), gear=150))
 

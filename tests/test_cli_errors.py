@@ -6,9 +6,9 @@ no built-in profile, a tournament larger than the population, a job's own settin
 profile's PPO hyperparameters, a misspelt key or a wrong value in --set, an unknown message
 type, a folder with no trained body, a study with no runs, of a missing run or not made yet, a
 run directory of another run id, a monitor or a topic that hears nothing (the line says how it
-joined the bus: by default the local run's endpoint, $DERL_PORT here) or is asked to listen a
-negative time, a report of a file that is no log, an export with nothing to write, a missing or
-misspelt Zenoh config, an argument no option takes)."""
+joined the bus: by default the local run's endpoint, $DERL_LOCAL_PORT here) or is asked to
+listen a negative time, a report of a file that is no log, an export with nothing to write, a
+missing or misspelt Zenoh config, an argument no option takes)."""
 
 from __future__ import annotations
 
@@ -150,13 +150,13 @@ def test_bad_input_gets_one_line_and_an_exit_status(
 ) -> None:
     arguments, status, says = CASES[name]
     _files(tmp_path, quadruped)
-    local = free_port()  # the local run's port ($DERL_PORT), where nothing listens
+    local = free_port()  # the local run's port ($DERL_LOCAL_PORT), where nothing listens
 
     def filled(text: str) -> str:
         return text.replace("{port}", str(busy_port)).replace("{local}", str(local))
 
     argv = derl_argv(*map(filled, arguments))
-    env = {**os.environ, "PYTHONPATH": str(REPO), "DERL_PORT": str(local)}
+    env = {**os.environ, "PYTHONPATH": str(REPO), "DERL_LOCAL_PORT": str(local)}
     done = subprocess.run(argv, capture_output=True, text=True, cwd=tmp_path, env=env,
                           timeout=60)  # fmt: skip
     lines = done.stderr.strip().splitlines()

@@ -263,10 +263,10 @@ def test_watchers_given_no_endpoint_find_the_local_run(
     tmp_path: Path, procs: Processes, run_log: Path
 ) -> None:
     """`derl topic list` and `derl monitor` with no flag connect to the local run's endpoint
-    ($DERL_PORT here, 7447 for a user), where a real coordinator listens, and find its run;
-    with nothing there, `derl replay` listens on it and they hear the replay."""
+    ($DERL_LOCAL_PORT here, 7447 for a user), where a real coordinator listens, and find its
+    run; with nothing there, `derl replay` listens on it and they hear the replay."""
     run = LocalRun.at(tmp_path)
-    local = {"DERL_PORT": run.endpoint.rsplit(":", 1)[1]}
+    local = {"DERL_LOCAL_PORT": run.endpoint.rsplit(":", 1)[1]}
     procs.start("coordinator", run.coordinator())
     listing = procs.start("list", derl_argv("topic", "list", "--duration", "3"), local)
     monitor = procs.start("monitor", derl_argv("monitor", "--once", "3"), local)

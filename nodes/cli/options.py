@@ -24,8 +24,8 @@ from derl.validation import problems
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
 IN_USE = 2  # exit status when a port or a run directory is taken by another process
 SUFFIX_CHARS = 64  # of a default directory name, for its --set changes
-DEFAULT_PORT = 7447  # Zenoh's own default: the local run's port unless $DERL_PORT says another
-PORT_ENV = "DERL_PORT"
+DEFAULT_PORT = 7447  # Zenoh's own default: the local run's port unless $DERL_LOCAL_PORT says
+PORT_ENV = "DERL_LOCAL_PORT"
 PROBE_S = 0.5  # how long to try a TCP connection to tell whether something listens
 
 
@@ -78,7 +78,7 @@ def add_port_argument(parser: argparse.ArgumentParser, what: str) -> None:
     """`--port`: where this host's coordinator listens on 127.0.0.1, by default the local run's
     port, where the watching tools connect when given no endpoint."""
 
-    def port(text: str) -> int:  # a default from $DERL_PORT is checked as the flag is
+    def port(text: str) -> int:  # a default from $DERL_LOCAL_PORT is checked like the flag
         try:
             return port_number(text)
         except argparse.ArgumentTypeError as error:
@@ -96,7 +96,7 @@ def add_port_argument(parser: argparse.ArgumentParser, what: str) -> None:
 
 
 def local_endpoint() -> str:
-    """The local run's endpoint: 127.0.0.1 at $DERL_PORT, else 7447 (`derl run`'s default)."""
+    """The local run's endpoint: 127.0.0.1 at $DERL_LOCAL_PORT, else 7447 (`derl run`'s)."""
     text = os.environ.get(PORT_ENV) or str(DEFAULT_PORT)
     try:
         port = port_number(text)

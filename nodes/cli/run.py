@@ -1,12 +1,12 @@
 """`derl run`: a whole run on this host: coordinator, K trainers and an evaluator, on loopback.
 
 Each node is its own process (its log in RUN_DIR/logs/), connected through the coordinator's
-loopback endpoint (port 7447 unless --port or $DERL_PORT says otherwise: a bare `derl monitor`
-connects there, across restarts) with multicast off. The nodes are supervised like `derl
-launch`'s ``restart: on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that dies
-is started again, and a coordinator that dies is started again alone, resumes from its journal
-and hears the trainers' reports again (they re-send until acknowledged). It ends when the
-coordinator finishes the run; meanwhile it shows bodies born, best fitness, steps/s and time
+loopback endpoint (port 7447 unless --port or $DERL_LOCAL_PORT says otherwise: a bare `derl
+monitor` connects there, across restarts) with multicast off. The nodes are supervised like
+`derl launch`'s ``restart: on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that
+dies is started again, and a coordinator that dies is started again alone, resumes from its
+journal and hears the trainers' reports again (they re-send until acknowledged). It ends when
+the coordinator finishes the run; meanwhile it shows bodies born, best fitness, steps/s and time
 left. Ctrl-C stops every node; running it again on the same run directory resumes the run from
 its journal.
 """

@@ -4,11 +4,11 @@ Only argument parsing and printing; the work is done by `nodes.tools.monitor`,
 `nodes.tools.foxglove`, `nodes.tools.tensorboard`, `nodes.tools.topic`, `nodes.tools.recorder` and
 `nodes.tools.logs`. Every command that joins the bus takes the nodes' connection flags
 (`--connect`, `--mode client`, `--zenoh-config`; multicast stays off); given none, it connects to
-the local run's endpoint, where `derl run` listens (127.0.0.1 at $DERL_PORT, else 7447), and a
-replay listens there when no run does. Each stops cleanly on SIGINT/SIGTERM, and reports bad
-input (a damaged log, several runs and no --run, an existing output file, a missing extra) in one
-line on stderr with exit status 1, and so does a watcher that heard nothing, naming how it joined
-the bus.
+the local run's endpoint, where `derl run` listens (127.0.0.1 at $DERL_LOCAL_PORT, else 7447),
+and a replay listens there when no run does. Each stops cleanly on SIGINT/SIGTERM, and reports
+bad input (a damaged log, several runs and no --run, an existing output file, a missing extra)
+in one line on stderr with exit status 1, and so does a watcher that heard nothing, naming how
+it joined the bus.
 """
 
 from __future__ import annotations
