@@ -58,15 +58,18 @@ def test_train_and_rollout_commands(quadruped: Genome, tmp_path: Path) -> None:
     genome.write_text(quadruped.model_dump_json())
     out = tmp_path / "run"
     command = [sys.executable, "-m", "derl.nodes.cli"]
-    subprocess.run(
-        [*command, "train", "--genome", str(genome), "--task", "mvt", "--steps", "8192",
+    trained = subprocess.run(
+        [*command, "train", "--genome", str(genome), "--task", "mvt", "--steps", "9000",
          "--envs", "16", "--out", str(out)],
-        check=True, capture_output=True, timeout=300,
+        check=True, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
+    # 9,000 steps are 4 whole rollouts of 16 x 128 steps, and derl says so
+    assert "training 8,192 env steps: --steps 9000 rounded down" in trained.stdout
     for name in ("genome.json", "checkpoint.pt", "result.json", "curve.csv", "curve.png"):
         assert (out / name).stat().st_size > 0
     result = json.loads((out / "result.json").read_text())
     assert result["task"] == "mvt" and result["config"]["fitness_component"] == "manipulation"
+    assert result["env_steps"] == 8192
     rows = list(csv.reader((out / "curve.csv").open()))
     assert rows[0] == ["env_steps", "mean_return"] and len(rows) > 1
     video = tmp_path / "episode.gif"

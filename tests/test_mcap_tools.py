@@ -101,15 +101,20 @@ def test_info_on_a_clean_log(log: Path) -> None:
     assert 0 < file.span_s < 10
 
 
-def test_a_truncated_log_gives_its_prefix_and_repairs(log: Path, tmp_path: Path) -> None:
+def test_a_truncated_log_gives_its_prefix_and_repairs(
+    log: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     cut = _cut(log, 0.4)
     (file,) = info(cut)
     assert file.integrity == "truncated" and not file.indexed
     recovered = [entry.message for entry in read_log(cut)]
     assert 0 < len(recovered) == file.messages < len(_messages())
     assert _same(recovered, _messages()[: len(recovered)])
+    caplog.clear()
     fixed = repair(cut, tmp_path / "fixed.mcap")
     assert (fixed.integrity, fixed.indexed, fixed.compression) == ("clean", True, ["zstd"])
+    damaged = [r.getMessage() for r in caplog.records if "broken tail" in r.getMessage()]
+    assert damaged and all(m.startswith(f"{cut}:") for m in damaged)  # not the new file
     assert _same([e.message for e in read_log(tmp_path / "fixed.mcap")], recovered)
     with pytest.raises(LogError, match="exists"):
         repair(cut, tmp_path / "fixed.mcap")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import signal
 import sys
 import threading
 import time
@@ -33,7 +34,7 @@ from derl.nodes.runtime.processes import stop_all
 from derl.nodes.tools.logs import read_log
 from derl.nodes.tools.monitor import RunView, sparkline
 from derl.nodes.tools.topic import key_expression, rate_line
-from nodes_fixtures import Processes, derl_argv, free_port, wait_for
+from nodes_fixtures import LocalRun, Processes, derl_argv, free_port, wait_for
 
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
 STEPS, GAP_S = 6, 0.4
@@ -256,6 +257,29 @@ def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpo
     assert measured and 10 < float(measured[-1]) < 30, procs.log("hz")
     assert re.search(rf"derl/{bus.run}/status\s+RunStatus\s+\d+", procs.log("list"))
     assert re.search(rf"derl/{bus.run}/fitness/n/x\s+rejected\s+\d+", procs.log("list"))
+
+
+def test_watchers_given_no_endpoint_find_the_local_run(
+    tmp_path: Path, procs: Processes, run_log: Path
+) -> None:
+    """`derl topic list` and `derl monitor` with no flag connect to the local run's endpoint
+    ($DERL_LOCAL_PORT here, 7447 for a user), where a real coordinator listens, and find its
+    run; with nothing there, `derl replay` listens on it and they hear the replay."""
+    run = LocalRun.at(tmp_path)
+    local = {"DERL_LOCAL_PORT": run.endpoint.rsplit(":", 1)[1]}
+    procs.start("coordinator", run.coordinator())
+    listing = procs.start("list", derl_argv("topic", "list", "--duration", "3"), local)
+    monitor = procs.start("monitor", derl_argv("monitor", "--once", "3"), local)
+    assert procs.finish(listing) == 0, procs.log("list")
+    assert re.search(rf"derl/{run.run}/status\s+RunStatus\s+\d+", procs.log("list"))
+    assert procs.finish(monitor) == 0, procs.log("monitor")
+    assert f"derl run {run.run}" in procs.log("monitor")
+    procs.kill("coordinator", signal.SIGTERM)
+    replay = procs.start("replay", derl_argv("replay", str(run_log), "--loop"), local)
+    listing = procs.start("list-replay", derl_argv("topic", "list", "--duration", "3"), local)
+    assert procs.finish(listing) == 0, procs.log("list-replay")
+    assert "derl/recorded/status" in procs.log("list-replay")
+    stop_all([replay])
 
 
 # --- monitor and the example -----------------------------------------------------------------

@@ -11,6 +11,8 @@ generation: how much more it reaches at the end of learning and how much sooner 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from derl.analysis.lineage import Tree
@@ -20,15 +22,24 @@ from derl.analysis.statistics import BootstrapConfig, Point, point
 
 def criterion(run: RunLog, percentile: float) -> float:
     """The given percentile of the initial population's fitness."""
-    initial = run.fitness[[body.parent is None for body in run.bodies]]
-    return float(np.percentile(initial, percentile))
+    return criterion_of(run.fitness[[body.parent is None for body in run.bodies]], percentile)
+
+
+def criterion_of(initial_fitness: Sequence[float] | np.ndarray, percentile: float) -> float:
+    """The learning criterion: the given percentile of the initial population's fitness."""
+    return float(np.percentile(initial_fitness, percentile))
 
 
 def steps_to_reach(body: Body, level: float) -> float:
     """Env steps at which the learning curve first reaches `level` (NaN if it never does)."""
-    returns = np.asarray(body.curve_returns, dtype=float)
-    reached = np.flatnonzero(returns >= level)
-    return float(body.curve_steps[reached[0]]) if reached.size else float("nan")
+    return first_reaching(body.curve_steps, body.curve_returns, level)
+
+
+def first_reaching(steps: Sequence[int], returns: Sequence[float], level: float) -> float:
+    """Env steps at which a learning curve (`returns` after `steps`) first reaches `level`
+    (NaN if it never does)."""
+    reached = np.flatnonzero(np.asarray(returns, dtype=float) >= level)
+    return float(steps[reached[0]]) if reached.size else float("nan")
 
 
 def learning_speed(run: RunLog, level: float) -> np.ndarray:

@@ -55,7 +55,8 @@ def _launch(args: argparse.Namespace) -> int:
         print(dry_run_text(commands))
         return 0
     if any(c.role == "coordinator" and c.remote is None for c in commands):
-        profile_from(argparse.Namespace(profile=launch.profile, env=launch.env, seed=launch.seed))
+        profile_from(argparse.Namespace(profile=launch.profile, set=[], env=launch.env,
+                                        seed=launch.seed))  # fmt: skip
     supervisor = Supervisor(commands, args.log_dir or launch.directory / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):  # SIGHUP: our ssh session ended
         signal.signal(sig, lambda *_: supervisor.stop.set())

@@ -17,14 +17,15 @@ import argparse
 import signal
 from pathlib import Path
 
-from derl.nodes.cli.options import at_least_one, fail, run_directory, study_profile_from
-from derl.nodes.cli.run import (
-    DEFAULT_PORT,
-    listenable,
-    local_run_id,
-    port_number,
-    supervise,
+from derl.nodes.cli.options import (
+    add_port_argument,
+    add_set_argument,
+    at_least_one,
+    fail,
+    run_directory,
+    study_profile_from,
 )
+from derl.nodes.cli.run import listenable, local_run_id, supervise, watch_command
 from derl.nodes.launch.commands import build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
@@ -46,13 +47,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     study.add_argument("--study-dir", type=Path, required=True, help="journal and results")
     study.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
+    add_set_argument(study)
     study.add_argument("--workers", type=at_least_one, default=2, help="evaluator processes (2)")
-    study.add_argument(
-        "--port",
-        type=port_number,
-        default=DEFAULT_PORT,
-        help=f"the coordinator's port on 127.0.0.1 (default {DEFAULT_PORT}; 0: a free one)",
-    )
+    add_port_argument(study, "the coordinator's port on 127.0.0.1")
     study.add_argument("--plan-only", action="store_true", help="write the plan, start nothing")
     study.set_defaults(handler=_study)
 
@@ -86,7 +83,7 @@ def _study(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
-        f"coordinator on {endpoint} (derl monitor --connect {endpoint} --run {run}); "
+        f"coordinator on {endpoint} ({watch_command(endpoint, run)}); "
         f"{args.workers} evaluators; logs in {supervisor.log_dir}",
         highlight=False,
     )

@@ -27,7 +27,13 @@ from derl.messages import (
     TrainJob,
 )
 from derl.nodes.errors import DerlError
-from derl.nodes.journal.segments import JournalDamaged, read_segment, replay, segments
+from derl.nodes.journal.segments import (
+    JournalDamaged,
+    is_mcap,
+    read_segment,
+    replay,
+    segments,
+)
 from derl.nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
 if TYPE_CHECKING:
@@ -133,6 +139,9 @@ def load_history(path: Path) -> RunHistory:
             raise DerlError(f"{path} holds no journal (journal/segment-NNNN.mcap)")
         messages = replay(path)
     elif path.is_file():
+        if not is_mcap(path):
+            raise DerlError(f"{path} is not an MCAP log (a run directory, a journal "
+                            "segment or a `derl record` file)")  # fmt: skip
         messages = read_segment(path)
     else:
         raise DerlError(f"no run directory or log at {path}")

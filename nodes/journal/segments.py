@@ -44,7 +44,7 @@ from mcap.exceptions import EndOfFile
 from mcap.records import Channel, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +214,13 @@ class Logged(NamedTuple):
     message: MessageBase
 
 
+def is_mcap(path: Path) -> bool:
+    """Whether the file starts with MCAP's magic bytes (else it is no log at all, not a
+    damaged one)."""
+    with Path(path).open("rb") as f:
+        return f.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC
+
+
 def read_segment(path: Path) -> Iterator[MessageBase]:
     """The messages of one segment in file order; what does not decode is logged and skipped."""
     return (logged.message for logged in read_logged(path))
@@ -289,8 +296,9 @@ class Journal(JournalWriter):
         return replay(self.run_dir)
 
 
-def compact(segment: Path) -> bool:
-    """Rewrite a closed (or crashed) segment with 1 MiB zstd chunks and a summary.
+def compact(segment: Path, out: Path | None = None) -> bool:
+    """Rewrite a closed (or crashed) segment with 1 MiB zstd chunks and a summary, in place or
+    into a new file `out`.
 
     Returns False, leaving the file as it is, when the `zstandard` package is missing. Never call
     it on the segment being written.
@@ -298,7 +306,8 @@ def compact(segment: Path) -> bool:
     if importlib.util.find_spec("zstandard") is None:
         return False
     segment = Path(segment)
-    tmp = segment.with_name(segment.name + ".tmp")
+    target = segment if out is None else Path(out)
+    tmp = target.with_name(target.name + ".tmp")
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
     with tmp.open("wb") as f:
@@ -327,5 +336,5 @@ def compact(segment: Path) -> bool:
         writer.finish()
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, segment)
+    os.replace(tmp, target)
     return True

@@ -136,8 +136,9 @@ def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     if spec.role == "coordinator":
         env = ["--env", launch.env] if launch.env else []
         seed = ["--seed", str(launch.seed)] if launch.seed is not None else []
-        return ["--run", launch.run, "--profile", launch.profile, *env, *seed, "--run-dir",
-                str(launch.run_dir)]  # fmt: skip
+        settings = [part for text in launch.settings for part in ("--set", text)]
+        return ["--run", launch.run, "--profile", launch.profile, *settings, *env, *seed,
+                "--run-dir", str(launch.run_dir)]  # fmt: skip
     if spec.role == "router":
         return []
     return ["--run", launch.run, "--name", name, "--threads", str(spec.threads)]

@@ -18,7 +18,7 @@ def local_launch(
     """`local.yaml` for run `run`: its coordinator listening on `endpoint` (the seed every other
     node connects to), `workers[role]` processes of each worker role the file declares (none or
     0: left out), and the coordinator's settings (`run_dir` or `study`, `profile`, `env`,
-    `seed`, `study_runs`) as given."""
+    `seed`, `settings`, `study_runs`) as given."""
     graph = load(LOCAL_FILE)
     data = graph.model_dump()
     data.update(run=run, run_dir=None, topology={"kind": "peer_mesh", "seed": endpoint})

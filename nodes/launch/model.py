@@ -178,6 +178,9 @@ class LaunchFile(_Strict):
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
     env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
     seed: int | None = Field(None, ge=0, description="evolution seed (overrides profile)")
+    settings: list[Annotated[str, Field(pattern=r"^[^=\s]+=")]] = Field(
+        [], description="profile values changed, each `KEY=VALUE` as `--set` takes it"
+    )
     topology: Annotated[
         PeerMesh | RouterTopology, Field(discriminator="kind", description="how the nodes connect")
     ]

@@ -29,7 +29,7 @@ import zenoh
 from derl.messages import Birth, ChildFailed, KeySpace, MessageBase, RunStatus, TrainProgress
 from derl.nodes.runtime.bus import ZenohOptions, open_session
 from derl.nodes.tools.logs import base64_text, json_form, json_schema
-from derl.nodes.tools.topic import Checker, Tap, choose_run
+from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
 from foxglove.websocket import WebSocketServer
 from pydantic import BaseModel
 
@@ -173,9 +173,7 @@ def serve(
 
         keys = KeySpace(bridge.run)
         taps = [Tap(session, keys.all(kind), on_sample) for kind in KINDS]
-        for reply in session.get(keys.all("births"), timeout=2.0):  # births before we came
-            if reply.ok is not None:
-                on_sample(reply.ok, time.monotonic())
+        ask(session, keys.all("births"), on_sample)  # births before we came
         try:
             server = foxglove.start_server(
                 name=f"derl {bridge.run}", host=host, port=port, context=context

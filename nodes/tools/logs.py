@@ -16,7 +16,6 @@ import importlib.util
 import json
 import logging
 import math
-import shutil
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from derl.nodes.journal.segments import (
     JournalDamaged,
     Logged,
     compact,
+    is_mcap,
     read_logged,
     records,
     segments,
@@ -36,7 +36,7 @@ from derl.nodes.journal.segments import (
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from mcap.writer import CompressionType, Writer
 
 log = logging.getLogger("derl.mcap")
 
@@ -57,9 +57,8 @@ def log_files(path: Path) -> list[Path]:
         return files
     if not path.is_file():
         raise LogError(f"{path}: no such file")
-    with path.open("rb") as f:
-        if f.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
-            raise LogError(f"{path} is not an MCAP file")
+    if not is_mcap(path):
+        raise LogError(f"{path} is not an MCAP file")
     return [path]
 
 
@@ -347,8 +346,6 @@ def repair(source: Path, out: Path) -> FileInfo:
     out = Path(out)
     if out.exists():
         raise LogError(f"{out} exists; choose another name")
-    shutil.copyfile(file, out)
-    if not compact(out):
-        out.unlink()
+    if not compact(file, out):
         raise LogError("repair needs the zstandard package (pip install zstandard)")
     return _file_info(out)

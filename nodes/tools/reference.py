@@ -158,8 +158,12 @@ def configuration() -> str:
             "Profiles",
             derl.evolution.config,
             EvolutionConfig,
-            "`derl run --profile NAME|FILE.yaml` (and a launch file's `profile`) choose one; an "
-            "unknown key is an error that names the valid ones. The built-in profiles:",
+            "`derl run --profile NAME|FILE.yaml` (and `derl coordinator`, and a launch file's "
+            "`profile`) choose one; `--set KEY=VALUE` changes one setting of it (repeatable, e.g. "
+            "`--set ppo.lr=1e-4 --set total=200`): a dotted key, the value read as YAML, checked "
+            "with the rest, as in a file. An unknown key is an error that names the valid ones. "
+            "`derl launch` takes no `--set`: its file names the profile, so a profile file holds "
+            "the changes. The built-in profiles:",
             _profile_values(lambda p: p),
             links,
         ),
@@ -177,9 +181,9 @@ def configuration() -> str:
             "Study profiles",
             derl.analysis.study,
             StudyConfig,
-            "`derl study --profile NAME|FILE.yaml` chooses one (an unknown key is an error that "
-            f"names the valid ones); its `ppo` is a [PPOHyperparameters]({HYPER_ANCHOR}). The "
-            "built-in study profiles:",
+            "`derl study --profile NAME|FILE.yaml` chooses one and `--set KEY=VALUE` changes one "
+            "setting of it, as for a run (an unknown key is an error that names the valid ones); "
+            f"its `ppo` is a [PPOHyperparameters]({HYPER_ANCHOR}). The built-in study profiles:",
             dict(STUDY_PROFILES),
             links,
         ),
