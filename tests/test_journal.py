@@ -18,6 +18,7 @@ from derl.messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, 
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import (
     Journal,
+    JournalDamaged,
     JournalWriter,
     compact,
     read_segment,
@@ -135,7 +136,9 @@ def test_undecodable_records_are_skipped(tmp_path: Path, caplog) -> None:
     assert "non-msgpack channel" in caplog.text
 
 
-def test_corrupt_chunk_ends_the_segment_with_a_warning(tmp_path: Path, caplog) -> None:
+def test_a_corrupt_chunk_is_skipped_with_a_warning_and_reading_goes_on(
+    tmp_path: Path, caplog
+) -> None:
     written = payloads(mixed(20))
     path = tmp_path / "flip.mcap"
     with JournalWriter(path) as writer:
@@ -146,8 +149,56 @@ def test_corrupt_chunk_ends_the_segment_with_a_warning(tmp_path: Path, caplog) -
     data[at + len(written[10]) // 2] ^= 0x40
     path.write_bytes(data)
     with caplog.at_level(logging.WARNING, logger="derl.nodes.journal.segments"):
-        assert payloads(list(read_segment(path))) == written[:10]
-    assert "CRCValidationError" in caplog.text
+        assert payloads(list(read_segment(path))) == written[:10] + written[11:]
+    assert "CRCValidationError" in caplog.text and "whole records follow" in caplog.text
+
+
+def _crashed_segment(run_dir: Path, written: list[bytes]) -> Path:
+    """The one segment of `run_dir` as a crash leaves it: every message flushed, no footer."""
+    journal = Journal(run_dir)
+    for payload in written:
+        journal.write(decode(payload))
+    kept = journal.segment.read_bytes()
+    journal.close()
+    journal.segment.write_bytes(kept)
+    return journal.segment
+
+
+def test_damage_followed_by_whole_records_in_the_last_segment_is_no_torn_tail(
+    tmp_path: Path,
+) -> None:
+    """A crash only cuts the end of the segment being written: a bad record with whole ones after
+    it is damage. The replay and a restart refuse it (they once cut the segment there, dropping
+    every later record, acknowledged births included); nothing is cut."""
+    written = payloads(mixed(60))
+    segment = _crashed_segment(tmp_path, written)
+    data = bytearray(segment.read_bytes())
+    at = data.find(written[30])
+    data[at + 3] ^= 0x40
+    segment.write_bytes(data)
+    with pytest.raises(JournalDamaged, match="whole records follow it from byte") as raised:
+        list(replay(tmp_path))
+    assert raised.value.end < at < (raised.value.resumes or 0)
+    assert "derl log repair" in str(raised.value)
+    with pytest.raises(JournalDamaged, match="not the torn tail"):
+        Journal(tmp_path)
+    assert segment.read_bytes() == data and segments(tmp_path) == [segment]
+
+
+def test_a_torn_tail_is_cut_at_any_byte_and_a_zeroed_one_too(tmp_path: Path) -> None:
+    """What a crash leaves at the end of the last segment (a record cut anywhere, or the file
+    grown with zeros the data never reached) is cut back to the last whole record."""
+    written = payloads(mixed(12))
+    segment = _crashed_segment(tmp_path, written)
+    data = segment.read_bytes()
+    last = data.find(written[-1])
+    for tail in (data[: last + 5], data[: last + 5] + bytes(4000), data[:last] + bytes(100)):
+        segment.write_bytes(tail)
+        back = payloads(list(replay(tmp_path)))
+        assert back == written[: len(back)] and len(back) >= len(written) - 2
+        with Journal(tmp_path) as journal:
+            assert payloads(list(journal.replay())) == back
+        journal.segment.unlink()
 
 
 CHILD = """

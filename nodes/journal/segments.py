@@ -11,9 +11,12 @@ loses at most the message being written. A writer that handles messages in group
 coordinator) appends a group with ``flush=False``, flushes it once and has it synced (fsync)
 before it publishes anything of the group: a crash, even a power loss, loses at most a group
 nobody saw. Reading goes record by record without the summary, so a segment cut at any byte gives
-back every message written before the cut. A new `Journal` first cuts the torn tail of the
-previous segment (the normal trace of a crash) back to its last whole record; damage anywhere
-else is `JournalDamaged`, never skipped. A closed segment can be compacted into zstd chunks.
+back every message written before the cut. A crash can only leave a torn tail: a bad record with
+nothing whole after it, at the end of the segment being written. A new `Journal` first cuts that
+tail of the previous segment back to its last whole record; damage anywhere else, a bad record
+with a whole chunk (its CRC right) or a footer after it included, is `JournalDamaged` for the
+coordinator, never skipped; the tools skip it with a warning and read on from the next whole
+chunk. A closed segment can be compacted into zstd chunks.
 """
 
 from __future__ import annotations
@@ -23,13 +26,15 @@ import json
 import logging
 import os
 import re
+import struct
 import threading
 import time
+import zlib
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import NamedTuple
+from typing import BinaryIO, Literal, NamedTuple
 
 from derl.messages import (
     SCHEMA_VERSION,
@@ -41,10 +46,11 @@ from derl.messages import (
     kind_of,
 )
 from mcap.exceptions import EndOfFile
+from mcap.opcode import Opcode
 from mcap.records import Channel, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 log = logging.getLogger(__name__)
 
@@ -117,21 +123,7 @@ class JournalWriter:
             os.close(fd)
 
     def _channel(self, msg: MessageBase) -> int:
-        channel = self._channels.get((msg.type, msg.run))
-        if channel is None:
-            if msg.type not in self._schemas:
-                schema = json.dumps(type(msg).model_json_schema()).encode()
-                self._schemas[msg.type] = self._writer.register_schema(
-                    msg.type, SchemaEncoding.JSONSchema, schema
-                )
-            channel = self._writer.register_channel(
-                KeySpace(msg.run).family(kind_of(msg)),
-                MessageEncoding.MessagePack,
-                self._schemas[msg.type],
-                {"schema_version": str(SCHEMA_VERSION)},
-            )
-            self._channels[(msg.type, msg.run)] = channel
-        return channel
+        return channel_of(self._writer, self._schemas, self._channels, msg)
 
     def close(self) -> None:
         """Write the summary and footer and sync the file; closing twice is harmless."""
@@ -152,6 +144,29 @@ class JournalWriter:
         self.close()
 
 
+def channel_of(
+    writer: Writer,
+    schemas: dict[str, int],
+    channels: dict[tuple[str, str], int],
+    msg: MessageBase,
+) -> int:
+    """The channel of `msg`'s type and run in `writer` (`schemas` by type, `channels` by type and
+    run: what it registered so far), registered with its schema if new."""
+    channel = channels.get((msg.type, msg.run))
+    if channel is None:
+        if msg.type not in schemas:
+            schema = json.dumps(type(msg).model_json_schema()).encode()
+            schemas[msg.type] = writer.register_schema(msg.type, SchemaEncoding.JSONSchema, schema)
+        channel = writer.register_channel(
+            _topic(msg),
+            MessageEncoding.MessagePack,
+            schemas[msg.type],
+            {"schema_version": str(SCHEMA_VERSION)},
+        )
+        channels[(msg.type, msg.run)] = channel
+    return channel
+
+
 def segments(run_dir: Path) -> list[Path]:
     """The journal segments of a run directory, oldest first."""
     return [path for _, path in _numbered(run_dir)]
@@ -168,14 +183,30 @@ def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
 class JournalDamaged(RuntimeError):
     """A journal segment is damaged where a crash cannot have damaged it."""
 
-    def __init__(self, path: Path, end: int, size: int, reason: object) -> None:
+    def __init__(
+        self, path: Path, end: int, size: int, reason: object, resumes: int | None = None
+    ) -> None:
+        after = (
+            ""
+            if resumes is None
+            else f", and whole records follow it from byte {resumes}: it is damage, not the torn "
+            "tail a crash leaves at the end of the segment it was writing"
+        )
         super().__init__(
-            f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}); the run "
-            f"cannot be resumed from it as it is. `derl log repair {path} REPAIRED.mcap` writes "
-            "what can be read of it; move the damaged file away and put the repaired one in its "
-            "place to resume without what was lost"
+            f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}){after}; the "
+            f"run cannot be resumed from it as it is. `derl log repair {path} REPAIRED.mcap` "
+            "writes what can be read of it; move the damaged file away and put the repaired one "
+            "in its place to resume without what was lost"
         )
         self.path, self.end, self.size, self.reason = path, end, size, reason
+        self.resumes = resumes
+        """Where whole records start again after the damage (None: nothing whole follows it, a
+        torn tail)."""
+
+    @property
+    def torn_tail(self) -> bool:
+        """Whether nothing whole follows the damage: the end a crash leaves."""
+        return self.resumes is None
 
 
 def replay(run_dir: Path) -> Iterator[MessageBase]:
@@ -184,15 +215,19 @@ def replay(run_dir: Path) -> Iterator[MessageBase]:
     paths = segments(run_dir)
     for k, path in enumerate(paths):
         last = k == len(paths) - 1
-        yield from (logged.message for logged in read_logged(path, strict=not last))
+        mode: Damage = "tail" if last else "raise"
+        yield from (logged.message for logged in read_logged(path, mode))
 
 
 def cut_torn_tail(path: Path) -> int:
     """Cut a segment's torn tail (a record a crash left half written) back to its last whole
-    record; the number of bytes cut (0 when the tail is whole)."""
+    record; the number of bytes cut (0 when the tail is whole). JournalDamaged, cutting nothing,
+    if whole records follow the bad one: that is damage, not a torn tail."""
     try:
-        last = deque(records(path, strict=True), maxlen=1)
+        last = deque(records(path, "raise"), maxlen=1)
     except JournalDamaged as damage:
+        if not damage.torn_tail:
+            raise
         with path.open("r+b") as f:
             f.truncate(damage.end)
             f.flush()
@@ -219,51 +254,125 @@ def read_segment(path: Path) -> Iterator[MessageBase]:
     return (logged.message for logged in read_logged(path))
 
 
-def read_logged(path: Path, strict: bool = False) -> Iterator[Logged]:
-    """The messages of one MCAP file in file order, with their topics and times (`strict`: a cut
-    or corrupt file raises JournalDamaged after its last whole message)."""
+def read_logged(path: Path, damage: Damage = "skip") -> Iterator[Logged]:
+    """The messages of one MCAP file in file order, with their topics and times; what a cut or
+    corrupt file does is `damage`'s (see `records`). A message whose channel was lost with a
+    damaged part is read all the same, on the topic the journal gives its type."""
     channels: dict[int, Channel] = {}
-    for record in records(path, strict):
+    for record in records(path, damage):
         if isinstance(record, Channel):
             channels[record.id] = record
         elif isinstance(record, Message):
             channel = channels.get(record.channel_id)
-            if channel is None or channel.message_encoding != MessageEncoding.MessagePack:
-                log.warning(
-                    "%s: message %d on an unknown or non-msgpack channel skipped",
-                    path,
-                    record.sequence,
-                )
+            if channel is not None and channel.message_encoding != MessageEncoding.MessagePack:
+                log.warning("%s: message %d on a non-msgpack channel skipped", path,
+                            record.sequence)  # fmt: skip
                 continue
             try:
                 message = decode(record.data)
             except DecodeError as exc:
-                log.warning(
-                    "%s: message %d on %s skipped: %s", path, record.sequence, channel.topic, exc
-                )
+                topic = "an unknown channel" if channel is None else channel.topic
+                log.warning("%s: message %d on %s skipped: %s", path, record.sequence, topic, exc)
                 continue
-            yield Logged(channel.topic, record.log_time, record.publish_time, message)
+            topic = _topic(message) if channel is None else channel.topic
+            yield Logged(topic, record.log_time, record.publish_time, message)
 
 
-def records(path: Path, strict: bool = False) -> Iterator[McapRecord]:
-    """The records of an MCAP file in order, up to the first one that is cut or corrupt (then
-    JournalDamaged if `strict`)."""
+def _topic(msg: MessageBase) -> str:
+    """The channel topic the journal gives `msg`."""
+    return KeySpace(msg.run).family(kind_of(msg))
+
+
+Damage = Literal["skip", "tail", "raise"]
+"""What a reader does at a record that is cut or corrupt: "skip" it (a warning) and read on from
+the next whole record, if any; "tail": accept it only as a torn tail (nothing whole after it: the
+end a crash leaves), else raise JournalDamaged; "raise": raise JournalDamaged."""
+
+
+def records(
+    path: Path, damage: Damage = "skip", found: list[JournalDamaged] | None = None
+) -> Iterator[McapRecord]:
+    """The records of an MCAP file in order; at a record that is cut or corrupt, `damage` says
+    what happens, and each damage met is appended to `found` (else logged, if skipped)."""
     size = path.stat().st_size
     with path.open("rb") as f:
-        end = 0  # where the last complete record ends
+        end, first = 0, True  # where the last whole record ends; whether at the file's start
+        while True:
+            try:
+                for record in StreamReader(f, skip_magic=not first, validate_crcs=True).records:
+                    end = f.tell()
+                    yield record
+                return
+            except Exception as exc:  # a cut or corrupt record: EndOfFile, CRC, struct, zstd...
+                if isinstance(exc, EndOfFile) and end == size:
+                    log.debug("%s has no footer (still open, or its writer died between "
+                              "messages)", path)  # fmt: skip
+                    return
+                f.seek(end)
+                damaged = JournalDamaged(path, end, size, exc, _whole_after(f, end, size))
+            if found is not None:
+                found.append(damaged)
+            if damage == "raise" or (damage == "tail" and not damaged.torn_tail):
+                raise damaged
+            if found is None and damaged.resumes is None:
+                log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size,
+                            damaged.reason)  # fmt: skip
+            elif found is None:
+                log.warning("%s: damaged: bytes %d to %d skipped (%r), whole records follow; "
+                            "`derl log repair` writes a clean copy", path, end, damaged.resumes,
+                            damaged.reason)  # fmt: skip
+            if damaged.resumes is None:
+                return
+            f.seek(damaged.resumes)
+            end, first = damaged.resumes, False
+
+
+_CHUNK = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, CRC, compression length
+_FOOTER = struct.Struct("<BQQQI")  # opcode, record length, summary start, offset start, CRC
+
+
+def _whole_after(f: BinaryIO, start: int, size: int) -> int | None:
+    """Where the first whole chunk (its CRC right) after byte `start` of a file begins, or the
+    footer of a file that ends with one; None if there is neither (what follows `start` is a
+    torn tail)."""
+    f.seek(start)
+    data = f.read()
+    at = data.find(Opcode.CHUNK, 1)
+    while at >= 0:
+        if _whole_chunk(data, at):
+            return start + at
+        at = data.find(Opcode.CHUNK, at + 1)
+    tail = _FOOTER.size + len(MCAP0_MAGIC)
+    if len(data) > tail and data.endswith(MCAP0_MAGIC):
+        opcode, length, *_ = _FOOTER.unpack_from(data, len(data) - tail)
+        if opcode == Opcode.FOOTER and length == _FOOTER.size - 9:
+            return size - tail
+    return None
+
+
+def _whole_chunk(data: bytes, at: int) -> bool:
+    """Whether a whole chunk record whose CRC is right starts at `data[at]`."""
+    if at + _CHUNK.size > len(data):
+        return False
+    _, length, _, _, size, crc, name_length = _CHUNK.unpack_from(data, at)
+    name_end = at + _CHUNK.size + name_length
+    end = at + 9 + length
+    if crc == 0 or end > len(data) or name_end + 8 > end:
+        return False
+    compression = data[at + _CHUNK.size : name_end]
+    if int.from_bytes(data[name_end : name_end + 8], "little") != end - name_end - 8:
+        return False
+    body = data[name_end + 8 : end]
+    if compression == b"zstd" and importlib.util.find_spec("zstandard") is not None:
+        import zstandard
+
         try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                end = f.tell()
-                yield record
-        except Exception as exc:  # a cut or corrupt tail: EndOfFile, CRC, struct, zstd errors...
-            if isinstance(exc, EndOfFile) and end == size:
-                log.debug(
-                    "%s has no footer (still open, or its writer died between messages)", path
-                )
-            elif strict:
-                raise JournalDamaged(path, end, size, exc) from None
-            else:
-                log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size, exc)
+            body = zstandard.ZstdDecompressor().decompress(body, max_output_size=size)
+        except zstandard.ZstdError:
+            return False
+    elif compression != b"":
+        return False
+    return len(body) == size and zlib.crc32(body) == crc
 
 
 class Journal(JournalWriter):
@@ -301,6 +410,7 @@ def compact(segment: Path) -> bool:
     tmp = segment.with_name(segment.name + ".tmp")
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
+    derived: tuple[dict[str, int], dict[tuple[str, str], int]] = ({}, {})  # for lost channels
     with tmp.open("wb") as f:
         writer = Writer(f, compression=CompressionType.ZSTD)
         writer.start(profile="", library=LIBRARY)
@@ -316,9 +426,15 @@ def compact(segment: Path) -> bool:
                     schemas.get(record.schema_id, 0),
                     record.metadata,
                 )
-            elif isinstance(record, Message) and record.channel_id in channels:
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:  # its channel was lost with a damaged part
+                    try:
+                        channel = channel_of(writer, *derived, decode(record.data))
+                    except DecodeError:
+                        continue
                 writer.add_message(
-                    channels[record.channel_id],
+                    channel,
                     log_time=record.log_time,
                     data=record.data,
                     publish_time=record.publish_time,
