@@ -8,6 +8,7 @@ fault of its own stops the coordinator instead of stalling it)."""
 from __future__ import annotations
 
 import errno
+import logging
 import threading
 import time
 from concurrent.futures import Future
@@ -74,7 +75,7 @@ def _status(run: str, born: int) -> RunStatus:
 
 
 def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     journal = Journal(tmp_path)
     synced: list[int] = []
@@ -99,9 +100,14 @@ def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
     assert [data for _, data in outbox.take()] == [b"first", b"later"]
 
     written.set_result(None)
-    lost.set_exception(OSError("disk full"))
+    lost.set_exception(OSError(errno.ENOSPC, "No space left on device", "/r/c1.pt.tmp"))
     outbox.drain()
     assert [data for _, data in outbox.take()] == [b"ack"]  # the lost one is never sent
+    (said,) = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert said == (  # one readable line (it was the whole Ack's repr)
+        "the Ack of c1 (job j1 of n1) is held back: its checkpoint was not written ([Errno 28] "
+        "No space left on device: '/r/c1.pt.tmp'); the trainer sends its report again"
+    )
     outbox.close()
     journal.close()
 
