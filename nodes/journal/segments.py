@@ -11,12 +11,12 @@ loses at most the message being written. A writer that handles messages in group
 coordinator) appends a group with ``flush=False``, flushes it once and has it synced (fsync)
 before it publishes anything of the group: a crash, even a power loss, loses at most a group
 nobody saw. Reading goes record by record without the summary, so a segment cut at any byte gives
-back every message written before the cut. A crash can only leave a torn tail: a bad record with
-nothing whole after it, at the end of the segment being written. A new `Journal` first cuts that
-tail of the previous segment back to its last whole record; damage anywhere else, a bad record
-with a whole chunk (its CRC right) or a footer after it included, is `JournalDamaged` for the
-coordinator, never skipped; the tools skip it with a warning and read on from the next whole
-chunk. A closed segment can be compacted into zstd chunks.
+back every message written before the cut (`nodes.journal.reader`). A crash can only leave a torn
+tail: a bad record with nothing whole after it, at the end of the segment being written. A new
+`Journal` first cuts that tail of the previous segment back to its last whole record; damage
+anywhere else, a bad record with a whole chunk (its CRC right) or a footer after it included, is
+`JournalDamaged` for the coordinator, never skipped; the tools skip it with a warning and read on
+from the next whole chunk. A closed segment can be compacted into zstd chunks.
 """
 
 from __future__ import annotations
@@ -26,15 +26,13 @@ import json
 import logging
 import os
 import re
-import struct
 import threading
 import time
-import zlib
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO, Literal, NamedTuple
+from typing import NamedTuple
 
 from derl.messages import (
     SCHEMA_VERSION,
@@ -45,12 +43,10 @@ from derl.messages import (
     encode,
     kind_of,
 )
-from mcap.exceptions import EndOfFile
-from mcap.opcode import Opcode
-from mcap.records import Channel, Footer, McapRecord, Message, Schema
-from mcap.stream_reader import StreamReader
+from derl.nodes.journal.reader import Damage, JournalDamaged, records
+from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from mcap.writer import CompressionType, Writer
 
 log = logging.getLogger(__name__)
 
@@ -180,35 +176,6 @@ def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
     return sorted((int(m[1]), p) for m, p in matches if m)
 
 
-class JournalDamaged(RuntimeError):
-    """A journal segment is damaged where a crash cannot have damaged it."""
-
-    def __init__(
-        self, path: Path, end: int, size: int, reason: object, resumes: int | None = None
-    ) -> None:
-        after = (
-            ""
-            if resumes is None
-            else f", and whole records follow it from byte {resumes}: it is damage, not the torn "
-            "tail a crash leaves at the end of the segment it was writing"
-        )
-        super().__init__(
-            f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}){after}; the "
-            f"run cannot be resumed from it as it is. `derl log repair {path} REPAIRED.mcap` "
-            "writes what can be read of it; move the damaged file away and put the repaired one "
-            "in its place to resume without what was lost"
-        )
-        self.path, self.end, self.size, self.reason = path, end, size, reason
-        self.resumes = resumes
-        """Where whole records start again after the damage (None: nothing whole follows it, a
-        torn tail)."""
-
-    @property
-    def torn_tail(self) -> bool:
-        """Whether nothing whole follows the damage: the end a crash leaves."""
-        return self.resumes is None
-
-
 def replay(run_dir: Path) -> Iterator[MessageBase]:
     """Every message of every segment, in the order written; JournalDamaged for a segment
     that is cut or corrupt anywhere but at the tail of the last one."""
@@ -281,98 +248,6 @@ def read_logged(path: Path, damage: Damage = "skip") -> Iterator[Logged]:
 def _topic(msg: MessageBase) -> str:
     """The channel topic the journal gives `msg`."""
     return KeySpace(msg.run).family(kind_of(msg))
-
-
-Damage = Literal["skip", "tail", "raise"]
-"""What a reader does at a record that is cut or corrupt: "skip" it (a warning) and read on from
-the next whole record, if any; "tail": accept it only as a torn tail (nothing whole after it: the
-end a crash leaves), else raise JournalDamaged; "raise": raise JournalDamaged."""
-
-
-def records(
-    path: Path, damage: Damage = "skip", found: list[JournalDamaged] | None = None
-) -> Iterator[McapRecord]:
-    """The records of an MCAP file in order; at a record that is cut or corrupt, `damage` says
-    what happens, and each damage met is appended to `found` (else logged, if skipped)."""
-    size = path.stat().st_size
-    with path.open("rb") as f:
-        end, first = 0, True  # where the last whole record ends; whether at the file's start
-        while True:
-            try:
-                for record in StreamReader(f, skip_magic=not first, validate_crcs=True).records:
-                    end = f.tell()
-                    yield record
-                return
-            except Exception as exc:  # a cut or corrupt record: EndOfFile, CRC, struct, zstd...
-                if isinstance(exc, EndOfFile) and end == size:
-                    log.debug("%s has no footer (still open, or its writer died between "
-                              "messages)", path)  # fmt: skip
-                    return
-                f.seek(end)
-                damaged = JournalDamaged(path, end, size, exc, _whole_after(f, end, size))
-            if found is not None:
-                found.append(damaged)
-            if damage == "raise" or (damage == "tail" and not damaged.torn_tail):
-                raise damaged
-            if found is None and damaged.resumes is None:
-                log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size,
-                            damaged.reason)  # fmt: skip
-            elif found is None:
-                log.warning("%s: damaged: bytes %d to %d skipped (%r), whole records follow; "
-                            "`derl log repair` writes a clean copy", path, end, damaged.resumes,
-                            damaged.reason)  # fmt: skip
-            if damaged.resumes is None:
-                return
-            f.seek(damaged.resumes)
-            end, first = damaged.resumes, False
-
-
-_CHUNK = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, CRC, compression length
-_FOOTER = struct.Struct("<BQQQI")  # opcode, record length, summary start, offset start, CRC
-
-
-def _whole_after(f: BinaryIO, start: int, size: int) -> int | None:
-    """Where the first whole chunk (its CRC right) after byte `start` of a file begins, or the
-    footer of a file that ends with one; None if there is neither (what follows `start` is a
-    torn tail)."""
-    f.seek(start)
-    data = f.read()
-    at = data.find(Opcode.CHUNK, 1)
-    while at >= 0:
-        if _whole_chunk(data, at):
-            return start + at
-        at = data.find(Opcode.CHUNK, at + 1)
-    tail = _FOOTER.size + len(MCAP0_MAGIC)
-    if len(data) > tail and data.endswith(MCAP0_MAGIC):
-        opcode, length, *_ = _FOOTER.unpack_from(data, len(data) - tail)
-        if opcode == Opcode.FOOTER and length == _FOOTER.size - 9:
-            return size - tail
-    return None
-
-
-def _whole_chunk(data: bytes, at: int) -> bool:
-    """Whether a whole chunk record whose CRC is right starts at `data[at]`."""
-    if at + _CHUNK.size > len(data):
-        return False
-    _, length, _, _, size, crc, name_length = _CHUNK.unpack_from(data, at)
-    name_end = at + _CHUNK.size + name_length
-    end = at + 9 + length
-    if crc == 0 or end > len(data) or name_end + 8 > end:
-        return False
-    compression = data[at + _CHUNK.size : name_end]
-    if int.from_bytes(data[name_end : name_end + 8], "little") != end - name_end - 8:
-        return False
-    body = data[name_end + 8 : end]
-    if compression == b"zstd" and importlib.util.find_spec("zstandard") is not None:
-        import zstandard
-
-        try:
-            body = zstandard.ZstdDecompressor().decompress(body, max_output_size=size)
-        except zstandard.ZstdError:
-            return False
-    elif compression != b"":
-        return False
-    return len(body) == size and zlib.crc32(body) == crc
 
 
 class Journal(JournalWriter):

@@ -25,14 +25,8 @@ from pathlib import Path
 from typing import Literal
 
 from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from derl.nodes.journal.segments import (
-    JournalDamaged,
-    Logged,
-    compact,
-    read_logged,
-    records,
-    segments,
-)
+from derl.nodes.journal.reader import JournalDamaged, records
+from derl.nodes.journal.segments import Logged, compact, read_logged, segments
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
