@@ -254,7 +254,8 @@ class Coordinator:
                     next_status = now + STATUS_PERIOD_S
                     if self.state.finished:
                         announced += 1
-                        if announced == 1:
+                        if announced == DONE_ANNOUNCEMENTS:  # not the first: a child born
+                            # just before a crash gets its checkpoint from a re-sent report
                             self.sender.drain()  # the best agents' checkpoints are on disk
                             self._publish_released()
                             self._write_results()

@@ -44,6 +44,7 @@ from derl.messages import (
     kind_of,
 )
 from derl.nodes.journal.reader import Damage, JournalDamaged, records
+from derl.nodes.runtime.rundir import sync_folder
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
@@ -63,6 +64,7 @@ class JournalWriter:
         self._writer = Writer(self._file, compression=CompressionType.NONE)
         self._writer.start(profile="", library=LIBRARY)
         self._writer.flush()
+        sync_folder(self.path.parent)  # else a power loss can lose the file, synced or not
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._sequence = 0
@@ -256,7 +258,10 @@ class Journal(JournalWriter):
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = Path(run_dir)
         folder = self.run_dir / "journal"
-        folder.mkdir(parents=True, exist_ok=True)
+        if not folder.is_dir():  # a new run: its folder and the journal's, on the disk
+            folder.mkdir(parents=True)
+            sync_folder(self.run_dir.resolve().parent)
+            sync_folder(self.run_dir)
         numbered = _numbered(self.run_dir)
         if numbered:
             cut_torn_tail(numbered[-1][1])
