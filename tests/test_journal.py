@@ -45,6 +45,14 @@ def payloads(msgs: list[MessageBase]) -> list[bytes]:
     return [encode(m) for m in msgs]
 
 
+def closed_file(path: Path, written: list[bytes]) -> Path:
+    """A closed journal file of the messages `written`, each flushed on its own."""
+    with JournalWriter(path) as writer:
+        for payload in written:
+            writer.write(decode(payload))
+    return path
+
+
 def test_two_segments_replay_in_order(tmp_path: Path) -> None:
     written = mixed(1000)
     with Journal(tmp_path) as journal:
@@ -93,9 +101,7 @@ def test_standard_reader_sees_channels_schemas_and_encodings(tmp_path: Path) -> 
 def test_segment_cut_at_any_byte_gives_a_prefix(tmp_path: Path, caplog) -> None:
     written = payloads(mixed(60))
     full = tmp_path / "full.mcap"
-    with JournalWriter(full) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(full, written)
     data = full.read_bytes()
     rng = random.Random(7)
     cuts = sorted({0, 1, 8, 9, len(data) - 1, len(data), *rng.sample(range(len(data)), 30)})
@@ -144,9 +150,7 @@ def test_a_corrupt_chunk_is_skipped_with_a_warning_and_reading_goes_on(
 ) -> None:
     written = payloads(mixed(20))
     path = tmp_path / "flip.mcap"
-    with JournalWriter(path) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(path, written)
     data = bytearray(path.read_bytes())
     at = data.find(written[10])
     data[at + len(written[10]) // 2] ^= 0x40
@@ -275,9 +279,7 @@ def test_the_reader_reads_what_the_mcap_package_reads(tmp_path: Path) -> None:
     pytest.importorskip("zstandard")
     written = payloads(mixed(150))
     plain, packed = tmp_path / "plain.mcap", tmp_path / "packed.mcap"
-    with JournalWriter(plain) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(plain, written)
     packed.write_bytes(plain.read_bytes())
     assert compact(packed)
     rng = random.Random(3)
@@ -296,9 +298,7 @@ def test_compaction_keeps_every_message(tmp_path: Path) -> None:
     pytest.importorskip("zstandard")
     written = payloads(mixed(200))
     closed, crashed = tmp_path / "closed.mcap", tmp_path / "crashed.mcap"
-    with JournalWriter(closed) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(closed, written)
     data = closed.read_bytes()
     crashed.write_bytes(data[: data.find(written[150])])
     before = closed.stat().st_size
