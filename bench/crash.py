@@ -580,8 +580,8 @@ def check(folder: Path, knowledge: Knowledge, jobs: dict[str, TrainJob]) -> list
 
     try:
         coordinator = Coordinator(RUN, folder, config())
-    except SystemExit as refused:
-        return [f"the coordinator refused to start: {refused}"]
+    except (SystemExit, Exception) as refused:  # a refusal, or a fault
+        return [f"the coordinator did not start: {refused!r}"]
     problems = _journal_holds(folder, knowledge, "at the start")
     heard = Heard()
     coordinator.bus = heard  # type: ignore[assignment]

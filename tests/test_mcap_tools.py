@@ -13,8 +13,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from derl.messages import FitnessReport, MessageBase, encode, kind_of
+from derl.messages import Birth, FitnessReport, MessageBase, encode, kind_of
 from derl.messages.examples import examples
+from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import Journal, JournalWriter, segments
 from derl.nodes.tools.logs import LogError, export_json, info, read_log, repair
 from mcap.reader import make_reader
@@ -262,6 +263,8 @@ def test_damage_in_the_last_segment_is_damage_for_every_tool(tmp_path: Path) -> 
     crashed.write_bytes(data)
     kept = [entry for entry in read_log(run)]
     assert _same([entry.message for entry in kept], messages[1:])
+    births = [m.child for m in messages[1:] if isinstance(m, Birth)]
+    assert [b.child for b in load_history(run).births] == births  # derl report's reading
     assert [entry.topic for entry in kept] == [f"derl/r1/{kind_of(m)}" for m in messages[1:]]
     done = _derl("log", "info", str(run))
     assert done.returncode == 3 and "integrity:   corrupt: damaged at byte" in done.stdout

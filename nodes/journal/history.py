@@ -127,10 +127,10 @@ def journal_run(run_dir: Path) -> str | None:
 def load_history(path: Path) -> RunHistory:
     """The history of a run directory's journal, or of one MCAP file (a segment, a recording);
     SystemExit with the reason when there is none."""
-    if path.is_dir():
+    if path.is_dir():  # read as every tool reads: past a damaged part, with a warning
         if not segments(path):
             raise SystemExit(f"derl: {path} holds no journal (journal/segment-NNNN.mcap)")
-        messages = replay(path)
+        messages = (msg for segment in segments(path) for msg in read_segment(segment))
     elif path.is_file():
         messages = read_segment(path)
     else:

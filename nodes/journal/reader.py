@@ -26,7 +26,7 @@ from typing import Literal
 
 from mcap.exceptions import EndOfFile, InvalidMagic
 from mcap.opcode import Opcode
-from mcap.records import Channel, Footer, Header, McapRecord, Message, Schema
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, McapRecord, Message, Schema
 from mcap.stream_reader import CRCValidationError
 from mcap.writer import MCAP0_MAGIC
 
@@ -51,10 +51,10 @@ class JournalDamaged(RuntimeError):
             "tail a crash leaves at the end of the segment it was writing"
         )
         super().__init__(
-            f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}){after}; the "
-            f"run cannot be resumed from it as it is. `derl log repair {path} REPAIRED.mcap` "
-            "writes what can be read of it; move the damaged file away and put the repaired one "
-            "in its place to resume without what was lost"
+            f"journal segment {path} is damaged at byte {end} of {size} ({_said(reason)})"
+            f"{after}; the run cannot be resumed from it as it is. `derl log repair {path} "
+            "REPAIRED.mcap` writes what can be read of it; move the damaged file away and put the "
+            "repaired one in its place to resume without what was lost"
         )
         self.path, self.end, self.size, self.reason = path, end, size, reason
         self.resumes = resumes
@@ -62,9 +62,18 @@ class JournalDamaged(RuntimeError):
         torn tail)."""
 
     @property
+    def why(self) -> str:
+        """The damage in words."""
+        return _said(self.reason)
+
+    @property
     def torn_tail(self) -> bool:
         """Whether nothing whole follows the damage: the end a crash leaves."""
         return self.resumes is None
+
+
+def _said(reason: object) -> str:
+    return f"{type(reason).__name__}: {reason}" if str(reason) else type(reason).__name__
 
 
 def records(
@@ -91,12 +100,12 @@ def records(
                 if damage == "raise" or (damage == "tail" and not damaged.torn_tail):
                     raise damaged
                 if found is None and damaged.resumes is None:
-                    log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size,
-                                damaged.reason)  # fmt: skip
+                    log.warning("%s: broken tail skipped (bytes %d to %d): %s", path, end, size,
+                                damaged.why)  # fmt: skip
                 elif found is None:
-                    log.warning("%s: damaged: bytes %d to %d skipped (%r), whole records "
+                    log.warning("%s: damaged: bytes %d to %d skipped (%s), whole records "
                                 "follow; `derl log repair` writes a clean copy", path, end,
-                                damaged.resumes, damaged.reason)  # fmt: skip
+                                damaged.resumes, damaged.why)  # fmt: skip
                 if damaged.resumes is None:
                     return
                 start = damaged.resumes
@@ -129,7 +138,7 @@ def _walk(buf: mmap.mmap, start: int) -> Iterator[tuple[int, McapRecord]]:
         elif opcode == Opcode.DATA_END:
             (crc,) = _U32.unpack_from(buf, body)
             if start == 0 and crc != 0 and zlib.crc32(buf[:pos]) != crc:
-                raise CRCValidationError(crc, zlib.crc32(buf[:pos]), None)  # type: ignore[arg-type]
+                raise CRCValidationError(crc, zlib.crc32(buf[:pos]), DataEnd(crc))
         elif opcode == Opcode.FOOTER:
             footer = Footer(*_FOOTER.unpack_from(buf, body))
             if buf[end : end + len(MCAP0_MAGIC)] != MCAP0_MAGIC:
@@ -165,7 +174,8 @@ def _chunk_records(buf: mmap.mmap, body: int, end: int) -> list[McapRecord]:
         raise ValueError(f"a chunk's records of {length} bytes do not fill it")
     data = _decompressed(compression, buf[at + 8 : end], size)
     if crc != 0 and zlib.crc32(data) != crc:
-        raise CRCValidationError(crc, zlib.crc32(data), None)  # type: ignore[arg-type]
+        chunk = Chunk(compression, b"", 0, 0, crc, size)
+        raise CRCValidationError(crc, zlib.crc32(data), chunk)
     out = []
     pos = 0
     while pos < len(data):

@@ -201,8 +201,8 @@ def cut_torn_tail(path: Path) -> int:
             f.truncate(damage.end)
             f.flush()
             os.fsync(f.fileno())
-        log.warning("%s: torn tail recovered: %d bytes after byte %d cut (%r)", path,
-                    damage.size - damage.end, damage.end, damage.reason)  # fmt: skip
+        log.warning("%s: torn tail recovered: %d bytes after byte %d cut (%s)", path,
+                    damage.size - damage.end, damage.end, damage.why)  # fmt: skip
         return damage.size - damage.end
     if not (last and isinstance(last[0], Footer)):
         log.info("%s has no footer (its writer died between messages): every record whole", path)
