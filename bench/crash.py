@@ -4,11 +4,11 @@
    `derl coordinator` process and two simulated trainers (`Trainer`: each breeds its child, answers
    its job at once with a fitness and checkpoint bytes that depend only on the child, and sends the
    report again every 0.5 s until it is acknowledged or rejected, as `derl trainer` does) over real
-   Zenoh, under `strace -f`: every open, write, truncate, rename, link, unlink, mkdir, fsync,
-   fdatasync and syncfs of the coordinator and its checkpoint writer process, and every mark of a
-   trainer (a job received, an Ack, a Reject, written to a file of marks), in one order (a trainer
-   marks a message after receiving it, so after every operation the coordinator did before
-   publishing it).
+   Zenoh, under `strace -f`: every open, write (with its bytes), truncate, rename, link, unlink,
+   mkdir, fsync, fdatasync and syncfs of the coordinator and its checkpoint writer process, and
+   every mark of a trainer (a job received, an Ack, a Reject, written to a file of marks), in the
+   order they completed (a trainer marks a message after receiving it, so after every operation
+   the coordinator did before publishing it).
 2. Model (`Disk`). The run directory after each operation, twice: as a process kill leaves it
    (every operation done: the page cache survives) and as a power cut does under POSIX's rules,
    nothing more: a file's data is on the disk once an fsync or fdatasync of it, or a syncfs of its
@@ -19,8 +19,8 @@
    over the power state with the segment's writes since its last fsync there (a crash persists
    appends in order: ext4's default), and with the rest of the write zeros (a file grown whose new
    data never reached the disk: XFS, ext4 data=writeback). Not modelled: unsynced writes persisted
-   out of order across files or pages (what is on the disk then is the power state plus some of
-   them; nothing published depends on them, as the check of the power states shows).
+   out of order across files or pages beyond that (states between a power state and its kill
+   state).
 3. Check. Each state, built in a folder, first as the coordinator's start does it (the segment it
    resumes from cut back to its last whole record: `cut_torn_tail`); states equal then (and equal in
    what the trainers knew) are checked once. A state is checked by a coordinator started on it that
@@ -30,16 +30,18 @@
    refuses); every job a trainer had received is in the journal; every birth whose Ack a trainer
    had received is in the journal, from that job, with its checkpoint file holding that trainer's
    bytes, at the start and at the end; no child is born twice; the run finishes with every body
-   born and every checkpoint file in place. `check` drives the coordinator's own handlers in this
-   process (`Coordinator` built on the folder: the replay and everything a start does, then its
-   handlers, group commit and outbox as the serve loop calls them, without a bus: what it would
-   publish goes to the trainers); `--real K` also checks K states, drawn at random, with a real
-   `derl coordinator` process and the trainers over real Zenoh.
+   born, every checkpoint file in place, summary.json and the best bodies' folders with their
+   checkpoints. `check` drives the coordinator's own code in this process (`Coordinator` built on
+   the folder: the replay and everything a start does; then its handlers, group commit and outbox
+   as the serve loop calls them, and the loop's end: five rounds of 'done', the results written at
+   the last; without a bus: what it would publish goes to the trainers); `--real K` also checks K
+   states, drawn at random, with a real `derl coordinator` process and the trainers over real
+   Zenoh.
 
-Prints: operations recorded, cut points, states tried (kill, power, torn), distinct states checked,
-failures (each: the cut, the state and what broke), time. Run: python bench/crash.py [--real K]
-[--sample N (check N distinct states drawn at random, not all)] [--work DIR] (about 10 minutes on
-a shared 2-core machine for every state).
+Prints: operations recorded, cut points, states tried by kind, distinct states, states checked in
+this process and with real processes, failures (each: the cut, the kind of state, what broke),
+time. Run: python bench/crash.py [--real K] [--sample N (check N distinct states drawn at random,
+not all)] [--work DIR] (about 8 minutes on a shared 2-core machine for every state).
 """
 
 from __future__ import annotations
