@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import gc
 import heapq
 import io
 import json
@@ -689,6 +690,9 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
     driver.run(bodies_total)
     coordinator.close()
     made = time.perf_counter() - start
+    holder = driver.busy[0]
+    del coordinator, driver  # the run made: its heap would slow this process's collections
+    gc.collect()
     journal = segments(run_dir)[0]
     kinds = Counter(msg.type for msg in read_segment(journal))
     times, cpu = [], []
@@ -700,7 +704,6 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
         restarted.close()
         assert restarted.born == bodies_total, restarted.born
         segments(run_dir)[-1].unlink()  # the empty segment each start opens
-    holder = driver.busy[0]
     serving = [_time_to_serving(work, run_dir, holder) for _ in range(repeats)]
     return {
         "bodies": bodies_total,
