@@ -311,6 +311,24 @@ def test_monitor_once_shows_the_run(
         assert shown in text, f"{shown!r} not in\n{text}"
 
 
+def test_a_flood_of_junk_gives_a_few_warnings_and_a_count(
+    procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
+) -> None:
+    """Every node and tool warns about a rejected sample; under a flood (here 50 junk samples
+    every 0.1 s) it printed one line each, hundreds a second. Now: the first few, then a count."""
+    junk = tuple((bus.keys.status(), b"\xffjunk %d" % k) for k in range(50))
+    repeater.start(_a_run(bus.run)[:1], 0.1, raw=junk)
+    monitor = procs.start(
+        "monitor", derl_argv("monitor", "--once", "2", "--run", bus.run, "--connect", endpoint)
+    )
+    procs.finish(monitor)
+    lines = procs.log("monitor").splitlines()
+    rejected = [line for line in lines if "WARNING rejected (malformed)" in line]
+    counts = [line for line in lines if "more like it in 10 s, not shown" in line]
+    assert len(rejected) == 5, lines
+    assert len(counts) == 1 and int(counts[0].split("... and ")[1].split()[0]) > 5, counts
+
+
 def test_example_monitor_prints_fitness(
     procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
 ) -> None:

@@ -20,6 +20,7 @@ from derl.nodes.cli import (
     watch,
 )
 from derl.nodes.errors import DerlError
+from derl.nodes.runtime import ratelimit
 
 
 class Parser(argparse.ArgumentParser):
@@ -62,10 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(
+    logging.basicConfig(  # (nothing if a handler is there already: a test's)
         level=logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
-        stream=sys.stderr,
+        handlers=[ratelimit.install(logging.StreamHandler(sys.stderr))],
     )
     args = build_parser().parse_args(argv)
     try:

@@ -134,6 +134,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--start-offset", type=_non_negative, default=0.0, metavar="S")
     replay.add_argument("--as-run", metavar="NEW", help="publish under this run id instead")
     replay.add_argument("--force", action="store_true", help="even into a run that is live")
+    replay.add_argument(
+        "--skip-damaged",
+        action="store_true",
+        help="replay what can be read of a damaged log (else refused, exit status 1)",
+    )
     add_bus_arguments(replay, run_required=False)
     replay.set_defaults(handler=_clearly(_replay))
 
@@ -319,6 +324,7 @@ def _replay(args: argparse.Namespace) -> int:
         as_run=args.as_run,
         only_run=args.run,
         force=args.force,
+        skip_damaged=args.skip_damaged,
     )
     speed = done.messages / done.seconds if done.seconds else 0.0
     print(

@@ -134,10 +134,10 @@ def journal_run(run_dir: Path) -> str | None:
 def load_history(path: Path) -> RunHistory:
     """The history of a run directory's journal, or of one MCAP file (a segment, a recording);
     `DerlError` with the reason when there is none."""
-    if path.is_dir():
+    if path.is_dir():  # read as every tool reads: past a damaged part, with a warning
         if not segments(path):
             raise DerlError(f"{path} holds no journal (journal/segment-NNNN.mcap)")
-        messages = replay(path)
+        messages = (msg for segment in segments(path) for msg in read_segment(segment))
     elif path.is_file():
         if not is_mcap(path):
             raise DerlError(f"{path} is not an MCAP log (a run directory, a journal "

@@ -24,15 +24,8 @@ from pathlib import Path
 from typing import Literal
 
 from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from derl.nodes.journal.segments import (
-    JournalDamaged,
-    Logged,
-    compact,
-    is_mcap,
-    read_logged,
-    records,
-    segments,
-)
+from derl.nodes.journal.reader import JournalDamaged, records
+from derl.nodes.journal.segments import Logged, compact, is_mcap, read_logged, segments
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
@@ -214,30 +207,43 @@ def _file_info(path: Path) -> FileInfo:
     schemas: dict[int, str] = {}
     channels: dict[int, ChannelInfo] = {}
     footer = False
-    damage: JournalDamaged | None = None  # what ends the file before its last byte
-    try:
-        for record in records(path, strict=True):
-            _count(record, result, schemas, channels)
-            footer = footer or isinstance(record, Footer)
-    except JournalDamaged as error:
-        damage = error
+    damages: list[JournalDamaged] = []  # what is cut or corrupt, in file order
+    before: int | None = None  # messages before the first damage
+    for record in records(path, "skip", damages):
+        if damages and before is None:
+            before = result.messages
+        _count(record, result, schemas, channels)
+        footer = footer or isinstance(record, Footer)
+    before = result.messages if before is None else before
     result.channels = list(channels.values())
     summary_count, summary_error = _summary(path, result)
     n = result.messages
-    if footer and summary_count in (None, n):
+    journal = path.parent.name == "journal"
+    inside = next((d for d in damages if not d.torn_tail), None)  # damage with records after it
+    of = "" if summary_count is None else f" of {summary_count}"
+    if inside is not None:
+        result.integrity = "corrupt"
+        result.detail = (
+            f"damaged at byte {inside.end} of {inside.size} ({type(inside.reason).__name__}), "
+            f"and whole records follow from byte {inside.resumes}: damage, not the torn tail a "
+            f"crash leaves at the end{'; the coordinator will not resume from it' * journal}; "
+            f"{before} messages before the damage, {n}{of} readable in all"
+        )
+    elif footer and summary_count in (None, n):
         result.integrity = "clean"
         result.detail = "complete" if result.indexed else "complete, no index"
     elif footer or summary_count is not None:
         result.integrity = "corrupt"
         result.detail = f"{n} of {summary_count} messages readable (CRC or record)"
     elif _resumed_after(path):  # a coordinator died while writing it and its run resumed
-        if damage is None:  # (a torn tail is cut when the run resumes)
+        if not damages:  # (a torn tail is cut when the run resumes)
             result.integrity = "recovered"
             result.detail = (
                 f"no footer: its writer died between messages (a crash) and the run went on in "
                 f"the next segment; every record whole, {n} messages"
             )
         else:
+            damage = damages[0]
             result.integrity = "corrupt"
             result.detail = (
                 f"damaged at byte {damage.end} of {damage.size} ({type(damage.reason).__name__}), "
@@ -247,9 +253,9 @@ def _file_info(path: Path) -> FileInfo:
     else:
         result.integrity = "truncated"
         torn = ""
-        if damage is not None:
-            resumes = "; resuming the run cuts it" if path.parent.name == "journal" else ""
-            torn = f", then a torn tail of {damage.size - damage.end} bytes{resumes}"
+        if damages:
+            resumes = "; resuming the run cuts it" if journal else ""
+            torn = f", then a torn tail of {damages[0].size - damages[0].end} bytes{resumes}"
         result.detail = (
             f"no footer ({summary_error}): the writer died or is still writing; {n} messages "
             f"recovered{torn}"
