@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from body_variants import variants
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
 from derl.nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
 from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for, write_profile
@@ -33,9 +34,12 @@ CONFIG = StudyConfig(
 )
 
 
-def _plan(genome: Genome) -> RetrainPlan:
-    """Per world two runs' bodies: in ft, a1 (evolution fitness 90) and b1 (10); in vt, c1."""
-    bodies = (("r1", "a1", 90.0, "ft"), ("r2", "b1", 10.0, "ft"), ("r3", "c1", 5.0, "vt"))
+def _plan(genome: Genome, bodies=(("r1", "a1", 90.0, "ft", 0), ("r2", "b1", 10.0, "ft", 1),
+                                   ("r3", "c1", 5.0, "vt", 2))) -> RetrainPlan:  # fmt: skip
+    """Retraining jobs of (run, agent, evolution fitness, world, body) with seeds 7 and 8, body k
+    being variant k of `genome`; by default, two runs' bodies in ft, a1 (evolution fitness 90)
+    and b1 (10), and c1 in vt."""
+    genomes = variants(genome, 1 + max(body[-1] for body in bodies))
     jobs = tuple(
         RetrainJob(
             run=run,
@@ -45,9 +49,9 @@ def _plan(genome: Genome) -> RetrainPlan:
             task=world,
             steps=4096,
             seed=seed,
-            genome=genome,
+            genome=genomes[k],
         )
-        for run, agent, fitness, world in bodies
+        for run, agent, fitness, world, k in bodies
         for seed in (7, 8)
     )
     return RetrainPlan(per_lineage=2, seeds=(7, 8), jobs=jobs)
@@ -98,6 +102,35 @@ def test_the_tests_wait_for_every_retraining_and_take_the_best_by_mean(quadruped
                             task="patrol", ppo=ppo, lease_s=30.0))  # fmt: skip
         state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject="r3.c1", error="x"))
     assert state.eval_given_up == {tests[3]} and state.finished
+
+
+def test_the_kept_hold_each_body_once_ranked_on_every_seed(quadruped: Genome) -> None:
+    """An old plan selected body 0 twice (r1.a1, and r2.b1 of another run) and its retrainings
+    are the same: it is kept and tested once. a3 has 1 of its 2 retrainings (the other given up):
+    its 99 would rank first, it is not ranked."""
+    bodies = (("r1", "a1", 50.0, "ft", 0), ("r2", "b1", 50.0, "ft", 0),
+              ("r1", "a2", 40.0, "ft", 1), ("r1", "a3", 30.0, "ft", 2))  # fmt: skip
+    config = CONFIG.model_copy(update={"top": 2, "keep": 3})
+    state = StudyState(config, _plan(quadruped, bodies))
+    rewards = {"r1.a1": (20.0, 30.0), "r2.b1": (20.0, 30.0), "r1.a2": (10.0, 10.0),
+               "r1.a3": (99.0, None)}  # fmt: skip
+    for n, key in enumerate(state.retraining):
+        reward = rewards[key[0]][key[2] - 7]
+        if reward is None:  # given up
+            genome, ppo = state.evaluation_order(key)
+            for attempt in range(config.max_attempts):
+                state.apply(EvalJob(run="s", job=f"f{attempt}", agent=key[0], node="w",
+                                    genome=genome, task=key[1], ppo=ppo, lease_s=30.0))  # fmt: skip
+                state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject=key[0],
+                                      error="x"))  # fmt: skip
+            continue
+        for msg in _answer(state, key, reward, n):
+            state.apply(msg)
+    assert state.kept() == {"ft": [("r1.a1", 25.0), ("r1.a2", 10.0)]}  # was a3, a1, b1
+    assert state.next_evaluation()[0] == "r1.a1"  # the test stage starts
+    assert state.tested == {"ft": [("r1.a1", 25.0), ("r1.a2", 10.0)]}  # was a3 and a1
+    tests = {key[0] for key in state.planned if key not in state.retraining}
+    assert tests == {"r1.a1", "r1.a2"}
 
 
 def test_a_retraining_given_up_still_lets_the_tests_start(quadruped: Genome) -> None:
