@@ -5,6 +5,7 @@ resumed by real coordinator and evaluator processes, and `derl report` drawing F
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 from pathlib import Path
@@ -14,12 +15,21 @@ import yaml
 from body_variants import variants
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
 from derl.nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
-from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for, write_profile
+from nodes_fixtures import (
+    HandBirth,
+    Processes,
+    derl_argv,
+    free_port,
+    journaled,
+    wait_for,
+    write_hand_run,
+    write_profile,
+)
 
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
 from derl.rl import PPOConfig
-from derl.unimal import Genome
+from derl.unimal import Genome, body_hash
 
 CONFIG = StudyConfig(
     per_lineage=2,
@@ -248,3 +258,52 @@ def test_a_study_saved_when_ppo_held_every_ppoconfig_field_reads_back(tmp_path: 
     saved["config"]["ppo"] = PPOConfig(num_envs=64, total_steps=10**7, seed=5).model_dump()
     (tmp_path / SETUP_FILE).write_text(json.dumps(saved))
     assert read_setup(tmp_path) == setup
+
+
+@pytest.mark.slow
+def test_a_study_selects_retrains_and_tests_each_body_once(
+    tmp_path: Path, quadruped: Genome
+) -> None:
+    """Two FT runs: in ra, c1 (a sibling) and c2 (a child) repeat c0's body D; rb's founder j0 is
+    D too. The top 2 of each surviving lineage, each body once: ra's c0 (D) and i2, rb's k0 and
+    j1, j2 (its j0 is D, selected from ra). A real study retrains and tests them, none twice,
+    and its report says what was counted once."""
+    a, b, c, d, e, f, g = variants(quadruped, 7)
+    write_hand_run(tmp_path / "ra", "ra", "ft", [
+        HandBirth("i0", None, a, 10.0), HandBirth("i1", None, b, 20.0),
+        HandBirth("i2", None, c, 30.0), HandBirth("c0", "i2", d, 50.0),
+        HandBirth("c1", "i2", d, repeat_of="c0"), HandBirth("c2", "c0", d, repeat_of="c0"),
+    ])  # fmt: skip
+    write_hand_run(tmp_path / "rb", "rb", "ft", [
+        HandBirth("j0", None, d, 60.0), HandBirth("j1", None, e, 5.0),
+        HandBirth("j2", None, f, 6.0), HandBirth("k0", "j0", g, 70.0),
+    ])  # fmt: skip
+    profile = tmp_path / "study.yaml"
+    profile.write_text(yaml.safe_dump({"profile": "smoke", "per_lineage": 2, "keep": 3, "top": 2,
+                                       "test_tasks": ["patrol"], "budgets": [2048]}))  # fmt: skip
+    study = tmp_path / "study"
+    _derl("study", str(tmp_path / "ra"), str(tmp_path / "rb"), "--study-dir", str(study),
+          "--profile", str(profile), "--workers", "2", "--port", "0", timeout=600)  # fmt: skip
+    plan = read_plan(study)
+    selected = list(dict.fromkeys((j.run, j.agent) for j in plan.jobs))
+    assert selected == [("ra", "c0"), ("ra", "i2"), ("rb", "k0"), ("rb", "j1"), ("rb", "j2")]
+    assert len({body_hash(j.genome) for j in plan.jobs}) == len(selected)  # D once, not 3 times
+    results = journaled(study, EvalResult)
+    genomes = {f"{j.run}.{j.agent}": body_hash(j.genome) for j in plan.jobs}
+    trained = [(genomes[r.agent], r.task, r.seed, r.steps) for r in results]
+    assert len(trained) == len(set(trained)) == 5 * 2 + 2  # each training of a body once
+    selection = json.loads((study / "selection.json").read_text())["ft"]
+    kept = [genomes[f"{k['run']}.{k['agent']}"] for k in selection["kept"]]
+    tested = [genomes[f"{t['run']}.{t['agent']}"] for t in selection["tested"]]
+    assert len(kept) == len(set(kept)) == 3 and len(tested) == len(set(tested)) == 2
+    out = tmp_path / "report"
+    printed = _derl("report", str(study), "--out", str(out), "--gaits", "0", "--pictures", "0")
+    text = " ".join(printed.stdout.split())
+    assert "ra: 6 births, 4 distinct bodies (2 repeats" in text
+    assert "median fitness of the first 1 births 10, of the last 1 50" in text
+    stats = json.loads((out / "stats.json").read_text())
+    (world,) = stats["worlds"]
+    assert (world["retrained_bodies"], world["shared_bodies"], world["top_agents"]) == (5, 1, 5)
+    bodies = [row for row in csv.DictReader((out / "bodies.csv").open())]
+    counted = [(r["run"], r["id"]) for r in bodies if r["counted"] == "True"]
+    assert ("ra", "c1") not in counted and ("rb", "j0") not in counted and len(counted) == 7

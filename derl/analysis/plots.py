@@ -81,13 +81,14 @@ def _note(axis: Axes, text: str) -> None:
 
 
 def _band(axis: Axes, points: list[Point], style: dict[str, str]) -> bool:
-    """Mean line and CI band of `points`; False (and nothing drawn) when none has a value."""
+    """Mean (or median) line and CI band of `points` (no band where a limit is unknown or
+    unbounded); False (and nothing drawn) when none has a value."""
     shown = [p for p in points if p.value is not None]
     if not shown:
         return False
     x = np.array([p.x for p in shown])
     axis.plot(x, [p.value for p in shown], marker="o" if len(shown) < 12 else None, ms=3, **style)
-    ci = [p for p in shown if p.low is not None]
+    ci = [p for p in shown if p.low is not None and p.high is not None]
     if ci:
         axis.fill_between(
             [p.x for p in ci],
@@ -299,9 +300,13 @@ def baldwin(path: Path, analysis: Analysis) -> Path:
     b.set_title("b. passively stable bodies in the population", fontsize=10)
     _curves(c, analysis, "cost_of_work", "generation", "median cost of work")
     c.set_title("c. cost of work of the top agents' ancestors", fontsize=10)
-    for column, name, what in ((0, "steps_to_criterion", "never reach it"),
-                               (2, "cost_of_work", "no positive reward")):  # fmt: skip
-        _censored(figure.add_subplot(grid[1, column]), analysis, name, what)
+    for column, axis, name, what in ((0, a, "steps_to_criterion", "never reach it"),
+                                     (2, c, "cost_of_work", "no positive reward")):  # fmt: skip
+        below = figure.add_subplot(grid[1, column], sharex=axis)
+        _censored(below, analysis, name, what)
+        generations = [p.x for w in analysis.worlds for p in w.series[name]]
+        if generations:
+            axis.set_xlim(min(generations) - 0.5, max(generations) + 0.5)
     return _save(figure, path)
 
 
@@ -399,16 +404,20 @@ def _energy_scatter(axis: Axes, analysis: Analysis, y: str, colors: dict[str, st
     x_all, y_all = values(analysis.runs, "cost_of_work", False), values(analysis.runs, y, False)
     edges = _edge(x_all), _edge(y_all)
     _points(axis, x_all, y_all, edges, s=8, color="0.75", edgecolors="none")
+    lines = []
     for world, color in colors.items():
         mine = [r for r in analysis.runs if r.run.world == world]
-        rows = [row for row in analysis.correlations
-                if row.world == world and row.y == y and row.generation is None]  # fmt: skip
-        label = f"{world.upper()} top agents; " + "; ".join(
-            f"{row.agents}: {_r(row.pearson, 'Pearson')}, {_r(row.spearman, 'Spearman')}"
-            for row in rows
+        top = values(mine, "cost_of_work", True), values(mine, y, True)
+        _points(axis, *top, edges, s=18, color=color, edgecolors="k", linewidths=0.4,
+                label=f"{world.upper()} top agents")  # fmt: skip
+        lines.extend(
+            f"{world.upper()} {row.agents}: {_r(row.pearson, 'Pearson')}; "
+            f"{_r(row.spearman, 'Spearman')}"
+            for row in analysis.correlations
+            if row.world == world and row.y == y and row.generation is None
         )
-        _points(axis, values(mine, "cost_of_work", True), values(mine, y, True), edges, s=18,
-                color=color, edgecolors="k", linewidths=0.4, label=label)  # fmt: skip
+    axis.text(0.01, 0.01, "\n".join(lines), transform=axis.transAxes, fontsize=6, va="bottom",
+              bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.8"})  # fmt: skip
     axis.set(xlabel="cost of work (>: no positive reward)", ylabel=YLABELS[y])
     axis.set_title(
         "a. fitness vs cost of work"
@@ -417,7 +426,7 @@ def _energy_scatter(axis: Axes, analysis: Analysis, y: str, colors: dict[str, st
         fontsize=10,
     )
     axis.grid(alpha=0.3)
-    axis.legend(fontsize=6)
+    axis.legend(fontsize=7, loc="upper right")
 
 
 def _points(

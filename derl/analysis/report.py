@@ -272,7 +272,7 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 "generation. A body that never reaches it within its budget is censored at its "
                 "budget and counted: the median is Kaplan-Meier's (scipy.stats.ecdf), its 95% CI "
                 "where Greenwood's log-log band of the survival curve crosses 1/2 (no point where "
-                "half or more are censored, an open band where the upper limit is unbounded); "
+                "half or more are censored, no band where the upper limit is unbounded); "
                 "below it, the share censored at each generation. b: share of passively "
                 f"stable bodies in the population over time, a world's runs pooled ({ci}; "
                 "simulated bodies only: n <= runs x P, as in fig. 3). c: median cost of work of "
