@@ -326,6 +326,8 @@ def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
     study = tmp_path / "study"
     derl("study", str(run_dir), "--study-dir", str(study), "--profile", "paper", "--plan-only")
     result = RetrainPlan.model_validate_json((study / "plan.json").read_text())
-    lineages = [line.split(",") for line in (out / "lineages.csv").read_text().splitlines()[1:]]
-    surviving = [min(3, int(row[4])) for row in lineages if row[7] == "True"]
+    lineages = _table(out / "lineages.csv")  # each lineage's top 3, each body once
+    surviving = [
+        min(3, int(row["distinct_bodies"])) for row in lineages if row["surviving"] == "True"
+    ]
     assert len(result.jobs) == 5 * sum(surviving) and len(result.seeds) == 5
