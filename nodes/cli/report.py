@@ -130,6 +130,8 @@ def _report(args: argparse.Namespace) -> int:
         fail(str(error))
     for note in files.notes:
         console.print(f"note: {note}", highlight=False)
+    for line in files.headline:
+        console.print(line, highlight=False)
     console.print(
         f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
         f"{len(files.tables)} tables) in "

@@ -44,7 +44,7 @@ from derl.nodes.journal.history import EvalKey
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.nodes.runtime.rundir import write_atomic
 
-from derl.analysis.selection import RetrainJob, RetrainPlan, by_mean_fitness
+from derl.analysis.selection import RetrainJob, RetrainPlan, kept_bodies
 from derl.analysis.study import StudyConfig
 from derl.rl import PPOConfig
 from derl.unimal import Genome
@@ -86,18 +86,14 @@ class StudyState(CoordinatorState):
                             self._plan((agent, task, seed, steps))
 
     def kept(self) -> dict[str, list[tuple[str, float]]]:
-        """Per world, the `keep` best retrained bodies by mean fitness over their new seeds."""
+        """Per world, the `keep` best retrained bodies by mean fitness over their new seeds (each
+        body once, ranked only with every seed's result: `derl.analysis.selection.kept_bodies`)."""
         results = [
-            (key[0], self.evaluations[key].reward)
+            (key[0], key[2], self.evaluations[key].reward)
             for key in self.retraining
             if key in self.evaluations
         ]
-        return {
-            world: [(a, f) for a, f in by_mean_fitness(results) if self.selected[a].task == world][
-                : self.config.keep
-            ]
-            for world in self.worlds
-        }
+        return kept_bodies(self.selected, results, self.config.keep)
 
     def evaluation_order(self, key: EvalKey) -> tuple[Genome, PPOConfig]:
         agent, task, seed, steps = key
