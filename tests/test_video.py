@@ -91,18 +91,28 @@ def test_the_camera_follows_the_body_over_an_episode(quadruped: Genome, task: st
     assert env.head_pos[0, 0] - start[0] > 7.5
 
 
-def test_mvt_shows_the_box_and_its_goal_from_the_start(quadruped: Genome) -> None:
+def test_mvt_shows_the_box_and_its_goal_then_the_goal_from_the_box(quadruped: Genome) -> None:
     env = _env(quadruped, "mvt")
     recorder = FrameRecorder(env)  # full size: the goal is 30 m or more away
-    try:
-        recorder.frame()
-        seen = set(np.unique(_segments(recorder)))
-    finally:
-        recorder.close()
     model = recorder.set.model
     box = model.geom("box").id
     goal = set(np.flatnonzero(model.geom_bodyid == model.body("goal").id))
-    assert box in seen and goal & seen
+    try:
+        recorder.frame()
+        seen = set(np.unique(_segments(recorder)))
+        assert box in seen and goal & seen
+        (carried,) = recorder.set.objects
+        floor = carried.position[0, 2] - carried.half
+        at_box = [*(carried.position[0, :2] - [1.0, 0.0]), floor + env.rest_height + 0.05]
+        for _ in range(25):  # the body held 1 m from the box: the camera turns to the goal
+            env.qpos[0, env.root : env.root + 3] = at_box
+            env.qvel[0] = 0.0
+            env.step(np.zeros((1, env.model.nu)))
+            recorder.frame()
+        np.testing.assert_array_equal(recorder.set.focus(env.head_pos[0]), carried.goal[0])
+        assert goal & set(np.unique(_segments(recorder)))
+    finally:
+        recorder.close()
 
 
 def test_the_drawn_terrain_is_the_one_the_physics_uses(quadruped: Genome) -> None:
