@@ -4,6 +4,9 @@ suite's order: the tests marked slow first."""
 from __future__ import annotations
 
 import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen frames, as the derl command; before MuJoCo
+
 from collections.abc import Iterator
 from pathlib import Path
 

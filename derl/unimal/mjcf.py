@@ -1,7 +1,7 @@
 """Compile a genome into a MuJoCo model with `mujoco.MjSpec`: bodies, motors, sensors, exclusions.
 
 `agent_spec` builds the body alone (a free-floating head with its limb tree), the piece every
-environment attaches to its world. `standalone_spec` puts it on a floor with a light, so the saved
+environment attaches to its world. `standalone_spec` puts it on a floor under a sky, so the saved
 MJCF opens in MuJoCo's viewer as it is. Names: body/geom ``head`` and ``limb<id>`` (a mirror twin
 is ``limb<id>_mirror``); sites ``<part>_mid``, ``<part>_end``, ``<part>_tip``, ``<part>_touch`` and
 ``head_imu``; hinges and their motors ``<part>_x`` / ``<part>_y``; sensors ``head_accel``,
@@ -15,6 +15,7 @@ import numpy as np
 
 from derl.unimal.genome import Genome
 from derl.unimal.geometry import LimbPart, bounding_box, layout
+from derl.unimal.scenery import add_scenery
 from derl.unimal.space import HEAD_RADIUS, LIMB_RADIUS
 
 TIMESTEP = 0.005
@@ -65,34 +66,15 @@ def agent_spec(genome: Genome, head_height: float | None = None) -> mujoco.MjSpe
 
 
 def standalone_spec(genome: Genome, clearance: float = 0.05) -> mujoco.MjSpec:
-    """The body standing `clearance` above a floor, with a light: a complete MJCF scene."""
+    """The body standing `clearance` above a floor, with a sky and lights: a complete MJCF
+    scene."""
     spec = agent_spec(genome, head_height=rest_height(layout(genome)) + clearance)
-    spec.add_texture(
-        name="sky",
-        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
-        rgb1=[0.75, 0.85, 0.95],
-        rgb2=[1.0, 1.0, 1.0],
-        width=256,
-        height=256,
-    )
-    spec.add_texture(
-        name="checker",
-        type=mujoco.mjtTexture.mjTEXTURE_2D,
-        builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-        rgb1=[0.92, 0.92, 0.9],
-        rgb2=[0.8, 0.8, 0.78],
-        width=256,
-        height=256,
-    )
-    floor = spec.add_material(name="floor", texrepeat=[40, 40])
-    floor.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "checker"
-    spec.worldbody.add_light(pos=[0, 0, 4], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8])
+    material = add_scenery(spec, spec.body("head"))
     spec.worldbody.add_geom(
         name="floor",
         type=mujoco.mjtGeom.mjGEOM_PLANE,
         size=[50, 50, 0.1],
-        material="floor",
+        material=material,
         condim=3,
         friction=list(FRICTION),
     )

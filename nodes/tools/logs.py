@@ -26,6 +26,7 @@ from typing import Literal
 from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
 from derl.nodes.journal.reader import JournalDamaged, records
 from derl.nodes.journal.segments import Logged, compact, is_mcap, read_logged, segments
+from derl.nodes.tools.viewer_schema import viewer_schema
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
@@ -93,19 +94,9 @@ def base64_text(data: bytes) -> str:
 
 
 def json_schema(message_type: str) -> dict[str, object]:
-    """The model's JSON schema, with bytes fields as base64 strings (Foxglove's convention)."""
-
-    def fix(node: object) -> object:
-        if isinstance(node, dict):
-            if node.get("format") == "binary":
-                node = {k: v for k, v in node.items() if k not in ("format", "maxLength")}
-                node["contentEncoding"] = "base64"
-            return {key: fix(value) for key, value in node.items()}
-        if isinstance(node, list):
-            return [fix(item) for item in node]
-        return node
-
-    return fix(MESSAGE_TYPES[message_type].model_json_schema())  # type: ignore[return-value]
+    """The message type's JSON schema in the form Foxglove and Lichtblick read
+    (`nodes.tools.viewer_schema`: references inlined, bytes as base64 strings)."""
+    return viewer_schema(MESSAGE_TYPES[message_type])
 
 
 def export_json(source: Path, out: Path) -> int:
