@@ -66,7 +66,8 @@ class PPOConfig(PPOHyperparameters):
         409_600,
         ge=1,
         description="the fitness averages the curve's values of the iterations in the last this "
-        "many steps (the released code's 100 iterations)",
+        "many steps (a run's: the released code's last 100 of 1220 iterations, as a share of "
+        "the budget)",
     )
 
     @property
