@@ -232,6 +232,18 @@ def test_time_limit_truncates(quadruped: Genome) -> None:
     assert (result.final_obs["proprioception"] != result.obs["proprioception"]).any(axis=1).all()
 
 
+def test_a_fall_at_the_time_limit_is_a_timeout(quadruped: Genome) -> None:
+    """The released code marks a step at the limit a timeout even when it also ends the episode
+    (`TimeLimitMask`: done at the limit), and its advantage then treats it as one."""
+    env = _env(quadruped, "ft", n=2, episode_steps=1)
+    env.reset(0)
+    env.qpos[0, env.root + 2] = 0.3 * env.rest_height
+    env.batch.forward()
+    result = env.step(np.zeros((2, env.action_dim), np.float32))
+    assert result.terminated.tolist() == [True, False]
+    assert result.truncated.all()
+
+
 def test_unstable_physics_ends_only_that_copy(quadruped: Genome) -> None:
     env = _env(quadruped, "ft", n=3)
     env.reset(0)

@@ -53,18 +53,19 @@ def test_config_defaults_are_the_papers_and_unknown_keys_fail() -> None:
 
 
 def test_gae_by_hand_with_termination_and_truncation() -> None:
-    # Copy 0 terminates at step 1; copy 1 is truncated at step 0 with V(final_obs) = 10.
-    rewards = np.ones((3, 2), np.float32)
-    values = np.array([[1, 5], [2, 6], [3, 7], [4, 8]], np.float32)
-    final_values = np.array([[0, 10], [0, 0], [0, 0]], np.float32)
-    terminated = np.array([[0, 0], [1, 0], [0, 0]], bool)
-    truncated = np.array([[0, 1], [0, 0], [0, 0]], bool)
-    adv, ret = compute_gae(rewards, values, final_values, terminated, truncated, 0.5, 0.5)
+    # The released code's Buffer.compute_returns: copy 0 terminates at step 1; copy 1 hits the
+    # time limit at step 1; copy 2 hits it at step 2 while also terminating (a timeout there).
+    rewards = np.ones((3, 3), np.float32)
+    values = np.array([[1, 5, 1], [2, 6, 1], [3, 7, 1], [4, 8, 1]], np.float32)
+    terminated = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1]], bool)
+    truncated = np.array([[0, 0, 0], [0, 1, 0], [0, 0, 1]], bool)
+    adv, ret = compute_gae(rewards, values, terminated, truncated, 0.5, 0.5)
     # Copy 0: d2 = 1 + .5*4 - 3 = 0; d1 = 1 - 2 = -1 (no bootstrap); d0 = 1 + .5*2 - 1 = 1,
     #   A0 = d0 + .25*A1 = .75.
-    # Copy 1: d2 = 1 + .5*8 - 7 = -2; d1 = 1 + .5*7 - 6 = -1.5, A1 = -1.5 + .25*(-2) = -2;
-    #   d0 = 1 + .5*10 - 5 = 1 and the trace stops at the truncation, A0 = 1.
-    expected = np.array([[0.75, 1.0], [-1.0, -2.0], [0.0, -2.0]])
+    # Copy 1: A1 = 0 (its reward unused, its return V(s1) = 6); d2 = 1 + .5*8 - 7 = -2;
+    #   d0 = 1 + .5*6 - 5 = -1 bootstraps from V(s1), A0 = -1 + .25*0 = -1.
+    # Copy 2: A2 = 0; d1 = 1 + .5*1 - 1 = .5 = A1; A0 = .5 + .25*.5 = .625.
+    expected = np.array([[0.75, -1.0, 0.625], [-1.0, 0.0, 0.5], [0.0, -2.0, 0.0]])
     np.testing.assert_allclose(adv, expected, atol=1e-6)
     np.testing.assert_allclose(ret, expected + values[:-1], atol=1e-6)
 
@@ -331,7 +332,7 @@ def test_gym_adapter_autoresets_and_reports_truncation() -> None:
     for _ in range(5):
         step = env.step(np.zeros((3, 1), np.float32))
     assert step.truncated.all() and not step.terminated.any()
-    assert not np.array_equal(step.final_obs["proprioception"], step.obs["proprioception"])
+    assert not env.step(np.zeros((3, 1), np.float32)).truncated.any()  # new episodes
     np.testing.assert_array_equal(step.components["reward"], step.reward)
     env.close()
 

@@ -55,7 +55,8 @@ class EnvConfig(BaseModel):
 
 @dataclass(frozen=True)
 class StepResult:
-    """One batched step (the fields of `derl.rl.StepResult`)."""
+    """One batched step: the fields of `derl.rl.StepResult`, and the observations the finished
+    copies ended with (`final_obs`, for `derl.envs.gym_env`)."""
 
     obs: Arrays
     reward: np.ndarray
@@ -150,7 +151,7 @@ class UnimalEnv:
         terminated |= self._off_arena()
         if self.task.success is not None:
             terminated |= self.task.success(self)
-        truncated = ~terminated & (self.steps >= self.config.episode_steps)
+        truncated = self.steps >= self.config.episode_steps  # terminated or not (the code's)
         obs = self._observe(self.all)
         final_obs = obs
         done = (terminated | truncated).nonzero()[0]

@@ -330,10 +330,8 @@ class FusedActorCritic:
             for key, sparse in zip(self.keys, self.actor.sparse, strict=True)
         ]
 
-    def values(
-        self, obs: dict[str, torch.Tensor], cache: bool = True, nonzero: _At | None = None
-    ) -> np.ndarray:
-        """(rows,) critic values; `cache` keeps the buffers for the next call of the same size;
+    def values(self, obs: dict[str, torch.Tensor], nonzero: _At | None = None) -> np.ndarray:
+        """(rows,) critic values (the buffers are kept for the next call of the same size);
         `nonzero`: `nonzero_rows(obs)` where already known."""
         nonzero = self.nonzero_rows(obs) if nonzero is None else nonzero
         xs, at = [], []
@@ -343,9 +341,7 @@ class FusedActorCritic:
             at.append(rows)
         act = self._valuing
         if act is None or act.f.shape[0] != len(obs[self.keys[0]]):
-            act = self.critic.activations(len(obs[self.keys[0]]))
-            if cache:
-                self._valuing = act
+            act = self._valuing = self.critic.activations(len(obs[self.keys[0]]))
         return self.critic.forward(xs, at, act)[:, 0].numpy().copy()
 
     def minibatch(self, rows: int, dims: list[int], aux: int) -> _Minibatch:
