@@ -151,7 +151,7 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
         1,
     )
     coef = PPOCoefficients(
-        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9, kl_stop=1e9
     )
     net.zero_grad()
     _released_loss(net, obs, aux, coef).backward()
@@ -161,7 +161,7 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
     flat_rows = len(range(rows)[flat])
     assert [None if at is None else len(at) for at in mb.at] == [rows - flat_rows, None]
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.arange(rows))
-    fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
+    assert fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
     flat = torch.cat(
         [
             g
@@ -180,6 +180,35 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
         if flat_rows == rows
         else set()
     )
+
+
+def test_a_minibatch_beyond_the_kl_limit_stops_the_update() -> None:
+    """The released code's `train_on_batch`: before each minibatch's step, the approximate KL
+    mean(old log-prob - log-prob) over the minibatch; above KL_TARGET_COEF x 0.01 = 0.2 the
+    update ends without that step."""
+    torch.manual_seed(0)
+    rows, a = 64, 3
+    obs_spaces = {"proprioception": 5}
+    fused = FusedActorCritic(ActorCritic(obs_spaces, a), lr=3e-4, adam_eps=1e-5)
+    obs = {"proprioception": torch.randn(rows, 5)}
+    noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
+    actions = np.empty_like(noise)
+    fused.begin_sampling()
+    fused.act({"proprioception": obs["proprioception"].numpy()}, noise, actions)
+    log_prob = torch.from_numpy(fused.log_prob_of_noise(noise))
+    coef = PPOCoefficients(
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=0.5, kl_stop=0.2
+    )
+    mb = fused.minibatch(rows, [5], a + 4)
+    for shift, steps in ((0.25, False), (0.15, True)):  # the KL is the old log-prob's excess
+        aux = torch.cat(
+            [torch.from_numpy(actions), (log_prob + shift)[:, None], torch.randn(rows, 3)], 1
+        )
+        mb.gather([obs["proprioception"]], [None], aux, torch.arange(rows))
+        before = fused.theta.clone()
+        assert fused.step(mb, coef) is steps
+        assert torch.equal(fused.theta, before) is not steps
+    assert PPOConfig().kl_stop == 0.2
 
 
 def test_fused_adam_steps_as_torch_optim_adam() -> None:
@@ -337,7 +366,7 @@ def test_gym_adapter_autoresets_and_reports_truncation() -> None:
     env.close()
 
 
-def _short_run(seed: int) -> tuple[TrainResult, list[Progress]]:
+def _short_run(seed: int, **options: object) -> tuple[TrainResult, list[Progress]]:
     env = GymBatchedEnv("InvertedPendulum-v5", 4)
     config = PPOConfig(
         num_envs=4,
@@ -346,6 +375,7 @@ def _short_run(seed: int) -> tuple[TrainResult, list[Progress]]:
         minibatch_size=64,
         fitness_component="reward",
         seed=seed,
+        **options,
     )
     progress = []
     result = train(env, config, callback=progress.append)
@@ -361,6 +391,10 @@ def test_training_is_reproducible() -> None:
     assert first.curve == second.curve
     assert first.num_episodes == second.num_episodes > 0
     assert first.time_split.physics_s is None  # the gymnasium adapter does not count it
+    assert first.kl_stops == 0
+    stopped, _ = _short_run(seed=3, kl_stop=1e-12)  # every update stops at once
+    assert stopped.kl_stops == 2
+    assert stopped.curve != first.curve
     for key, value in first.checkpoint.weights.items():
         assert torch.equal(value, second.checkpoint.weights[key]), key
 

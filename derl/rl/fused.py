@@ -12,7 +12,8 @@ weights into one flat vector (`store_into` copies them back) and runs
 - `step`: one minibatch of the clipped PPO loss of the released code (clipped surrogate, clipped
   value loss, entropy bonus as the mean over action dimensions), its gradient by the chain rule,
   gradient-norm clipping and one step of torch's fused Adam kernel on the flat vector, called
-  directly (`torch.optim.Adam` costs ~0.14 ms a step around it, and its constructor imports
+  directly, unless the minibatch's approximate KL exceeds its limit (the released code's early
+  stop) (`torch.optim.Adam` costs ~0.14 ms a step around it, and its constructor imports
   torch._dynamo: ~0.8 s once per process).
 
 Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed. The update's
@@ -238,9 +239,10 @@ class PPOCoefficients:
     value_coef: float
     entropy_coef: float
     max_grad_norm: float
+    kl_stop: float
 
 
-class _Minibatch:
+class Minibatch:
     """Buffers of one minibatch of `rows`: gathered inputs, activations and gradient scratch."""
 
     def __init__(self, net: FusedActorCritic, rows: int, dims: list[int], aux: int) -> None:
@@ -285,7 +287,7 @@ class FusedActorCritic:
         self.adam = _Adam(self.theta, self.grad, lr, adam_eps)
         self._acting: _Activations[np.ndarray] | None = None
         self._valuing: _Activations[torch.Tensor] | None = None
-        self._minibatch: _Minibatch | None = None
+        self._minibatch: Minibatch | None = None
 
     def load_from_net(self) -> None:
         for layer in self.actor.layers + self.critic.layers:
@@ -344,17 +346,19 @@ class FusedActorCritic:
             act = self._valuing = self.critic.activations(len(obs[self.keys[0]]))
         return self.critic.forward(xs, at, act)[:, 0].numpy().copy()
 
-    def minibatch(self, rows: int, dims: list[int], aux: int) -> _Minibatch:
+    def minibatch(self, rows: int, dims: list[int], aux: int) -> Minibatch:
         """Buffers for `step` (allocated on the first call)."""
         if self._minibatch is None:
-            self._minibatch = _Minibatch(self, rows, dims, aux)
+            self._minibatch = Minibatch(self, rows, dims, aux)
         return self._minibatch
 
-    def step(self, mb: _Minibatch, coef: PPOCoefficients) -> None:
-        """One PPO gradient step on the minibatch gathered in `mb` (`_Minibatch.gather`): its
+    def step(self, mb: Minibatch, coef: PPOCoefficients) -> bool:
+        """One PPO gradient step on the minibatch gathered in `mb` (`Minibatch.gather`): its
         inputs, and in `mb.aux` the columns [actions (A), old log-prob, advantage, old value,
         return]. The loss's gradient with respect to the heads' outputs is computed in numpy (on
-        512 values, a numpy call costs a fraction of a torch call)."""
+        512 values, a numpy call costs a fraction of a torch call). False, and no step, where the
+        minibatch's approximate KL, mean(old log-prob - log-prob), exceeds `coef.kl_stop` (the
+        released code's `train_on_batch`, which then ends the update)."""
         a_dim, rows = self.action_dim, mb.aux.shape[0]
         aux = mb.aux.numpy()
         actions = aux[:, :a_dim]
@@ -371,7 +375,10 @@ class FusedActorCritic:
         log_prob = np.add.reduce(sq, axis=1)
         log_prob *= -0.5
         log_prob -= np.float32(np.add.reduce(log_std) + a_dim * _HALF_LOG_2PI)
-        ratio = np.exp(np.subtract(log_prob, old_log_prob, out=log_prob), out=log_prob)
+        log_ratio = np.subtract(log_prob, old_log_prob, out=log_prob)
+        if -float(np.add.reduce(log_ratio)) / rows > coef.kl_stop:
+            return False
+        ratio = np.exp(log_ratio, out=log_ratio)
         surr = ratio * adv
         clipped = np.minimum(np.maximum(ratio, 1.0 - coef.clip), 1.0 + coef.clip, out=ratio)
         clipped *= adv
@@ -403,6 +410,7 @@ class FusedActorCritic:
         if scale < 1.0:
             self.grad.mul_(scale)
         self.adam.step()
+        return True
 
     def set_lr(self, lr: float) -> None:
         self.adam.lr = lr

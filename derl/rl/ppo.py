@@ -2,7 +2,8 @@
 
 One iteration collects `rollout_steps` batched steps into preallocated numpy buffers (the network
 reads them through shared-memory torch views), computes GAE, and runs `epochs` passes of shuffled
-minibatches. The step that ends an episode at its time limit gets advantage 0 and its own value
+minibatches, until a minibatch's approximate KL exceeds `kl_stop` (the released code's early
+stop). The step that ends an episode at its time limit gets advantage 0 and its own value
 as the return, and the steps before it bootstrap from that step's value (the released code's
 `Buffer.compute_returns`); a termination bootstraps from nothing. The fitness and the learning
 curve come from raw (unscaled) reward components.
@@ -22,7 +23,7 @@ from derl.rl.checkpoint import Checkpoint
 from derl.rl.config import PPOConfig
 from derl.rl.env_api import BatchedEnv
 from derl.rl.episodes import EpisodeLog, EpisodeTracker, FitnessSource
-from derl.rl.fused import FusedActorCritic, PPOCoefficients
+from derl.rl.fused import FusedActorCritic, Minibatch, PPOCoefficients
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer, RewardScaler
 
@@ -80,6 +81,8 @@ class TrainResult:
     flat_rows: float | None
     """Share of the heightmap rows that were all zero (flat ground), whose first-layer products
     the update and the values skipped; None without a heightmap."""
+    kl_stops: int
+    """Updates that the approximate KL stopped before their last minibatch (`kl_stop`)."""
 
     @property
     def num_episodes(self) -> int:
@@ -156,6 +159,7 @@ class _Trainer:
             value_coef=config.value_coef,
             entropy_coef=config.entropy_coef,
             max_grad_norm=config.max_grad_norm,
+            kl_stop=config.kl_stop,
         )
         self.rng = np.random.default_rng(config.seed)  # action noise and minibatch order
         self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip)
@@ -167,6 +171,7 @@ class _Trainer:
         self.env_steps = 0
         self.env_s = self.inference_s = self.update_s = 0.0
         self.sparse_rows = self.sparse_nonzero = 0
+        self.kl_stops = 0
 
     def reset(self) -> None:
         raw = self.env.reset(self.config.seed)
@@ -205,7 +210,7 @@ class _Trainer:
         self.inference_s += time.perf_counter() - t0
 
     def update(self, iteration: int) -> None:
-        """Values, GAE, then `epochs` passes of shuffled minibatches over the rollout."""
+        """Values, GAE, then the minibatch passes over the rollout (`_epochs`)."""
         config, buf, fused = self.config, self.buf, self.fused
         count = buf.values.size  # rows: every step of every copy, and the next observation
         obs = {k: v.view(count, -1) for k, v in buf.obs_t.items()}
@@ -234,14 +239,29 @@ class _Trainer:
         sources = [obs[k][:n] for k in fused.keys]
         aux = torch.from_numpy(buf.aux.reshape(n, -1))
         mb = fused.minibatch(size, [s.shape[1] for s in sources], aux.shape[1])
-        for _ in range(config.epochs):
-            order = torch.from_numpy(self.rng.permutation(n))
-            for start in range(0, n - size + 1, size):
-                mb.gather(sources, nonzero, aux, order[start : start + size])
-                fused.step(mb, self.coef)
+        if not self._epochs(mb, sources, nonzero, aux):
+            self.kl_stops += 1
         for rows in buf.obs.values():
             rows[0] = rows[-1]  # the last observation starts the next rollout
         self.update_s += time.perf_counter() - t0
+
+    def _epochs(
+        self,
+        mb: Minibatch,
+        sources: list[torch.Tensor],
+        nonzero: list[torch.Tensor | None],
+        aux: torch.Tensor,
+    ) -> bool:
+        """`epochs` passes of shuffled minibatches; False where a minibatch's approximate KL
+        stopped them (the released code returns from its update there)."""
+        n, size = self.config.batch_size, self.config.minibatch_size
+        for _ in range(self.config.epochs):
+            order = torch.from_numpy(self.rng.permutation(n))
+            for start in range(0, n - size + 1, size):
+                mb.gather(sources, nonzero, aux, order[start : start + size])
+                if not self.fused.step(mb, self.coef):
+                    return False
+        return True
 
     def checkpoint(self) -> Checkpoint:
         self.fused.store_into_net()
@@ -298,4 +318,5 @@ def train(
         flat_rows=(
             1.0 - trainer.sparse_nonzero / trainer.sparse_rows if trainer.sparse_rows else None
         ),
+        kl_stops=trainer.kl_stops,
     )
