@@ -211,6 +211,33 @@ def test_a_minibatch_beyond_the_kl_limit_stops_the_update() -> None:
     assert PPOConfig().kl_stop == 0.2
 
 
+def test_value_gradient_where_the_clipped_term_wins_by_rounding() -> None:
+    """Within the value clip the clipped term equals the unclipped one, but in float32
+    v_old + (v - v_old) need not round back to v: where the clipped term comes out larger, the
+    max passes its gradient (autograd's), which the hand-written gradient had dropped."""
+    torch.manual_seed(0)
+    rows, spaces = 512, {"proprioception": 7}
+    net = ActorCritic(spaces, 2)
+    fused = FusedActorCritic(net, lr=3e-4, adam_eps=1e-5)
+    obs = {"proprioception": torch.randn(rows, 7)}
+    gen = torch.Generator().manual_seed(1)
+    value = net.value(obs).detach()
+    old_value = value + 0.1 * torch.randn(rows, generator=gen)  # every row within the clip
+    actions = net.action_mean(obs).detach()
+    old_log_prob = torch.distributions.Normal(actions, 1.0).log_prob(actions).sum(-1)
+    aux = torch.cat([actions, old_log_prob[:, None], torch.zeros(rows, 1), old_value[:, None]], 1)
+    aux = torch.cat([aux, torch.randn(rows, 1, generator=gen)], 1)
+    coef = PPOCoefficients(
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=1e9, kl_stop=1e9
+    )
+    net.zero_grad()
+    _released_loss(net, obs, aux, coef).backward()
+    mb = fused.minibatch(rows, [7], aux.shape[1])
+    mb.gather([obs["proprioception"]], [None], aux, torch.arange(rows))
+    fused.step(mb, coef)
+    torch.testing.assert_close(fused.critic.head.gb, net.value_head.bias.grad, atol=1e-7, rtol=1e-5)
+
+
 def test_fused_adam_steps_as_torch_optim_adam() -> None:
     """The directly called kernel moves the parameters exactly as `torch.optim.Adam` does,
     through steps with different gradients and a changed learning rate."""

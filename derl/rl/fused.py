@@ -393,13 +393,18 @@ class FusedActorCritic:
         g_log_std -= np.float32(np.add.reduce(g_log_prob) + coef.entropy_coef / a_dim)
 
         # Value: 0.5 * mean(max((v - R)^2, (v_old + clip(v - v_old) - R)^2)), times value_coef.
+        # The max passes the gradient of the larger term: err, or where the clipped one is larger
+        # (by rounding alone while v - v_old lies within the clip) and v - v_old within the clip
+        # (inclusive, as torch.clamp's gradient), clipped_err; else nothing.
         err = value - ret
         clipped_err = np.subtract(value, old_value)
+        inside = np.abs(clipped_err) <= coef.value_clip
         np.minimum(np.maximum(clipped_err, -coef.value_clip), coef.value_clip, out=clipped_err)
         clipped_err += old_value
         clipped_err -= ret
-        keep = np.square(err) >= np.square(clipped_err, out=clipped_err)
-        g_value = np.multiply(err, keep, out=mb.g_value.numpy()[:, 0])
+        keep = np.square(err) >= np.square(clipped_err)
+        g_value = mb.g_value.numpy()[:, 0]
+        np.copyto(g_value, np.where(keep, err, np.multiply(clipped_err, inside)))
         g_value *= coef.value_coef / rows
 
         self.actor.backward(mb.x, mb.at, mb.actor, mb.g_mean, mb.tmp)
