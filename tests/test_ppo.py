@@ -78,8 +78,11 @@ def test_network_shapes_and_init() -> None:
     assert net.actor.fuse[0].in_features == 128
     assert torch.equal(net.log_std, torch.zeros(12))
     assert all(not m.bias.any() for m in net.modules() if isinstance(m, torch.nn.Linear))
-    single = ActorCritic({"obs": 4}, 1)
-    assert single.actor.fuse[0].in_features == 64
+    # One observation type: its MLP straight into the heads (the released MLPObsEncoder)
+    single = ActorCritic({"proprioception": 4}, 1)
+    assert single.actor.fuse is None and single.critic.fuse is None
+    assert sum(p.numel() for p in single.actor.parameters()) == (4 + 1) * 64 + 65 * 64
+    assert single.action_mean({"proprioception": torch.zeros(3, 4)}).shape == (3, 1)
 
 
 def _released_loss(
@@ -105,20 +108,30 @@ def _released_loss(
     return pi_loss + coef.value_coef * value_loss - coef.entropy_coef * entropy
 
 
-@pytest.mark.parametrize("flat", [slice(None, None, 3), slice(None)], ids=["some", "all"])
-def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
+@pytest.mark.parametrize(
+    ("spaces", "flat"),
+    [
+        (DERL_OBS, slice(None, None, 3)),
+        (DERL_OBS, slice(None)),
+        ({"proprioception": 50}, slice(0)),
+    ],
+    ids=["heightmap-some-flat", "heightmap-all-flat", "proprioception-only"],
+)
+def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: slice) -> None:
     """Sampling, values and the hand-written PPO gradient equal torch's on the released loss,
-    with some or all heightmap rows zero (flat ground, which the first layer skips)."""
+    with some or all heightmap rows zero (flat ground, which the first layer skips), and with
+    proprioception alone (no fuse layer)."""
     torch.manual_seed(0)
     rows, a = 64, 12
-    net = ActorCritic(DERL_OBS, a)
+    net = ActorCritic(spaces, a)
     with torch.no_grad():
         net.log_std.copy_(torch.linspace(-1.0, 0.5, a))
         for p in net.parameters():  # biases away from their zero init, so their gradients count
             p.add_(0.05 * torch.randn_like(p))
     fused = FusedActorCritic(net, lr=3e-4, adam_eps=1e-5)
-    obs = {k: torch.randn(rows, d) for k, d in DERL_OBS.items()}
-    obs["heightmap"][flat] = 0.0
+    obs = {k: torch.randn(rows, d) for k, d in spaces.items()}
+    if "heightmap" in obs:
+        obs["heightmap"][flat] = 0.0
 
     noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
     actions = np.empty_like(noise)
@@ -155,11 +168,12 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
     )
     net.zero_grad()
     _released_loss(net, obs, aux, coef).backward()
-    mb = fused.minibatch(rows, [DERL_OBS[k] for k in fused.keys], aux.shape[1])
+    mb = fused.minibatch(rows, [spaces[k] for k in fused.keys], aux.shape[1])
     sources = [obs[k] for k in fused.keys]
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.randperm(rows, generator=gen))
     flat_rows = len(range(rows)[flat])
-    assert [None if at is None else len(at) for at in mb.at] == [rows - flat_rows, None]
+    expected_at = [rows - flat_rows, None] if "heightmap" in obs else [None]
+    assert [None if at is None else len(at) for at in mb.at] == expected_at
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.arange(rows))
     assert fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
     flat = torch.cat(
@@ -177,7 +191,7 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
     # (all rows flat: the heightmap's first weights have no gradient)
     assert still == (
         {f"{tower}.branches.heightmap.0.weight" for tower in ("actor", "critic")}
-        if flat_rows == rows
+        if flat_rows == rows and "heightmap" in obs
         else set()
     )
 
@@ -375,6 +389,11 @@ def test_checkpoint_bytes_give_identical_actions() -> None:
     buffer = io.BytesIO()
     torch.save(old, buffer)
     with pytest.raises(ValueError, match="checkpoint format 1"):
+        Checkpoint.from_bytes(buffer.getvalue())
+    old["format"] = 2  # a proprioception-only network had a fuse layer
+    buffer = io.BytesIO()
+    torch.save(old, buffer)
+    with pytest.raises(ValueError, match="format 2 gave a network of one observation type"):
         Checkpoint.from_bytes(buffer.getvalue())
 
 
