@@ -23,7 +23,7 @@ from derl.envs.rewards import REWARD_WEIGHTS, Escape, Forward, RewardWeights
 from derl.envs.task import Task
 from derl.envs.terrain import Terrain, TerrainConfig
 from derl.envs.view import EnvView
-from derl.unimal import Genome
+from derl.unimal import Genome, Joint, Limb
 
 SMALL_VT = TerrainConfig.variable(size_x=30.0, size_y=10.0)
 SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=24.0)
@@ -220,6 +220,21 @@ def test_fall_ends_the_episode(quadruped: Genome) -> None:
     assert env.steps.tolist() == [0, 1]  # copy 0 was reset in place
     spawn_height = env.rest_height + env.config.spawn_clearance
     assert env.head_pos[0, 2] == pytest.approx(spawn_height, abs=0.02)
+
+
+def test_a_body_spawns_and_falls_as_the_released_code() -> None:
+    """`set_head_pos`: the head 0.2 m (FLOOR_OFFSET) above the body's lowest point, the lowest
+    limb tip on its axis (a `btm_pos` site), not the rounded end below it; a fall is the head
+    below half that resting height (`orig_height`)."""
+    joint = Joint(axis="x", range=(-30, 60), gear=200)
+    legs = Limb(id=0, paired=True, length=0.3, theta=45, phi=135, joints=(joint,))
+    env = _env(Genome(head_density=700, limb_density=600, limbs=(legs,)), "ft", n=3)
+    # tip: head radius 0.1, then 2 r + h = 0.4 along the leg, 45 degrees down
+    assert env.rest_height == pytest.approx(0.5 * np.sqrt(0.5))
+    assert env.config.spawn_clearance == 0.2
+    env.reset(0)
+    np.testing.assert_allclose(env.head_pos[:, 2], env.rest_height + 0.2, atol=0.006)
+    assert env.fall_height == pytest.approx(0.5 * env.rest_height)
 
 
 def test_time_limit_truncates(quadruped: Genome) -> None:

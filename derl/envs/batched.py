@@ -1,12 +1,13 @@
 """N copies of one body in one task, stepped together in C by `mujoco.batch.Batch`.
 
 The model is compiled once per body and task; terrain, objects and goals change per episode by
-writing into the model copies and the state, never by recompiling. Observations, rewards and
-endings are numpy operations over all copies at once. Each step applies the actions (clipped to
-[-1, 1]) for 4 physics steps of 5 ms (50 Hz control); an episode lasts 1000 control steps unless
-the head falls below half its resting height (or the task's `fall_ratio`), leaves the arena, the
-task is achieved, or the physics goes unstable (MuJoCo error, warning, non-finite state, or a
-speed no body reaches: that copy ends, its step earns nothing, and it is counted).
+writing into the model copies and the state, never by recompiling. A body spawns with its lowest
+point `FLOOR_OFFSET` (0.2 m) above the ground and drops. Observations, rewards and endings are
+numpy operations over all copies at once. Each step applies the actions (clipped to [-1, 1]) for
+4 physics steps of 5 ms (50 Hz control); an episode lasts 1000 control steps unless the head
+falls below half its resting height (`rest_height`; or the task's `fall_ratio`), leaves the
+arena, the task is achieved, or the physics goes unstable (MuJoCo error, warning, non-finite
+state, or a speed no body reaches: that copy ends, its step earns nothing, and it is counted).
 Finished copies reset themselves inside `step`, which satisfies `derl.rl.BatchedEnv`.
 """
 
@@ -27,7 +28,7 @@ from derl.envs.task import Arrays, Task
 from derl.envs.view import FreeJoint
 from derl.unimal import Genome, agent_spec
 from derl.unimal.geometry import layout
-from derl.unimal.mjcf import rest_height
+from derl.unimal.mjcf import FLOOR_OFFSET, rest_height
 from derl.unimal.space import HEAD_RADIUS
 
 ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
@@ -49,7 +50,7 @@ class EnvConfig(BaseModel):
     episode_steps: int = Field(1000, ge=1)
     frame_skip: int = Field(4, ge=1)
     reset_noise: float = Field(0.005, ge=0)
-    spawn_clearance: float = Field(0.05, ge=0)
+    spawn_clearance: float = Field(FLOOR_OFFSET, ge=0)
     fall_ratio: float = Field(0.5, ge=0, le=1)
 
 

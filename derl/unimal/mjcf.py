@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 
 from derl.unimal.genome import Genome
-from derl.unimal.geometry import LimbPart, bounding_box, layout
+from derl.unimal.geometry import LimbPart, layout
 from derl.unimal.space import HEAD_RADIUS, LIMB_RADIUS
 
 TIMESTEP = 0.005
@@ -27,6 +27,9 @@ TOUCH_MARGIN = 0.01
 HEAD_RGBA = (0.85, 0.45, 0.2, 1.0)
 LIMB_RGBA = (0.25, 0.45, 0.75, 1.0)
 SITE_SIZE = 0.01
+FLOOR_OFFSET = 0.2
+"""m between a body's lowest point (`rest_height`) and the ground where it spawns (the released
+code's `BODY.FLOOR_OFFSET`): every environment drops it from there."""
 
 
 def agent_spec(genome: Genome, head_height: float | None = None) -> mujoco.MjSpec:
@@ -65,7 +68,8 @@ def agent_spec(genome: Genome, head_height: float | None = None) -> mujoco.MjSpe
 
 
 def standalone_spec(genome: Genome, clearance: float = 0.05) -> mujoco.MjSpec:
-    """The body standing `clearance` above a floor, with a light: a complete MJCF scene."""
+    """The body standing `clearance` above a floor, with a light: a complete MJCF scene (for
+    pictures and the saved MJCF; `FLOOR_OFFSET` where it starts as in the environments)."""
     spec = agent_spec(genome, head_height=rest_height(layout(genome)) + clearance)
     spec.add_texture(
         name="sky",
@@ -107,9 +111,11 @@ def to_mjcf(genome: Genome) -> str:
 
 
 def rest_height(parts: list[LimbPart]) -> float:
-    """Height of the head centre above the body's lowest point at rest."""
-    low, _ = bounding_box(parts)
-    return float(-low[2])
+    """Height of the head centre above the body's lowest point at rest, as the released code
+    measures it (`SymmetricUnimal.set_head_pos`, its `btm_pos` sites): the lowest limb tip on its
+    limb's axis (the capsule's end along the axis), or the head's bottom. A limb pointing 45
+    degrees down reaches r (1 - cos 45) = 1.5 cm below its tip."""
+    return float(-min([-HEAD_RADIUS, *(p.origin[2] + p.tip[2] for p in parts)]))
 
 
 def excluded_pairs(genome: Genome, parts: list[LimbPart]) -> list[tuple[str, str]]:
