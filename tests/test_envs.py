@@ -305,14 +305,12 @@ def test_batch_matches_single_simulations(quadruped: Genome) -> None:
 
 
 def _fresh_observation(env: UnimalEnv, data: mujoco.MjData) -> np.ndarray:
-    """Proprioception of a reset MjData placed at ``data.qpos``/``qvel``, as `Batch.reset` and a
-    forward pass to mjSTAGE_VEL leave it."""
+    """Proprioception of a reset MjData placed at ``data.qpos``/``qvel``, as the released code's
+    reset leaves it (`set_state`: mj_forward, every sensor)."""
     qpos, qvel = data.qpos.copy(), data.qvel.copy()
     mujoco.mj_resetData(env.model, data)
     data.qpos[:], data.qvel[:] = qpos, qvel
-    for stage in (mujoco.mj_fwdPosition, mujoco.mj_sensorPos, mujoco.mj_fwdVelocity):
-        stage(env.model, data)
-    mujoco.mj_sensorVel(env.model, data)
+    mujoco.mj_forward(env.model, data)
     parts = (
         data.qpos[env.joint_qpos],
         data.qvel[env.agent_dofs],
@@ -347,6 +345,27 @@ def test_reset_copy_matches_a_freshly_reset_simulation(quadruped: Genome) -> Non
         data.ctrl[:] = actions[0]
         mujoco.mj_step(env.model, data, nstep=4)
     np.testing.assert_allclose(env.qpos[0], data.qpos, atol=1e-9)
+
+
+def test_proprioception_is_the_released_codes(quadruped: Genome) -> None:
+    """`Agent.observation_step`: joint angles, the body's velocities (free joint and joints),
+    the head's accelerometer, gyro and velocimeter, every part's touch sensor, and each limb
+    end's x and y in the head frame (`extremities`); at reset every sensor reads the spawn state
+    (mj_forward): the accelerometer sees the joints' springs in free fall."""
+    env = _env(quadruped, "ft", n=2)
+    obs = env.reset(0)["proprioception"]
+    joints, dofs, parts = len(env.joint_qpos), len(env.agent_dofs), 1 + 6  # head, six limbs
+    assert obs.shape == (2, joints + dofs + 9 + parts + 2 * 6)
+    head = env.model.body("head").id
+    rot, centre = env.xmat[:, head].reshape(-1, 3, 3), env.head_pos
+    sensors = [env.model.sensor(i).name for i in range(env.model.nsensor)]
+    sites = [name.removesuffix("_pos") for name in sensors if name.endswith("_end_pos")]
+    ends = env.site_xpos[:, [env.model.site(name).id for name in sites]]
+    expected = np.einsum("nji,nkj->nki", rot, ends - centre[:, None])[:, :, :2]
+    first_ends = joints + dofs + 9 + parts
+    np.testing.assert_allclose(obs[:, first_ends:], expected.reshape(2, 12), rtol=1e-5, atol=1e-6)
+    accelerometer = obs[:, joints + dofs : joints + dofs + 3]
+    assert (np.abs(accelerometer) > 1e-3).all()
 
 
 def test_heightmap_follows_the_heading(quadruped: Genome) -> None:

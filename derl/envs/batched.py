@@ -225,17 +225,13 @@ class UnimalEnv:
         self.gear = model.actuator_gear[:, 0].copy()
         sensors = [model.sensor(i) for i in range(model.nsensor)]
         agent_sensors = [s for s in sensors if s.name.startswith(("head_", "limb"))]
+        # a limb end's position in x and y of the head frame (the released code's `extremities`)
         self.sensor_index = np.concatenate(
-            [np.arange(s.adr[0], s.adr[0] + s.dim[0]) for s in agent_sensors]
-        )
-        acc = np.concatenate(
             [
-                np.full(s.dim[0], model.sensor_needstage[s.id] == mujoco.mjtStage.mjSTAGE_ACC)
+                np.arange(s.adr[0], s.adr[0] + (2 if s.name.endswith("_end_pos") else s.dim[0]))
                 for s in agent_sensors
             ]
         )
-        # proprioception columns of the sensors that need accelerations
-        self._acc_columns = len(self.joint_qpos) + len(self.agent_dofs) + np.flatnonzero(acc)
         sites = ["head_imu"] + [
             f"{model.body(b).name}_{kind}"
             for b in sorted(agent_bodies - {self.head})
@@ -295,16 +291,14 @@ class UnimalEnv:
         qvel_noise = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
         self.qvel[ids[:, None], self.agent_dofs] = qvel_noise
         start = time.perf_counter()
-        batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
+        # mj_forward, as the released code's reset (`set_state`): the first observation reads
+        # the accelerometer and touch sensors at the spawn state
+        batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_ACC)
         self.physics_s += time.perf_counter() - start
         self.steps[ids] = 0
         self.prev_head[ids] = self.head_pos[ids]
         self.task.placed(self, ids)
-        obs = self._observe(ids)
-        # The copies' MjData still hold their last acceleration-stage sensor values, which the
-        # forward pass to mjSTAGE_VEL does not compute: they read 0, as after mj_resetData.
-        obs["proprioception"][:, self._acc_columns] = 0.0
-        return obs
+        return self._observe(ids)
 
     def _unstable(self, warnings_before: np.ndarray, failed: np.ndarray | None) -> np.ndarray:
         """(N,) copies whose last step failed (``failed`` ids), warned, or left a non-finite

@@ -20,11 +20,12 @@ from derl.rl.normalize import ObsNormalizer
 
 FORMAT = 3
 """Version of the byte layout and of what the policy sees: 3, a network of one observation type
-has no fuse layer (see `OLD_FORMATS`)."""
+has no fuse layer and proprioception has the limb ends in x and y (see `OLD_FORMATS`)."""
 OLD_FORMATS = {
     1: "normalised every observation type (now only proprioception), so its policy would see "
     "other inputs than it was trained on",
-    2: "gave a network of one observation type a third layer, which it no longer has",
+    2: "gave a network of one observation type a third layer and observed the limb ends in 3-D, "
+    "which its policy no longer has",
 }
 
 

@@ -5,7 +5,8 @@ environment attaches to its world. `standalone_spec` puts it on a floor with a l
 MJCF opens in MuJoCo's viewer as it is. Names: body/geom ``head`` and ``limb<id>`` (a mirror twin
 is ``limb<id>_mirror``); sites ``<part>_mid``, ``<part>_end``, ``<part>_tip``, ``<part>_touch`` and
 ``head_imu``; hinges and their motors ``<part>_x`` / ``<part>_y``; sensors ``head_accel``,
-``head_gyro``, ``head_vel``, ``<part>_touch`` and ``<part>_end_pos`` (end site in the head frame).
+``head_gyro``, ``head_vel``, ``<part>_touch`` and ``<part>_end_pos`` (end site in the head's body
+frame; the environments observe its x and y).
 """
 
 from __future__ import annotations
@@ -200,6 +201,6 @@ def _add_sensors(spec: mujoco.MjSpec, parts: list[LimbPart]) -> None:
             type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
             objtype=site,
             objname=f"{part.name}_end",
-            reftype=mujoco.mjtObj.mjOBJ_BODY,
+            reftype=mujoco.mjtObj.mjOBJ_XBODY,
             refname="head",
         )
