@@ -283,6 +283,7 @@ class UnimalEnv:
         spawn[:] = self.task.spawn
         ground = self.task.arena.ground(spawn, ids)
         qpos[:, self.root + 2] = ground + self.rest_height + config.spawn_clearance
+        qpos[:, self.root + 3 : self.root + 7] = self.task.arena.tilt  # upright on a slope
         qpos[:, self.agent_qpos] += self.rng.uniform(-noise, noise, (n, len(self.agent_qpos)))
         quat = qpos[:, self.root + 3 : self.root + 7]
         quat /= np.sqrt(np.square(quat).sum(axis=1, keepdims=True))
