@@ -7,7 +7,8 @@ run's definition, `derl.lifetime.ppo_config`) and, beside it, the mean of the le
 last 100 values (the released code's window at any budget), the curve's last value, the episodes,
 their mean length and the share that ended before the time limit (falls, the arena's edge), the
 env steps/s, and where the trainer counts them the updates stopped early by the approximate KL
-(`kl_stops`). Then per body and world the medians over the seeds.
+(`kl_stops`). Output: JSON lines, one per training as it finishes (a long run on a busy machine
+keeps what it has measured), then one with the medians over the seeds per body and world.
 Run: python bench/fidelity.py [--steps 1000000] [--seeds 1409] [--bodies ft:6 ft:10 vt:6]
 [--jobs 1]
 """
@@ -93,12 +94,12 @@ def main() -> None:
     for body in args.bodies:
         world, limbs = body.split(":")
         jobs += [(world, int(limbs), seed, args.steps) for seed in args.seeds]
-    if args.jobs > 1:
-        with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
-            runs = pool.map(training, jobs, chunksize=1)
-    else:
-        runs = [training(job) for job in jobs]
-    print(json.dumps({"trainings": runs, "medians": medians(runs)}, indent=2))
+    runs = []
+    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+        for run in pool.imap_unordered(training, jobs):
+            print(json.dumps(run), flush=True)
+            runs.append(run)
+    print(json.dumps({"medians": medians(runs)}), flush=True)
 
 
 if __name__ == "__main__":
