@@ -33,8 +33,13 @@ def _random_policy_fitness(genome: Genome, episodes: int = 64) -> float:
 
 
 def test_fitness_window_scales_with_the_budget() -> None:
-    assert fitness_window(4096) == 409_600  # the released code's last 100 iterations
-    assert fitness_window(2048) == 204_800
+    # the released code's last 100 of its 1220 iterations, as a share of the training
+    assert fitness_window(5_000_000, 4096) == 409_600  # the paper's budget: the code's window
+    assert fitness_window(5_000_000, 2048) == 200 * 2048  # 2441 iterations: the last 200
+    assert fitness_window(1_000_000, 4096) == 20 * 4096  # 244 iterations: the last 20
+    assert fitness_window(300_000, 4096) == 6 * 4096  # 73 iterations: 6
+    assert fitness_window(8192, 4096) == 4096  # at least one iteration
+    assert ppo_config("ft", 1_000_000, seed=0).fitness_window_steps == 81_920
     config = ppo_config("mvt", 8192, seed=3)
     assert config.fitness_component == "manipulation" and config.seed == 3
 
