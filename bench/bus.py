@@ -32,8 +32,10 @@
    (Tournament, TrainJob with a genome, FitnessReport with a learning curve, Ack), flushed
    after every message and after groups of 4 and 16 (the coordinator's group commit).
 4. `recovery`: a synthetic 4,000-body journal of the paper's profile (made by driving the
-   coordinator's own handlers), and the time `Coordinator(run, run_dir, config)` takes to
-   replay it: the restart time of a paper-sized run.
+   coordinator's own handlers; 64 jobs in flight at its end), the time
+   the coordinator takes to replay it, and the time a real `derl coordinator`
+   process started on it takes to serve (its first RunStatus, and the job it sends again to a
+   worker that held one): the restart time of a paper-sized run.
 5. `bus_share`: the bus's share of a trainer's wall time: every publish a real trainer makes
    during a real short training (learn() with the worker's progress cadence, through a real
    Zenoh session), plus the CPU the open session's own threads use, extrapolated to a
@@ -47,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import gc
 import heapq
 import io
 import json
@@ -74,6 +77,7 @@ from derl.messages import (
     Curve,
     FitnessReport,
     KeySpace,
+    MessageBase,
     RunStatus,
     Tournament,
     TrainJob,
@@ -467,11 +471,17 @@ class _NoBus:
         pass
 
 
-def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
+def _open_coordinator(run: str, run_dir: Path, config: EvolutionConfig):
+    """A run's coordinator, as `derl coordinator` makes it (without its bus)."""
+    from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import Coordinator
 
+    return Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config))
+
+
+def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
     seed_run_dir(run_dir, config.population)
-    coordinator = Coordinator(run, run_dir, config)
+    coordinator = _open_coordinator(run, run_dir, config)
     coordinator.bus = _NoBus()
     return coordinator
 
@@ -514,7 +524,7 @@ class Driver:
         coordinator, state = self.coordinator, self.coordinator.state
         ready = WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
         coordinator._ready(ready)
-        coordinator._flush()  # as the serve loop does after each group (here: each message)
+        coordinator.ledger.flush()  # as the serve loop does after each group (here: each message)
         coordinator._publish_released()
         job = state.job_of(node)
         return None if job is None else job.order
@@ -527,8 +537,8 @@ class Driver:
         profiled)."""
         coordinator = self.coordinator
         times: list[float] = []
-        target = coordinator.born + births
-        while coordinator.born < target:
+        target = coordinator.policy.born + births
+        while coordinator.policy.born < target:
             tournaments = coordinator.state.evolution.initial_born
             if not self.busy or (self.idle and tournaments and not self.retried):
                 self.retried = tournaments  # idle workers ask again once tournaments start
@@ -544,8 +554,8 @@ class Driver:
             if profiler is not None:
                 profiler.enable()
             start = time.thread_time()
-            coordinator._fitness(decode(data))  # decoding is the coordinator's part
-            coordinator._flush()
+            coordinator._handle(decode(data))  # decoding is the coordinator's part
+            coordinator.ledger.flush()
             coordinator._publish_released()
             following = self._ready(job.node)
             times.append(time.thread_time() - start)
@@ -669,10 +679,14 @@ def _ack(run: str, job: TrainJob):
 
 
 def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> dict[str, object]:
-    from derl.nodes.coordinator.node import Coordinator
-    from derl.nodes.journal.segments import segments
+    """A paper-sized journal (`bodies_total` births, the initial P included, 64 jobs in flight
+    at the end), then (a) the coordinator in this process: the replay, and
+    (b) a real `derl coordinator` process started on it: the time from its start until it
+    serves (a job sent again to a worker that held one when it stopped, the first RunStatus),
+    `repeats` times each."""
+    from derl.nodes.journal.segments import read_segment, segments
 
-    config = load_profile("paper").model_copy(update={"total": bodies_total})
+    config = load_profile("paper").model_copy(update={"total": bodies_total + 64})
     run_dir = work / "recovery"
     start = time.perf_counter()
     coordinator = _coordinator("recovery", run_dir, config)
@@ -681,23 +695,87 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
     driver.run(bodies_total)
     coordinator.close()
     made = time.perf_counter() - start
+    holder = driver.busy[0]
+    del coordinator, driver  # the run made: its heap would slow this process's collections
+    gc.collect()
     journal = segments(run_dir)[0]
-    times = []
+    kinds = Counter(msg.type for msg in read_segment(journal))
+    times, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
-        restarted = Coordinator("recovery", run_dir, config)
+        start, cpu0 = time.perf_counter(), time.process_time()
+        restarted = _open_coordinator("recovery", run_dir, config)
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - cpu0)
         restarted.close()
-        assert restarted.born == bodies_total, restarted.born
+        assert restarted.policy.born == bodies_total, restarted.policy.born
         segments(run_dir)[-1].unlink()  # the empty segment each start opens
+    serving = [_time_to_serving(work, run_dir, holder) for _ in range(repeats)]
     return {
         "bodies": bodies_total,
-        "journal_messages": restarted.replayed,
+        "journal_messages": restarted.ledger.replayed,
+        "journal_births": kinds["Birth"],
+        "journal_tournaments": kinds["Tournament"],
         "journal_mb": round(journal.stat().st_size / 1e6, 1),
         "recovery_s_median": round(statistics.median(times), 2),
         "recovery_s_all": [round(t, 2) for t in times],
+        "recovery_cpu_s_median": round(statistics.median(cpu), 2),
+        "coordinator_process_to_status_s_median": round(
+            statistics.median(s["status_s"] for s in serving), 2
+        ),
+        "coordinator_process_to_job_s_median": round(
+            statistics.median(s["job_s"] for s in serving), 2
+        ),
+        "coordinator_process_cpu_to_job_s_median": round(
+            statistics.median(s["job_cpu_s"] for s in serving), 2
+        ),
+        "coordinator_process_all": serving,
         "journal_made_in_s": round(made, 1),
     }
+
+
+def _time_to_serving(work: Path, run_dir: Path, holder: TrainJob) -> dict[str, float]:
+    """Start `derl coordinator` on `run_dir` and time (from the start of its process) the first
+    RunStatus heard and the job it sends again to `holder`'s node, which asks for work every
+    50 ms as a worker does after a coordinator restart."""
+    from derl.nodes.journal.segments import segments
+    from derl.nodes.runtime.processes import spawn_derl, stop_all
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    heard: dict[str, float] = {}
+    cpu: dict[str, float] = {}  # the coordinator process's CPU s when it served
+    # this session listens and the coordinator connects: connecting first, this session would
+    # wait out Zenoh's backoff between attempts (measured: the job always came at 10.5 s)
+    with open_session(ZenohOptions(listen=(endpoint,))) as session:
+        bus = Bus(session, holder.run)
+
+        def on(msg: MessageBase) -> None:
+            if msg.type not in heard:
+                heard[msg.type] = time.perf_counter()
+                cpu[msg.type] = _cpu_s(coordinator.pid)
+
+        bus.subscribe(bus.keys.status(), on, (RunStatus,))
+        bus.subscribe(bus.keys.job(holder.node), on, (TrainJob,))
+        ready = WorkerReady(run=holder.run, node=holder.node, role="trainer", host="h", pid=1)
+        segments_before = len(segments(run_dir))
+        start = time.perf_counter()
+        coordinator = spawn_derl(
+            ["coordinator", "--run", holder.run, "--profile", "paper", "--run-dir",
+             str(run_dir), "--connect", endpoint], work / "recovery-coordinator.log",
+        )  # fmt: skip
+        try:
+            deadline = start + 300
+            while len(heard) < 2 and time.perf_counter() < deadline:
+                bus.publish(ready)
+                time.sleep(0.05)
+        finally:
+            stop_all([coordinator], timeout=30)
+    for segment in segments(run_dir)[segments_before:]:
+        segment.unlink()  # the start's own segment: every repeat replays the same journal
+    if len(heard) < 2:
+        raise TimeoutError(f"the coordinator did not serve: {sorted(heard)} heard")
+    return {"status_s": round(heard["RunStatus"] - start, 2),
+            "job_s": round(heard["TrainJob"] - start, 2),
+            "job_cpu_s": round(cpu["TrainJob"], 2)}  # fmt: skip
 
 
 # --- 5. the bus's share of a trainer's wall time -------------------------------------------

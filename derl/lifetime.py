@@ -1,12 +1,13 @@
 """Lifetime learning of one body in one task: build its batched environment, train a controller
 from scratch with PPO, and measure what evolution and the analyses need.
 
-Fitness is the released code's: the mean, over the last `FITNESS_ITERATIONS` PPO iterations (of
-a shorter training, all of them), of each iteration's mean episode sum of the task's selection
-component (forward progress for FT/VT, reach + push for MVT) over the last 10 finished episodes;
-for the paper's 5M steps, about the last 410k. Cost of work over the episodes finished in the
-same window is E / (M g r): E the episode's sum of |joint torque|, M the body's mass, r its
-selection reward (undefined, NaN, when r <= 0).
+Fitness is the released code's: the mean, over the last PPO iterations, of each iteration's mean
+episode sum of the task's selection component (forward progress for FT/VT, reach + push for MVT)
+over the last 10 finished episodes. The window is the released code's share of its training, its
+last `FITNESS_ITERATIONS` of `RELEASED_ITERATIONS`, of this training's iterations: the code's
+window at the paper's 5M steps (about the last 410k), the same last 8 % of a shorter one. Cost of
+work over the episodes finished in the same window is E / (M g r): E the episode's sum of |joint
+torque|, M the body's mass, r its selection reward (undefined, NaN, when r <= 0).
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ if TYPE_CHECKING:
 GRAVITY = 9.81
 FITNESS_ITERATIONS = 100
 """The released code's fitness: the mean of its last 100 per-iteration values."""
+RELEASED_ITERATIONS = 5_000_000 // (32 * 128)
+"""The iterations of the released code's trainings (`calculate_max_iters`: 1220)."""
 
 
 class LifetimeResult(BaseModel):
@@ -51,16 +54,21 @@ class LifetimeResult(BaseModel):
     time_split: dict[str, float]
 
 
-def fitness_window(batch_size: int) -> int:
-    """The env steps of the fitness's last `FITNESS_ITERATIONS` iterations of `batch_size`."""
-    return FITNESS_ITERATIONS * batch_size
+def fitness_window(total_steps: int, batch_size: int) -> int:
+    """The env steps of the fitness window of a training of `total_steps` in iterations of
+    `batch_size`: the released code's share, `FITNESS_ITERATIONS` of `RELEASED_ITERATIONS`, of
+    its iterations, rounded to whole ones (at least one)."""
+    iterations = total_steps // batch_size
+    share = round(FITNESS_ITERATIONS * iterations / RELEASED_ITERATIONS)
+    return max(1, share) * batch_size
 
 
 def ppo_config(task: str, steps: int, seed: int, **overrides: object) -> PPOConfig:
-    """The paper's PPO for a task: its fitness component and the released code's fitness window."""
+    """The paper's PPO for a task: its fitness component and the released code's fitness window,
+    scaled to the budget."""
     base = PPOConfig(total_steps=steps, seed=seed, **overrides)
     component = make_task(task).fitness_component
-    window = fitness_window(base.batch_size)
+    window = fitness_window(base.total_steps, base.batch_size)
     return base.model_copy(update={"fitness_component": component, "fitness_window_steps": window})
 
 

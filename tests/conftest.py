@@ -3,13 +3,21 @@ suite's order: the tests marked slow first."""
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen frames, as the derl command; before MuJoCo
+
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import Processes
+from nodes_fixtures import Processes, free_port
 
 from derl.unimal import Genome, Joint, Limb
+
+# The local run's port (`derl run`'s default, where watchers given no endpoint connect): one of
+# this test process's own, never a user's run on 7447 nor another test process's.
+os.environ["DERL_LOCAL_PORT"] = str(free_port())
 
 XY = (Joint(axis="x", range=(-30, 60), gear=200), Joint(axis="y", range=(-45, 0), gear=150))
 

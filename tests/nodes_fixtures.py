@@ -18,10 +18,21 @@ from pathlib import Path
 from typing import TypeVar
 
 import yaml
-from derl.messages import Birth, MessageBase, RunStatus, TrainJob, TrainProgress
-from derl.nodes.journal.segments import replay, segments
+from derl.messages import (
+    Birth,
+    Curve,
+    FitnessReport,
+    MessageBase,
+    RunStatus,
+    TrainJob,
+    TrainProgress,
+)
+from derl.nodes.journal.segments import Journal, replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.processes import child_setup, stop_all
+
+from derl.rl import PPOConfig
+from derl.unimal import Genome
 
 M = TypeVar("M", bound=MessageBase)
 
@@ -210,3 +221,54 @@ def pid_alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
+
+
+@dataclass(frozen=True)
+class HandBirth:
+    """A birth of a journal written by hand; a repeat takes `repeat_of`'s result (its own
+    `fitness` is not used), as the coordinator makes it."""
+
+    child: str
+    parent: str | None
+    genome: Genome
+    fitness: float = 0.0
+    repeat_of: str | None = None
+
+
+def write_hand_run(run_dir: Path, run: str, world: str, births: list[HandBirth]) -> None:
+    """The journal of a finished run of `births` in birth order (the first without a parent are
+    the initial population), each trained for 4,096 steps with a curve that climbs to its
+    fitness, a repeat born with its earlier body's result as the coordinator does."""
+    ppo = PPOConfig(total_steps=4096, num_envs=16)
+    done: dict[str, Birth] = {}
+    with Journal(run_dir) as journal:
+        for k, b in enumerate(births):
+            parent = done.get(b.parent) if b.parent else None
+            generation = 0 if parent is None else parent.generation + 1
+            if b.repeat_of is not None:
+                first = done[b.repeat_of]
+                birth = first.model_copy(update={"child": b.child, "parent": b.parent, "birth": k,
+                                                 "generation": generation, "repeat_of": b.repeat_of,
+                                                 "mutation": "gear"})  # fmt: skip
+            else:
+                job = TrainJob(run=run, job=f"{b.child}.1", child=b.child, node="t0",
+                               genome=b.genome if parent is None else parent.genome, task=world,
+                               ppo=ppo, parent=b.parent,
+                               mutation_seed=None if parent is None else 7, lease_s=30)  # fmt: skip
+                report = FitnessReport(
+                    run=run, child=b.child, job=job.job, node="t0", genome=b.genome,
+                    mutation=None if parent is None else "gear", fitness=b.fitness,
+                    fitness_source="window", fitness_episodes=3,
+                    curve=Curve(env_steps=(2048, 4096), returns=(b.fitness / 2, b.fitness)),
+                    energy=50.0, cost_of_work=1.0, mass=12.0, episodes=9, env_steps=4096,
+                    wall_s=1.0, steps_per_s=4096.0, checkpoint=b"",
+                )  # fmt: skip
+                birth = Birth(
+                    run=run, child=b.child, parent=b.parent, job=job.job, node="t0", birth=k,
+                    generation=generation, fitness=b.fitness, cost_of_work=1.0, energy=50.0,
+                    mass=12.0, mutation=report.mutation, genome=b.genome,
+                )  # fmt: skip
+                journal.write(job)
+                journal.write(report)
+            journal.write(birth)
+            done[b.child] = birth

@@ -18,10 +18,17 @@ import math
 
 import numpy as np
 import pytest
+from body_variants import variants
 from scipy import stats
 
-from derl.analysis import AnalysisConfig, Body, Evaluation, RunLog, analyse, plan
-from derl.analysis.learning import by_generation, criterion, learning_speed, steps_to_reach
+from derl.analysis import AnalysisConfig, Body, Evaluation, RunLog, analyse, plan, rank_by_mean
+from derl.analysis.learning import (
+    by_generation,
+    cost_of_work,
+    criterion,
+    learning_speed,
+    steps_to_reach,
+)
 from derl.analysis.lineage import (
     Tree,
     beneficial,
@@ -34,10 +41,20 @@ from derl.analysis.lineage import (
 )
 from derl.analysis.morphology import Morphology, column, over_time, sample
 from derl.analysis.selection import new_seeds, top_of_surviving_lineages
-from derl.analysis.statistics import BootstrapConfig, estimate, mann_whitney, pearson, stars
+from derl.analysis.statistics import (
+    BootstrapConfig,
+    Measure,
+    censored_median,
+    difference_of_medians,
+    estimate,
+    mann_whitney,
+    pearson,
+    spearman,
+    stars,
+)
 from derl.analysis.tables import body_rows
 from derl.analysis.testsuite import compare, results, summarize
-from derl.unimal import Genome
+from derl.unimal import Genome, body_hash
 
 STEPS = (100, 200, 300)
 # id, parent, fitness, curve returns, cost of work, mutation
@@ -54,6 +71,8 @@ ORDER = "abcdefg"
 
 
 def make_run(genome: Genome | None = None, name: str = "r", world: str = "ft", evaluations=()):
+    """The run of the module's docstring; given `genome`, each body a different variant of it."""
+    genomes = variants(genome, len(TREE)) if genome is not None else [None] * len(TREE)
     bodies = tuple(
         Body(
             id=body,
@@ -66,7 +85,7 @@ def make_run(genome: Genome | None = None, name: str = "r", world: str = "ft", e
             energy=100.0,
             mass=10.0,
             mutation=mutation,
-            genome=genome,
+            genome=genomes[k],
         )
         for k, (body, parent, fitness, curve, cost, mutation) in enumerate(TREE)
     )
@@ -173,21 +192,62 @@ def test_steps_to_the_criterion(run: RunLog) -> None:
     level = criterion(run, 75)
     assert level == 25.0
     speed = learning_speed(run, level)
-    expected = [math.nan, math.nan, 200, 100, 300, 100, 300]
-    np.testing.assert_array_equal(speed, expected)
+    # a and b never reach 25: censored at their budget (the curve's last step), not dropped
+    np.testing.assert_array_equal(speed.values, [300, 300, 200, 100, 300, 100, 300])
+    assert speed.censored.tolist() == [True, True, False, False, False, False, False]
     assert steps_to_reach(run.bodies[6], 24.9) == 200  # reaching the level exactly counts
+    assert math.isnan(steps_to_reach(run.bodies[0], 25.0))
+    no_curve = run.bodies[0].model_copy(update={"curve_steps": (), "curve_returns": ()})
+    missing = learning_speed(run.model_copy(update={"bodies": (no_curve, *run.bodies[1:])}), 25)
+    assert math.isnan(missing.values[0]) and not missing.censored[0]  # unknown, not censored
 
 
 def test_by_generation_follows_the_top_agents_ancestors(run: RunLog, tree: Tree) -> None:
     config = BootstrapConfig()
     top = np.array([5, 3])  # f, d: the two fittest
-    points = by_generation([(tree, top, run.fitness)], config)
+    mean = lambda m: estimate(m.values, config)  # noqa: E731
+    points = by_generation([(tree, top, Measure.exact(run.fitness))], mean)
     assert [p.x for p in points] == [0, 1, 2]
     assert [(p.n, p.value) for p in points] == [(2, 10.0), (2, 350.0), (1, 700.0)]
     assert (points[0].low, points[0].high) == (10.0, 10.0)  # constant values: CI is the value
     assert points[2].low is None  # a single value has no CI
-    speed = by_generation([(tree, top, learning_speed(run, 25.0))], config)
-    assert [(p.n, p.value) for p in speed] == [(0, None), (2, 100.0), (1, 100.0)]
+    median = lambda m: censored_median(m.values, m.censored, 0.95)  # noqa: E731
+    speed = by_generation([(tree, top, learning_speed(run, 25.0))], median)
+    # generation 0 is a (twice): it never reaches the criterion, counted (it was left out)
+    assert [(p.n, p.censored, p.value) for p in speed] == [(2, 2, None), (2, 0, 100.0),
+                                                           (1, 0, 100.0)]  # fmt: skip
+
+
+def test_a_censored_median_is_kaplan_meiers() -> None:
+    """Six bodies reach the criterion at 1..6 steps, three never do within 10: the survival
+    curve is 8/9, 7/9, ..., 3/9, so the median is 5 (4/9 <= 1/2); its CI is where scipy's
+    band crosses 1/2, and the upper limit is unbounded (the band stays above it)."""
+    values = [1, 2, 3, 4, 5, 6, 10, 10, 10]
+    censored = [False] * 6 + [True] * 3
+    result = censored_median(values, censored, 0.95)
+    assert (result.n, result.censored, result.value) == (9, 3, 5.0)
+    band = stats.ecdf(stats.CensoredData(uncensored=values[:6], right=values[6:])).sf
+    low = band.confidence_interval(0.95, method="log-log").low
+    assert result.low == low.quantiles[np.flatnonzero(low.probabilities <= 0.5)[0]]
+    assert result.high is None
+    dropping = np.median(values[:6])  # what leaving them out said: 3.5, a faster median
+    assert dropping < result.value
+    plain = censored_median([4.0, 1.0, 3.0, 2.0], [False] * 4, 0.95)
+    assert plain.value == 2.5 == np.median([1, 2, 3, 4])  # no censoring: the plain median
+    assert censored_median([1, 2, 9, 9], [0, 0, 1, 1], 0.95).value is None  # half censored
+    beyond = censored_median([1.0, np.inf, 2.0], [False, True, False], 0.95)
+    assert (beyond.value, beyond.censored) == (2.0, 1)  # +inf: beyond every measured value
+    assert censored_median([np.nan, np.inf], [False, True], 0.95).model_dump() == dict(
+        n=1, value=None, low=None, high=None, censored=1
+    )
+
+
+def test_cost_of_work_of_no_positive_reward_is_censored(run: RunLog) -> None:
+    poor = run.bodies[1].model_copy(update={"fitness": -5.0, "cost_of_work": float("nan")})
+    cost = cost_of_work(run.model_copy(update={"bodies": (run.bodies[0], poor, *run.bodies[2:])}))
+    assert cost.censored.tolist() == [False, True, False, False, False, False, False]
+    assert cost.values[1] == np.inf
+    assert np.isnan(cost.values[4]) and not cost.censored[4]  # e: positive reward, unknown cost
 
 
 # --- statistics --------------------------------------------------------------------------------
@@ -204,8 +264,29 @@ def test_bootstrap_ci_is_scipys() -> None:
         assert result.value == function(data)
         assert (result.low, result.high) == pytest.approx((direct.low, direct.high))
         assert result.low < result.value < result.high
-    assert estimate([np.nan, 2.0], config).model_dump() == dict(n=1, value=2.0, low=None, high=None)
+    assert estimate([np.nan, 2.0], config).model_dump() == dict(
+        n=1, value=2.0, low=None, high=None, censored=0
+    )
     assert estimate([], config).n == 0
+
+
+def test_the_difference_of_two_medians_is_bootstrapped_reproducibly() -> None:
+    rng = np.random.default_rng(0)
+    first, last = rng.normal(10, 3, 40), rng.normal(14, 3, 40)
+    config = BootstrapConfig(n_resamples=1000, seed=5)
+    result = difference_of_medians(first, last, config)
+    direct = stats.bootstrap(
+        (first, last),
+        lambda a, b, axis=-1: np.median(b, axis=axis) - np.median(a, axis=axis),
+        n_resamples=1000,
+        method="BCa",
+        rng=np.random.default_rng(5),
+    ).confidence_interval
+    assert result.value == pytest.approx(np.median(last) - np.median(first))
+    assert (result.low, result.high) == pytest.approx((direct.low, direct.high))
+    assert result.low < result.value < result.high and result.n == 80
+    assert difference_of_medians(first, last, config) == result  # seeded: the same again
+    assert difference_of_medians([1.0], [2.0], config).low is None
 
 
 def test_pearson_on_known_relations() -> None:
@@ -218,6 +299,19 @@ def test_pearson_on_known_relations() -> None:
     assert known.r == pytest.approx(0.8) and known.p == pytest.approx(0.2)
     assert pearson([1, 2], [2, 3]).r is None
     assert pearson([1, 1, 1], [1, 2, 3]).note == "a constant variable"
+    censored = pearson([1, 2, 3, 4, np.inf], [1, 3, 2, 4, 7])  # a censored x: left out
+    assert (censored.n, censored.excluded, censored.r) == (4, 1, pytest.approx(0.8))
+
+
+def test_spearman_counts_censored_values_as_the_largest() -> None:
+    x = [1.0, 2.0, 3.0, 4.0, np.inf, np.inf]
+    y = [2.0, 1.0, 4.0, 3.0, 9.0, 8.0]
+    result = spearman(x, y)
+    expected = stats.spearmanr([1, 2, 3, 4, 5.5, 5.5], [2, 1, 4, 3, 6, 5])  # ties beyond all
+    assert (result.n, result.censored, result.excluded) == (6, 2, 0)
+    assert result.r == pytest.approx(expected.statistic)
+    assert result.p == pytest.approx(expected.pvalue)
+    assert spearman([1, 2, np.nan, 4], [1, 2, 3, 4]).excluded == 1
 
 
 def test_mann_whitney_on_known_samples() -> None:
@@ -271,8 +365,8 @@ def test_suite_medians_and_world_comparison() -> None:
 
     ft = make_run(name="one", world="ft", evaluations=evaluations([1.0, 2.0, 3.0]))
     vt = make_run(name="two", world="vt", evaluations=evaluations([4.0, 5.0, 6.0]))
-    rows = results([ft, vt])
-    assert len(rows) == 6 and {r.world for r in rows} == {"ft", "vt"}
+    rows, repeated = results([ft, vt])
+    assert len(rows) == 6 and {r.world for r in rows} == {"ft", "vt"} and repeated == 0
     summary = {s.world: s for s in summarize(rows, BootstrapConfig())}
     assert summary["ft"].reward.value == 2.0 and summary["vt"].reward.value == 5.0
     assert summary["vt"].cost_of_work.value == pytest.approx(1 / 5)
@@ -304,7 +398,7 @@ def test_retraining_plan(quadruped: Genome) -> None:
     assert {j.lineage for j in result.jobs if j.agent in "fd"} == {"a"}
     assert {(j.task, j.steps) for j in result.jobs} == {("ft", 300)}
     assert {j.seed for j in result.jobs} == set(result.seeds)
-    assert result.jobs[0].genome == quadruped
+    assert result.jobs[0].genome == variants(quadruped, 7)[ORDER.index("f")]
     assert new_seeds(2, {5}, 0) == new_seeds(2, {5}, 0)
 
 
@@ -313,16 +407,14 @@ def test_retraining_plan(quadruped: Genome) -> None:
 
 def test_analyse_a_run(quadruped: Genome) -> None:
     config = AnalysisConfig(time_points=5)
-    run = make_run(quadruped)
-    repeat = run.bodies[-1].model_copy(update={"repeat_of": "d"})  # g took d's result
-    analysis = analyse([run.model_copy(update={"bodies": (*run.bodies[:-1], repeat)})], config)
+    analysis = analyse([make_run(quadruped)], config)
     (result,) = analysis.runs
     s = result.summary
-    assert (s.bodies, s.repeats, s.population, s.generations) == (7, 1, 3, 3)
-    assert [row.repeat_of for row in body_rows(result)] == [None] * 6 + ["d"]  # bodies.csv
+    assert (s.bodies, s.distinct_bodies, s.repeats, s.population, s.generations) == (7, 7, 0, 3, 3)
+    assert [row.repeat_of for row in body_rows(result)] == [None] * 7  # bodies.csv
     assert (s.top_of_population, s.top_agents) == (2, 2)
     assert (s.beneficial_threshold, s.beneficial_mutations, s.surviving_lineages) == (300, 2, 2)
-    assert (s.learning_speed_defined, s.learning_speed_undefined) == (5, 2)
+    assert (s.criterion_reached, s.criterion_censored, s.no_positive_reward) == (5, 2, 0)
     assert s.stability_simulated == 7
     assert s.gain_p75 == pytest.approx(np.percentile([340, 10, 350], 75))
     top = result.series["fitness_top"]
@@ -332,21 +424,98 @@ def test_analyse_a_run(quadruped: Genome) -> None:
     (world,) = analysis.worlds  # fig. 5d's lineage is now chosen among the world's top agents
     assert world.illustrative[0] is result
     assert ORDER[world.illustrative[1]] == "f"  # the top agent with the most generations
+    # the ancestors' median cost of work: a (4), then d (1), then f (0.5)
     assert [p.value for p in result.series["cost_of_work"]] == [4.0, 1.0, 0.5]
     assert [p.value for p in result.series["dof"]] == [quadruped.dof] * 5
     assert result.morphology[0].passively_stable is not None
+    q = s.quarters  # 7 births: quarters of 1, a (10) and g (100)
+    assert (q.births, q.first.value, q.last.value, q.difference.value) == (1, 10.0, 100.0, 90.0)
 
 
-def test_fig6_correlations_pool_each_world(quadruped: Genome) -> None:
+def with_repeat(run: RunLog, genome: Genome | None = None) -> RunLog:
+    """`run` and one more birth: h, a second child of d with f's body (a repeat of f: its
+    result), born last."""
+    f = run.bodies[ORDER.index("f")]
+    h = f.model_copy(update={"id": "h", "birth": len(run.bodies), "repeat_of": "f"})
+    return run.model_copy(update={"bodies": (*run.bodies, h)})
+
+
+def test_a_repeat_is_its_original(quadruped: Genome) -> None:
+    run = with_repeat(make_run(quadruped))
+    assert run.original.tolist() == [0, 1, 2, 3, 4, 5, 6, 5]
+    assert run.distinct.tolist() == [True] * 7 + [False]
+    untold = run.bodies[-1].model_copy(update={"repeat_of": None})  # the same body, trained
+    missed = run.model_copy(update={"bodies": (*run.bodies[:-1], untold)})
+    assert missed.original.tolist() == run.original.tolist()  # by body_hash
+    told = with_repeat(make_run())  # no genomes: by the journal's repeat_of
+    assert told.original.tolist() == run.original.tolist()
+
+
+def test_the_selection_counts_a_body_once(quadruped: Genome) -> None:
+    """h repeats f: a lineage's top 2 are f and d, not f twice; a body of an earlier run of the
+    world is not selected again, nor retrained with the same seeds."""
+    run = with_repeat(make_run(quadruped))
+    tree = Tree.of(run)
+    assert ids(top_of_surviving_lineages(run, tree, 2)) == ["f", "d"]  # was f, h
+    one, two = with_repeat(make_run(quadruped, "one")), with_repeat(make_run(quadruped, "two"))
+    chosen = plan([one, two], per_lineage=2, seeds=3)
+    assert [(j.run, j.agent) for j in chosen.jobs[::3]] == [("one", "f"), ("one", "d")]
+    assert len({(body_hash(j.genome), j.seed) for j in chosen.jobs}) == len(chosen.jobs)
+
+
+def test_retrained_bodies_are_ranked_once_and_only_when_complete() -> None:
+    results = [("x", 1, 10.0), ("x", 2, 30.0), ("y", 1, 25.0), ("y", 2, 25.0),
+               ("z", 1, 90.0), ("y", 1, 25.0)]  # fmt: skip
+    ranking = rank_by_mean(results)  # z: 1 of 2 seeds, its 90 would rank first
+    assert ranking.ranked == [("y", 25.0), ("x", 20.0)]
+    assert (ranking.partial, ranking.results, ranking.duplicates) == (["z"], 5, 1)
+
+
+def test_a_repeat_counts_once_where_bodies_are_counted(quadruped: Genome) -> None:
+    """The population holds both f and h (fig. 2a's top of the population); the top agents,
+    the beneficial mutations (h is f's mutation from d again), fig. 6 and the pictures hold f
+    once."""
+    config = AnalysisConfig(top=3, time_points=50, stability_sample=1)
+    analysis = analyse([with_repeat(make_run(quadruped))], config)
+    (result,) = analysis.runs
+    s = result.summary
+    assert (s.bodies, s.distinct_bodies, s.repeats) == (8, 7, 1)
+    assert ids(result.top) == ["f", "d", "g"]  # was f, h, d
+    assert s.beneficial_mutations == 2  # was 3: d and f, and f again
+    assert s.gain_p75 == pytest.approx(np.percentile([340, 10, 350], 75))
+    assert result.series["fitness_top"][-1].value == 500.0  # the population f, g, h: all of it
+    every = {(r.y, r.generation): r for r in analysis.correlations if r.agents == "all"}
+    assert every[("fitness", None)].spearman.n == 6  # 8 births, 7 bodies, e without a cost
+    assert every[("fitness", 2)].spearman.n == 2  # f and g (h is f)
+    rows = body_rows(result)
+    assert (rows[-1].same_body_as, rows[-1].counted) == ("f", False)
+    assert result.summary.quarters.last_repeats == 1  # h is a birth of the last quarter
+
+
+def test_fig6_correlations_pool_each_world_and_each_generation(quadruped: Genome) -> None:
     config = AnalysisConfig(top=3, stability_sample=1)
-    analysis = analyse([make_run(quadruped, "one"), make_run(quadruped, "two")], config)
-    rows = {(r.world, r.agents, r.y): r.correlation for r in analysis.correlations}
-    top = rows[("ft", "top", "fitness")]  # f, d, g of both runs
+    one, two = make_run(quadruped, "one"), make_run(quadruped, "two")
+    others = variants(quadruped, 14)[7:]  # two's bodies: other bodies than one's
+    two = two.model_copy(update={"bodies": tuple(
+        b.model_copy(update={"genome": g}) for b, g in zip(two.bodies, others, strict=True)
+    )})  # fmt: skip
+    analysis = analyse([one, two], config)
+    rows = {(r.world, r.agents, r.y, r.generation): r for r in analysis.correlations}
+    top = rows[("ft", "top", "fitness", None)]  # f, d, g of both runs
     expected = stats.pearsonr([0.5, 1, 1.5] * 2, [700, 350, 100] * 2)
-    assert top.n == 6 and top.r == pytest.approx(expected.statistic)
-    assert top.p == pytest.approx(expected.pvalue)
-    every = rows[("ft", "all", "steps_to_criterion")]
-    assert (every.n, every.excluded) == (8, 6)  # e has no cost of work; a, b never reach 25
+    assert top.pearson.n == 6 and top.pearson.r == pytest.approx(expected.statistic)
+    assert top.pearson.p == pytest.approx(expected.pvalue)
+    every = rows[("ft", "all", "steps_to_criterion", None)]
+    assert (every.pearson.n, every.pearson.excluded) == (8, 6)  # e: no cost; a, b: never reach
+    assert (every.spearman.n, every.spearman.excluded, every.spearman.censored) == (12, 2, 4)
+    founders = rows[("ft", "all", "fitness", 0)]  # generation 0: a, b, c of both runs
+    expected = stats.pearsonr([4, 3, 2] * 2, [10, 20, 30] * 2)
+    assert founders.pearson.r == pytest.approx(expected.statistic)
+    assert {g for (_, agents, _, g) in rows if agents == "all"} == {None, 0, 1, 2}
+    same = analyse([one, make_run(quadruped, "three")], config)  # the same bodies again
+    again = {(r.agents, r.y, r.generation): r for r in same.correlations}
+    assert again[("all", "fitness", None)].spearman.n == 6  # each body once (e: no cost)
+    assert same.worlds[0].summary.shared_bodies == 7
 
 
 def test_thresholds_come_from_the_world() -> None:

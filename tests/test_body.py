@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from derl.unimal import Genome, InvalidBody, Joint, Limb, agent_spec, check_body, describe
+from derl.unimal.descriptors import stability_ratio
 from derl.unimal.geometry import direction, layout, limb_frame
-from derl.unimal.mjcf import to_mjcf
+from derl.unimal.mjcf import rest_height, to_mjcf
 from derl.unimal.space import HEAD_RADIUS, LIMB_RADIUS
 
 MIRROR = np.array([1.0, -1.0, 1.0])
@@ -126,3 +127,6 @@ def test_descriptors_of_a_pole_and_a_quadruped(quadruped: Genome) -> None:
     # in y, its lower leg hangs straight down from there, one limb radius thick
     assert q.width == pytest.approx(HEAD_RADIUS + 3 * LIMB_RADIUS + 0.3)  # 0.55
     assert 0 < q.coverage < 1
+    # the stability test starts the body as the environments do: 0.2 m up, then it drops
+    rest = rest_height(layout(quadruped))
+    assert stability_ratio(quadruped, steps=1) == pytest.approx((rest + 0.2) / rest, abs=0.02)

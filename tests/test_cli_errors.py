@@ -1,10 +1,14 @@
 """Bad input on the command line gets one clear line and a non-zero exit, never a traceback or a
 hang: one row per mistake a user makes (a budget below one rollout, an impossible genome, zero
 workers or copies, a port in use, a missing run directory or log, a run directory that is a
-file, a misspelt key in a profile or a launch file, a job's own setting among a profile's PPO
-hyperparameters, an unknown message type, a folder with no trained body, a study with no runs,
-of a missing run or not made yet, a run directory of another run id, a monitor that hears
-nothing of its run, a missing or misspelt Zenoh config, an argument no option takes)."""
+file, a misspelt key in a profile or a launch file, a profile file that is empty or starts from
+no built-in profile, a tournament larger than the population, a job's own setting among a
+profile's PPO hyperparameters, a misspelt key or a wrong value in --set, an unknown message
+type, a folder with no trained body, a study with no runs, of a missing run or not made yet, a
+run directory of another run id, a monitor or a topic that hears nothing (the line says how it
+joined the bus: by default the local run's endpoint, $DERL_LOCAL_PORT here) or is asked to
+listen a negative time, a report of a file that is no log, an export with nothing to write, a
+missing or misspelt Zenoh config, an argument no option takes)."""
 
 from __future__ import annotations
 
@@ -45,6 +49,10 @@ def _files(tmp: Path, genome: Genome) -> None:
               "trainer", "cont": 2}]}]}  # fmt: skip
     (tmp / "launch.yaml").write_text(yaml.safe_dump(launch))
     (tmp / "a-file").write_text("")
+    (tmp / "smok.yaml").write_text("profile: smok\n")  # a misspelt built-in profile
+    (tmp / "empty.yaml").write_text("# nothing set yet\n")
+    (tmp / "big-tournament.yaml").write_text("profile: smoke\ntournament: 20\n")
+    (tmp / "page.html").write_text("<html><body>not a log</body></html>\n")
     (tmp / "typo.json5").write_text('{"trasport": {}}')
     no_joints = genome.model_dump(mode="json")
     no_joints["limbs"][0]["joints"] = []
@@ -67,6 +75,26 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                     "derl unimal sample: error: unrecognized arguments: 3"),
     "misspelt profile key": (["run", "--profile", "typo.yaml"], 1,
                              "unknown key 'populaton'; valid keys: name, world, population"),
+    "an unknown built-in profile": (["run", "--profile", "smok.yaml"], 1,
+                                    "`profile: smok` is not a built-in profile; choose smoke, "
+                                    "demo, paper"),
+    "an empty profile file": (["run", "--profile", "empty.yaml"], 1,
+                              "the file holds no settings: start it with `profile: NAME`"),
+    "a tournament larger than the population": (["run", "--profile", "big-tournament.yaml"], 1,
+                                                "tournament (20) > population (4)"),
+    "a negative monitor time": (["monitor", "--once", "-1"], 2,
+                                "--once: must be more than 0 seconds, not -1"),
+    "a report of a file that is no log": (["report", "page.html", "--out", "r"], 1,
+                                          "page.html is not an MCAP log"),
+    "a misspelt key in --set": (["run", "--set", "ppo.lrr=1e-4"], 1,
+                                "profile smoke with --set ppo.lrr=1e-4: unknown key 'ppo.lrr'; "
+                                "valid keys: rollout_steps, gamma"),
+    "a --set without a value": (["study", "--study-dir", "s", "--set", "seeds"], 2,
+                                "argument --set: 'seeds' is not KEY=VALUE (e.g. ppo.lr=1e-4)"),
+    "a --set of a wrong value": (["coordinator", "--run", "r", "--run-dir", "c", "--set",
+                                  "total=many"], 78,
+                                 "profile smoke with --set total=many: total: Input should be a "
+                                 "valid integer"),
     "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,
                                   "unknown key 'ppo.num_envs'; valid keys: rollout_steps, gamma"),
     "misspelt launch key": (["launch", "launch.yaml", "--dry-run"], 1,
@@ -75,6 +103,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "no run directory": (["report", "missing", "--out", "r"], 1,
                          "no run directory or log at missing"),
     "no log": (["log", "info", "missing.mcap"], 1, "missing.mcap: no such file"),
+    "an export of nothing": (["export", "other"], 1,
+                             "say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both"),
     "no trained body": (["rollout", "."], 2, "holds no trained body"),
     "unknown message type": (["schema", "Nope"], 2, "unknown message type 'Nope'; valid:"),
     "router's port in use": (["router", "--listen", "tcp/127.0.0.1:{port}"], 2,
@@ -89,12 +119,23 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "misspelt study key": (["study", "a-file", "--study-dir", "s", "--profile", "typo.yaml"], 1,
                            "unknown key 'populaton'; valid keys: name, per_lineage"),
     "another run's journal": (["coordinator", "--run", "r", "--run-dir", "other", "--listen",
-                               "tcp/127.0.0.1:0"], 1,
+                               "tcp/127.0.0.1:0"], 78,
                               "holds the journal of run 'other', not 'r': resume it with --run"),
-    "coordinator of no study": (["coordinator", "--run", "r", "--study", "s"], 1,
+    "coordinator of no study": (["coordinator", "--run", "r", "--study", "s"], 78,
                                 "s is not a study (no study.json)"),
     "a monitor that hears nothing": (["monitor", "--once", "1", "--run", "r"], 1,
-                                     "heard nothing of run r in 1 s"),
+                                     "heard nothing of run r in 1 s (peer, connected to "
+                                     "tcp/127.0.0.1:{local}, where nothing listens)"),
+    "a monitor that finds no run": (["monitor", "--once", "1"], 1,
+                                    "no run heard in 2 s (no derl/*/status, no live node) (peer, "
+                                    "connected to tcp/127.0.0.1:{local}, where nothing listens)"),
+    "a topic list that hears nothing": (["topic", "list", "--duration", "1"], 1,
+                                        "nothing heard on derl/** in 1 s (peer, connected to "
+                                        "tcp/127.0.0.1:{local}, where nothing listens)"),
+    "an echo that hears nothing": (["topic", "echo", "status", "--run", "r", "--duration", "1",
+                                    "--connect", "tcp/127.0.0.1:{port}"], 1,
+                                   "nothing heard on status in 1 s (peer, connected to "
+                                   "tcp/127.0.0.1:{port}); is the run on another endpoint?"),
     "a missing Zenoh config": (["trainer", "--run", "r", "--zenoh-config", "missing.json5"], 1,
                                "--zenoh-config missing.json5: No such file or directory"),
     "misspelt Zenoh config key": (["trainer", "--run", "r", "--zenoh-config", "typo.json5"], 1,
@@ -109,12 +150,17 @@ def test_bad_input_gets_one_line_and_an_exit_status(
 ) -> None:
     arguments, status, says = CASES[name]
     _files(tmp_path, quadruped)
-    argv = derl_argv(*(a.format(port=busy_port) for a in arguments))
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    local = free_port()  # the local run's port ($DERL_LOCAL_PORT), where nothing listens
+
+    def filled(text: str) -> str:
+        return text.replace("{port}", str(busy_port)).replace("{local}", str(local))
+
+    argv = derl_argv(*map(filled, arguments))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "DERL_LOCAL_PORT": str(local)}
     done = subprocess.run(argv, capture_output=True, text=True, cwd=tmp_path, env=env,
                           timeout=60)  # fmt: skip
     lines = done.stderr.strip().splitlines()
     assert done.returncode == status, done.stderr
-    assert lines and says in lines[-1], done.stderr
+    assert lines and filled(says) in lines[-1], done.stderr
     assert "Traceback" not in done.stderr
     assert len([line for line in lines if line.startswith("derl")]) == 1, done.stderr

@@ -32,8 +32,11 @@ from derl.messages import (
     decode,
 )
 from derl.nodes.coordinator import node
-from derl.nodes.coordinator.node import INITIAL_FILE, Coordinator
+from derl.nodes.coordinator.evolution import EvolutionPolicy
+from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.coordinator.run_files import INITIAL_FILE, PROFILE_FILE
 from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -63,7 +66,7 @@ def _serving(
         subscriber = observer.declare_subscriber(
             f"derl/{run}/**", lambda sample: heard.put(decode(sample.payload.to_bytes()))
         )
-        coordinator = Coordinator(run, run_dir, config)
+        coordinator = Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config))
         coordinator.bus = Bus(own, run)
         try:
             yield coordinator, heard
@@ -90,7 +93,7 @@ def _quiet(heard: queue.Queue[MessageBase]) -> bool:
 
 
 def _journaled(coordinator: Coordinator) -> list[MessageBase]:
-    return list(read_segment(coordinator.journal.segment))
+    return list(read_segment(coordinator.ledger.journal.segment))
 
 
 def _ready(coordinator: Coordinator, node: str) -> None:
@@ -138,20 +141,20 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(heard.get(timeout=10), TrainJob)
 
     # accepted: the Ack comes, and the checkpoint file is whole by then
-    coordinator._fitness(_report(first, b"weights-1"))
+    coordinator._handle(_report(first, b"weights-1"))
     coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)  # the birth stream: journaled, published
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == first.child
-    assert coordinator.checkpoints.path(first.child).read_bytes() == b"weights-1"
+    assert coordinator.ledger.checkpoints.path(first.child).read_bytes() == b"weights-1"
 
     # the write fails (the folder is gone, a file in its place): born, but not acknowledged
-    folder = coordinator.checkpoints.folder
+    folder = coordinator.ledger.checkpoints.folder
     shutil.rmtree(folder)
     folder.write_text("not a folder")
     report = _report(second, b"weights-2")
     with caplog.at_level(logging.ERROR, logger="derl.coordinator"):
-        coordinator._fitness(report)
+        coordinator._handle(report)
         coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)
     assert second.child in coordinator.state.evolution.fitness
@@ -162,12 +165,12 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     # the trainer sends its report again: the checkpoint is written, then acknowledged
     folder.unlink()
     folder.mkdir()
-    coordinator._fitness(report)
+    coordinator._handle(report)
     coordinator.settle()
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == second.child
-    assert coordinator.checkpoints.path(second.child).read_bytes() == b"weights-2"
-    assert coordinator.born == 2
+    assert coordinator.ledger.checkpoints.path(second.child).read_bytes() == b"weights-2"
+    assert coordinator.policy.born == 2
 
 
 def _wait_for(path: Path) -> bytes:
@@ -199,7 +202,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
 
     with _serving(run, tmp_path, config, initial) as (coordinator, heard):
         for node, weights in (("w1", b"weights-1"), ("w2", b"weights-2")):
-            coordinator._fitness(_report(_job_for(coordinator, node), weights))
+            coordinator._handle(_report(_job_for(coordinator, node), weights))
         _ready(coordinator, "w1")
         coordinator.settle()
         journaled = _journaled(coordinator)
@@ -215,17 +218,17 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
             pass
         assert msg.repeat_of == twin  # in the birth stream
         assert coordinator._status().repeats == 1
-        checkpoint = coordinator.checkpoints.path("c00000")
-        assert _wait_for(checkpoint) == coordinator.checkpoints.path(twin).read_bytes()
+        checkpoint = coordinator.ledger.checkpoints.path("c00000")
+        assert _wait_for(checkpoint) == coordinator.ledger.checkpoints.path(twin).read_bytes()
 
     checkpoint.unlink()  # as if the coordinator died before the link was on disk
-    restarted = Coordinator(run, tmp_path, config)
+    restarted = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
     try:
         state = restarted.state
         assert state.born["c00000"].repeat_of == twin
         assert state.evolution.repeat_of(child_body) == twin
         assert "c00000" not in state.waiting and restarted._status().repeats == 1
-        assert _wait_for(checkpoint) == restarted.checkpoints.path(twin).read_bytes()
+        assert _wait_for(checkpoint) == restarted.ledger.checkpoints.path(twin).read_bytes()
     finally:
         restarted.close()
     bodies = {body.id: body for body in run_log(tmp_path).bodies}  # what `derl report` reads
@@ -406,7 +409,7 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
     config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
     initial = sample_population(2, np.random.default_rng(3))
     (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
-    coordinator = Coordinator(run, tmp_path, config)
+    coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
     serving = threading.Thread(target=coordinator.serve, args=(ZenohOptions(listen=(endpoint,)),))
     serving.start()
     jobs: queue.Queue[TrainJob] = queue.Queue()
@@ -439,14 +442,31 @@ def test_a_run_saved_when_ppo_held_every_ppoconfig_field_resumes_as_it_ran(tmp_p
     config = load_profile("smoke")
     saved = config.model_dump(mode="json")
     saved["ppo"] = PPOConfig(num_envs=64, total_steps=10**7, seed=5, lr=1e-4).model_dump()
-    (tmp_path / node.PROFILE_FILE).write_text(json.dumps(saved))
+    (tmp_path / PROFILE_FILE).write_text(json.dumps(saved))
     initial = sample_population(config.population, np.random.default_rng(3))
     (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
-    coordinator = Coordinator(run_id(), tmp_path, config)
+    run = run_id()
+    coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
     try:
-        assert coordinator.config.ppo == PPOHyperparameters(lr=1e-4)
-        ppo = coordinator.config.training_ppo()
+        assert coordinator.policy.config.ppo == PPOHyperparameters(lr=1e-4)
+        ppo = coordinator.policy.config.training_ppo()
         assert (ppo.num_envs, ppo.total_steps, ppo.seed, ppo.lr) == (
             config.num_envs, config.train_steps, config.training_seed, 1e-4)  # fmt: skip
     finally:
         coordinator.close()
+
+
+def test_a_run_directory_of_another_profile_is_refused(tmp_path: Path) -> None:
+    """The coordinator raises (the command line prints it and exits, `derl run` stops at once):
+    a run directory of another profile is `Refused`, naming both."""
+    (tmp_path / PROFILE_FILE).write_text(load_profile("smoke").model_dump_json())
+    with pytest.raises(Refused, match="holds a run of profile smoke in ft with seed 0, not demo"):
+        EvolutionPolicy(run_id(), tmp_path, load_profile("demo"))
+
+
+def test_a_run_whose_jobs_would_not_be_valid_messages_is_refused(tmp_path: Path) -> None:
+    """Every value a job carries is checked before anything starts (here the run id, which every
+    message and key carries)."""
+    with pytest.raises(Refused, match="run 'no spaces' cannot start"):
+        EvolutionPolicy("no spaces", tmp_path, load_profile("smoke"))
+    assert not (tmp_path / INITIAL_FILE).exists()

@@ -23,7 +23,7 @@ from derl.envs.rewards import REWARD_WEIGHTS, Escape, Forward, RewardWeights
 from derl.envs.task import Task
 from derl.envs.terrain import Terrain, TerrainConfig
 from derl.envs.view import EnvView
-from derl.unimal import Genome
+from derl.unimal import Genome, Joint, Limb
 
 SMALL_VT = TerrainConfig.variable(size_x=30.0, size_y=10.0)
 SMALL_MVT = TerrainConfig.manipulation(size_x=40.0, size_y=24.0)
@@ -222,6 +222,21 @@ def test_fall_ends_the_episode(quadruped: Genome) -> None:
     assert env.head_pos[0, 2] == pytest.approx(spawn_height, abs=0.02)
 
 
+def test_a_body_spawns_and_falls_as_the_released_code() -> None:
+    """`set_head_pos`: the head 0.2 m (FLOOR_OFFSET) above the body's lowest point, the lowest
+    limb tip on its axis (a `btm_pos` site), not the rounded end below it; a fall is the head
+    below half that resting height (`orig_height`)."""
+    joint = Joint(axis="x", range=(-30, 60), gear=200)
+    legs = Limb(id=0, paired=True, length=0.3, theta=45, phi=135, joints=(joint,))
+    env = _env(Genome(head_density=700, limb_density=600, limbs=(legs,)), "ft", n=3)
+    # tip: head radius 0.1, then 2 r + h = 0.4 along the leg, 45 degrees down
+    assert env.rest_height == pytest.approx(0.5 * np.sqrt(0.5))
+    assert env.config.spawn_clearance == 0.2
+    env.reset(0)
+    np.testing.assert_allclose(env.head_pos[:, 2], env.rest_height + 0.2, atol=0.006)
+    assert env.fall_height == pytest.approx(0.5 * env.rest_height)
+
+
 def test_time_limit_truncates(quadruped: Genome) -> None:
     env = _env(quadruped, "ft", n=2, episode_steps=5, fall_ratio=0.0)
     env.reset(0)
@@ -230,6 +245,18 @@ def test_time_limit_truncates(quadruped: Genome) -> None:
         assert result.truncated.all() == (step == 4)
     assert not result.terminated.any()
     assert (result.final_obs["proprioception"] != result.obs["proprioception"]).any(axis=1).all()
+
+
+def test_a_fall_at_the_time_limit_is_a_timeout(quadruped: Genome) -> None:
+    """The released code marks a step at the limit a timeout even when it also ends the episode
+    (`TimeLimitMask`: done at the limit), and its advantage then treats it as one."""
+    env = _env(quadruped, "ft", n=2, episode_steps=1)
+    env.reset(0)
+    env.qpos[0, env.root + 2] = 0.3 * env.rest_height
+    env.batch.forward()
+    result = env.step(np.zeros((2, env.action_dim), np.float32))
+    assert result.terminated.tolist() == [True, False]
+    assert result.truncated.all()
 
 
 def test_unstable_physics_ends_only_that_copy(quadruped: Genome) -> None:
@@ -278,14 +305,12 @@ def test_batch_matches_single_simulations(quadruped: Genome) -> None:
 
 
 def _fresh_observation(env: UnimalEnv, data: mujoco.MjData) -> np.ndarray:
-    """Proprioception of a reset MjData placed at ``data.qpos``/``qvel``, as `Batch.reset` and a
-    forward pass to mjSTAGE_VEL leave it."""
+    """Proprioception of a reset MjData placed at ``data.qpos``/``qvel``, as the released code's
+    reset leaves it (`set_state`: mj_forward, every sensor)."""
     qpos, qvel = data.qpos.copy(), data.qvel.copy()
     mujoco.mj_resetData(env.model, data)
     data.qpos[:], data.qvel[:] = qpos, qvel
-    for stage in (mujoco.mj_fwdPosition, mujoco.mj_sensorPos, mujoco.mj_fwdVelocity):
-        stage(env.model, data)
-    mujoco.mj_sensorVel(env.model, data)
+    mujoco.mj_forward(env.model, data)
     parts = (
         data.qpos[env.joint_qpos],
         data.qvel[env.agent_dofs],
@@ -320,6 +345,27 @@ def test_reset_copy_matches_a_freshly_reset_simulation(quadruped: Genome) -> Non
         data.ctrl[:] = actions[0]
         mujoco.mj_step(env.model, data, nstep=4)
     np.testing.assert_allclose(env.qpos[0], data.qpos, atol=1e-9)
+
+
+def test_proprioception_is_the_released_codes(quadruped: Genome) -> None:
+    """`Agent.observation_step`: joint angles, the body's velocities (free joint and joints),
+    the head's accelerometer, gyro and velocimeter, every part's touch sensor, and each limb
+    end's x and y in the head frame (`extremities`); at reset every sensor reads the spawn state
+    (mj_forward): the accelerometer sees the joints' springs in free fall."""
+    env = _env(quadruped, "ft", n=2)
+    obs = env.reset(0)["proprioception"]
+    joints, dofs, parts = len(env.joint_qpos), len(env.agent_dofs), 1 + 6  # head, six limbs
+    assert obs.shape == (2, joints + dofs + 9 + parts + 2 * 6)
+    head = env.model.body("head").id
+    rot, centre = env.xmat[:, head].reshape(-1, 3, 3), env.head_pos
+    sensors = [env.model.sensor(i).name for i in range(env.model.nsensor)]
+    sites = [name.removesuffix("_pos") for name in sensors if name.endswith("_end_pos")]
+    ends = env.site_xpos[:, [env.model.site(name).id for name in sites]]
+    expected = np.einsum("nji,nkj->nki", rot, ends - centre[:, None])[:, :, :2]
+    first_ends = joints + dofs + 9 + parts
+    np.testing.assert_allclose(obs[:, first_ends:], expected.reshape(2, 12), rtol=1e-5, atol=1e-6)
+    accelerometer = obs[:, joints + dofs : joints + dofs + 3]
+    assert (np.abs(accelerometer) > 1e-3).all()
 
 
 def test_heightmap_follows_the_heading(quadruped: Genome) -> None:

@@ -169,6 +169,9 @@ def test_incline_pays_the_distance_along_the_slope(quadruped: Genome) -> None:
     x = env.head_pos[:, 0]
     spawn_height = env.rest_height + env.config.spawn_clearance
     np.testing.assert_allclose(env.head_pos[:, 2], x * np.tan(SLOPE) + spawn_height, atol=0.02)
+    # the body spawns turned with the slope, upright on it (the released code's head euler)
+    normal = np.array([-np.sin(SLOPE), 0.0, np.cos(SLOPE)])
+    np.testing.assert_allclose(env.head_rot[:, :, 2], np.tile(normal, (env.num_envs, 1)), atol=0.02)
     _fly(env, (1.5, 0.0, 0.0))
     x0 = env.head_pos[:, 0].copy()
     total = np.zeros(env.num_envs)

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
+from derl.analysis.study import load_study_profile
 from derl.evolution import Child, Evolution, breed, load_profile, population
 from derl.evolution.population import first_draft, tournament_draws
 from derl.unimal import Genome, Joint, Limb, body_hash, check_body, is_valid, sample_population
@@ -287,3 +290,22 @@ def test_a_child_that_cannot_be_bred_is_no_repeat(monkeypatch: pytest.MonkeyPatc
     with pytest.raises(MutationFailed):
         breed(stacked, child.mutation_seed)
     assert evolution.repeat(child.name) is None
+
+
+def test_changes_set_dotted_keys_of_a_profile_and_are_checked_like_it(tmp_path: Path) -> None:
+    """`--set KEY=VALUE`: a value at a dotted key of a built-in profile or a profile file, read
+    as the file's YAML is (so `1e-4` is a string pydantic reads as a number), validated with
+    the rest; the world and seed flags still win."""
+    config = load_profile("smoke", [("ppo.lr", "1e-4"), ("total", 6), ("world", "vt")], seed=2)
+    assert (config.ppo.lr, config.total, config.world, config.seed) == (1e-4, 6, "vt", 2)
+    assert config.ppo.gamma == load_profile("smoke").ppo.gamma  # the rest of ppo is kept
+    file = tmp_path / "mine.yaml"
+    file.write_text("profile: smoke\ntotal: 10\n")
+    assert load_profile(str(file), [("total", 5)]).total == 5
+    assert load_study_profile("smoke", [("seeds", 3)]).seeds == 3
+    with pytest.raises(ValidationError, match=r"ppo\.lrr"):
+        load_profile("smoke", [("ppo.lrr", 1)])
+    with pytest.raises(ValidationError, match=r"tournament \(20\) > population \(4\)"):
+        load_profile("smoke", [("tournament", 20)])
+    with pytest.raises(ValueError, match=r"cannot set world\.x: world is one value"):
+        load_profile("smoke", [("world.x", 1)])

@@ -1,7 +1,8 @@
 """`derl foxglove` against a real WebSocket client: a Zenoh peer (loopback, multicast off, a fresh
 port and run id) stands in for the coordinator, answering the births query with an earlier birth
 and publishing new ones; the bridge serves them, and a `websockets` client speaking the Foxglove
-protocol (advertise, subscribe, binary messageData) receives each birth's JSON and the summary."""
+protocol (advertise, subscribe, binary messageData) receives each birth's JSON and the summary;
+every advertised schema is one the viewers' parser reads (tests/viewer_parser.py)."""
 
 from __future__ import annotations
 
@@ -18,12 +19,14 @@ import foxglove
 import pytest
 import websockets
 import zenoh
-from derl.messages import MESSAGE_TYPES, Birth, TrainProgress, encode
+from derl.messages import Birth, TrainProgress, encode
 from derl.messages.examples import examples
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.tools.foxglove import SUMMARY_TOPIC, TOPICS, Bridge, RunSummary, serve
-from derl.nodes.tools.logs import base64_text, json_form
+from derl.nodes.tools.logs import base64_text, json_form, json_schema
+from derl.nodes.tools.viewer_schema import viewer_schema
 from nodes_fixtures import free_port
+from viewer_parser import parse_json_schema
 
 LAYOUT = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk 0.30 accepts (formerly foxglove.websocket.v1)
@@ -75,12 +78,12 @@ def bridge(coordinator: tuple[str, Bus]) -> Iterator[int]:
     assert not thread.is_alive()
 
 
-async def _watch(port: int, bus: Bus) -> tuple[dict, dict, list[dict], dict]:
+async def _watch(port: int, bus: Bus) -> tuple[dict[str, dict], dict, list[dict], dict]:
     """Subscribe to the births and the summary; publish births until one comes back. The
-    advertised births channel, the first birth received, every birth received, a summary."""
+    advertised channels by topic, the first birth received, every birth received, a summary."""
     async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
         channels: dict[str, dict] = {}
-        while not {TOPICS["Birth"], SUMMARY_TOPIC} <= channels.keys():
+        while not {*TOPICS.values(), SUMMARY_TOPIC} <= channels.keys():
             message = json.loads(await asyncio.wait_for(ws.recv(), 10))
             if message["op"] == "advertise":
                 channels.update({c["topic"]: c for c in message["channels"]})
@@ -112,17 +115,21 @@ async def _watch(port: int, bus: Bus) -> tuple[dict, dict, list[dict], dict]:
             else:
                 assert subscription == 8
                 latest_summary = payload
-        return births, received[0], received, latest_summary
+        return channels, received[0], received, latest_summary
 
 
 def test_a_websocket_client_receives_the_births_as_json(
     coordinator: tuple[str, Bus], bridge: int
 ) -> None:
     _, bus = coordinator
-    births, first, received, summary = asyncio.run(_watch(bridge, bus))
-    assert births["encoding"] == "json" and births["schemaEncoding"] == "jsonschema"
-    schema = json.loads(births["schema"])
-    assert schema["title"] == "Birth" and "fitness" in schema["properties"]
+    channels, first, received, summary = asyncio.run(_watch(bridge, bus))
+    served = {topic: json_schema(kind) for kind, topic in TOPICS.items()}
+    served[SUMMARY_TOPIC] = viewer_schema(RunSummary)
+    for topic, channel in channels.items():  # the schemas the viewers' parser reads
+        assert channel["encoding"] == "json" and channel["schemaEncoding"] == "jsonschema"
+        schema = json.loads(channel["schema"])
+        assert schema == served[topic], topic
+        assert parse_json_schema(schema, channel["schemaName"])[channel["schemaName"]], topic
     assert first == json_form(_birth(bus.run, first["birth"]), base64_text)  # the birth's JSON
     assert len({b["birth"] for b in received}) == len(received)  # each birth once
     # the summary holds the queried birth 0 too, in birth order, with the best so far
@@ -147,17 +154,40 @@ def test_summary_slots_workers_and_marks_the_silent_ones_idle() -> None:
     assert summary.births == []
 
 
+def _resolve(datatypes: dict[str, list[dict]], root: str, path: str) -> dict:
+    """The field a message path (``.a[:].b``) names, walked through the viewers' datatypes."""
+    field: dict = {"type": root, "isComplex": True}
+    for name, index in re.findall(r"\.(\w+)|(\[[^\]]*\])", path):
+        if index:
+            assert field.get("isArray"), f"{path}: {index} on a field that is not an array"
+            field = {**field, "isArray": False}
+        else:
+            assert field.get("isComplex") and not field.get("isArray"), f"{path}: .{name}"
+            field = next(f for f in datatypes[field["type"]] if f["name"] == name)
+    return field
+
+
 def test_the_layout_reads_only_what_the_bridge_serves() -> None:
-    """Every message path of docs/foxglove-layout.json names a served topic and a field of it."""
+    """Every message path of docs/foxglove-layout.json names a served topic and a field of it,
+    resolved in the message definitions the viewers make of the served schema; plotted ones
+    are numbers."""
     layout = json.loads(LAYOUT.read_text())
-    fields = {topic: MESSAGE_TYPES[kind].model_fields for kind, topic in TOPICS.items()}
-    fields[SUMMARY_TOPIC] = RunSummary.model_fields
+    schemas = {topic: (kind, json_schema(kind)) for kind, topic in TOPICS.items()}
+    schemas[SUMMARY_TOPIC] = ("RunSummary", viewer_schema(RunSummary))
+    plots = [c for panel, c in layout["configById"].items() if panel.startswith("Plot")]
+    plotted = set(re.findall(r'"(/derl/[^"]*)"', json.dumps(plots)))
     paths = re.findall(r'"(/derl/[^"]*)"', json.dumps(layout))
-    assert len(paths) >= 6
+    assert len(paths) >= 6 and len(plotted) >= 3
     for path in paths:
-        topic, _, rest = path.partition(".")
-        field = re.split(r"[.\[]", rest)[0]
-        assert topic in fields and (not field or field in fields[topic]), path
+        topic, dot, rest = path.partition(".")
+        assert topic in schemas, path
+        kind, schema = schemas[topic]
+        field = _resolve(parse_json_schema(schema, kind), kind, dot + rest)
+        assert path not in plotted or field["type"] == "float64", path
     panels = set(layout["configById"])
     assert {panel.split("!")[0] for panel in panels} == {"Plot", "Table", "RawMessages"}
     assert panels == set(re.findall(r'"(\w+![\w-]+)"', json.dumps(layout["layout"])))
+    for panel, config in layout["configById"].items():  # titles under the keys the apps read
+        assert "title" not in config, panel
+        if panel.startswith("Plot"):
+            assert config["foxglovePanelTitle"] == config["lichtblickPanelTitle"] != "", panel

@@ -18,13 +18,17 @@ from derl.messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, 
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import (
     Journal,
+    JournalDamaged,
     JournalWriter,
     compact,
     read_segment,
+    records,
     replay,
     segments,
 )
 from mcap.reader import make_reader
+from mcap.records import Message
+from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
@@ -39,6 +43,14 @@ def mixed(count: int, start: int = 0) -> list[MessageBase]:
 
 def payloads(msgs: list[MessageBase]) -> list[bytes]:
     return [encode(m) for m in msgs]
+
+
+def closed_file(path: Path, written: list[bytes]) -> Path:
+    """A closed journal file of the messages `written`, each flushed on its own."""
+    with JournalWriter(path) as writer:
+        for payload in written:
+            writer.write(decode(payload))
+    return path
 
 
 def test_two_segments_replay_in_order(tmp_path: Path) -> None:
@@ -89,9 +101,7 @@ def test_standard_reader_sees_channels_schemas_and_encodings(tmp_path: Path) -> 
 def test_segment_cut_at_any_byte_gives_a_prefix(tmp_path: Path, caplog) -> None:
     written = payloads(mixed(60))
     full = tmp_path / "full.mcap"
-    with JournalWriter(full) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(full, written)
     data = full.read_bytes()
     rng = random.Random(7)
     cuts = sorted({0, 1, 8, 9, len(data) - 1, len(data), *rng.sample(range(len(data)), 30)})
@@ -135,19 +145,67 @@ def test_undecodable_records_are_skipped(tmp_path: Path, caplog) -> None:
     assert "non-msgpack channel" in caplog.text
 
 
-def test_corrupt_chunk_ends_the_segment_with_a_warning(tmp_path: Path, caplog) -> None:
+def test_a_corrupt_chunk_is_skipped_with_a_warning_and_reading_goes_on(
+    tmp_path: Path, caplog
+) -> None:
     written = payloads(mixed(20))
     path = tmp_path / "flip.mcap"
-    with JournalWriter(path) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(path, written)
     data = bytearray(path.read_bytes())
     at = data.find(written[10])
     data[at + len(written[10]) // 2] ^= 0x40
     path.write_bytes(data)
     with caplog.at_level(logging.WARNING, logger="derl.nodes.journal.segments"):
-        assert payloads(list(read_segment(path))) == written[:10]
-    assert "CRCValidationError" in caplog.text
+        assert payloads(list(read_segment(path))) == written[:10] + written[11:]
+    assert "CRCValidationError" in caplog.text and "whole records follow" in caplog.text
+
+
+def _crashed_segment(run_dir: Path, written: list[bytes]) -> Path:
+    """The one segment of `run_dir` as a crash leaves it: every message flushed, no footer."""
+    journal = Journal(run_dir)
+    for payload in written:
+        journal.write(decode(payload))
+    kept = journal.segment.read_bytes()
+    journal.close()
+    journal.segment.write_bytes(kept)
+    return journal.segment
+
+
+def test_damage_followed_by_whole_records_in_the_last_segment_is_no_torn_tail(
+    tmp_path: Path,
+) -> None:
+    """A crash only cuts the end of the segment being written: a bad record with whole ones after
+    it is damage. The replay and a restart refuse it (they once cut the segment there, dropping
+    every later record, acknowledged births included); nothing is cut."""
+    written = payloads(mixed(60))
+    segment = _crashed_segment(tmp_path, written)
+    data = bytearray(segment.read_bytes())
+    at = data.find(written[30])
+    data[at + 3] ^= 0x40
+    segment.write_bytes(data)
+    with pytest.raises(JournalDamaged, match="whole records follow it from byte") as raised:
+        list(replay(tmp_path))
+    assert raised.value.end < at < (raised.value.resumes or 0)
+    assert "derl log repair" in str(raised.value)
+    with pytest.raises(JournalDamaged, match="not the torn tail"):
+        Journal(tmp_path)
+    assert segment.read_bytes() == data and segments(tmp_path) == [segment]
+
+
+def test_a_torn_tail_is_cut_at_any_byte_and_a_zeroed_one_too(tmp_path: Path) -> None:
+    """What a crash leaves at the end of the last segment (a record cut anywhere, or the file
+    grown with zeros the data never reached) is cut back to the last whole record."""
+    written = payloads(mixed(12))
+    segment = _crashed_segment(tmp_path, written)
+    data = segment.read_bytes()
+    last = data.find(written[-1])
+    for tail in (data[: last + 5], data[: last + 5] + bytes(4000), data[:last] + bytes(100)):
+        segment.write_bytes(tail)
+        back = payloads(list(replay(tmp_path)))
+        assert back == written[: len(back)] and len(back) >= len(written) - 2
+        with Journal(tmp_path) as journal:
+            assert payloads(list(journal.replay())) == back
+        journal.segment.unlink()
 
 
 CHILD = """
@@ -202,13 +260,45 @@ def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path, caplog) -> N
     assert len(said) == 1 and ("has no footer" in said[0] or "torn tail" in said[0]), said
 
 
+def _by_mcap(path: Path) -> list[tuple[int, int, bytes]]:
+    """The messages the `mcap` package's own stream reader reads, up to its first error."""
+    read = []
+    with path.open("rb") as f:
+        try:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Message):
+                    read.append((record.channel_id, record.sequence, record.data))
+        except Exception:  # a cut or corrupt record: what came before it
+            pass
+    return read
+
+
+def test_the_reader_reads_what_the_mcap_package_reads(tmp_path: Path) -> None:
+    """`records` is a faster walk of its own: on a journal segment, a compacted one (zstd
+    chunks, indexes, summary) and either cut at any byte, it reads the same messages."""
+    pytest.importorskip("zstandard")
+    written = payloads(mixed(150))
+    plain, packed = tmp_path / "plain.mcap", tmp_path / "packed.mcap"
+    closed_file(plain, written)
+    packed.write_bytes(plain.read_bytes())
+    assert compact(packed)
+    rng = random.Random(3)
+    cut = tmp_path / "cut.mcap"
+    for path in (plain, packed):
+        data = path.read_bytes()
+        for size in [*rng.sample(range(len(data)), 40), len(data)]:
+            cut.write_bytes(data[:size])
+            mine = [(r.channel_id, r.sequence, r.data) for r in records(cut)
+                    if isinstance(r, Message)]  # fmt: skip
+            assert mine == _by_mcap(cut), (path.name, size)
+        assert len(mine) == len(written)
+
+
 def test_compaction_keeps_every_message(tmp_path: Path) -> None:
     pytest.importorskip("zstandard")
     written = payloads(mixed(200))
     closed, crashed = tmp_path / "closed.mcap", tmp_path / "crashed.mcap"
-    with JournalWriter(closed) as writer:
-        for payload in written:
-            writer.write(decode(payload))
+    closed_file(closed, written)
     data = closed.read_bytes()
     crashed.write_bytes(data[: data.find(written[150])])
     before = closed.stat().st_size

@@ -17,6 +17,7 @@ import pytest
 import yaml
 from derl.nodes.cli.main import build_parser
 from derl.nodes.launch.commands import build_commands, dry_run_text, plan
+from derl.nodes.launch.local import LOCAL_FILE, local_launch
 from derl.nodes.launch.model import LaunchFile, load
 from nodes_fixtures import (
     REPO,
@@ -78,15 +79,41 @@ def test_local_launch_file_dry_run(tmp_path: Path) -> None:
         "derl coordinator --run local-smoke --profile smoke --run-dir runs/local-smoke "
         "--listen tcp/127.0.0.1:7447",
         "derl trainer --run local-smoke --name local-trainer-0 --threads 1 "
-        "--listen tcp/127.0.0.1:7448 --connect tcp/127.0.0.1:7447",
+        "--listen tcp/127.0.0.1:0 --connect tcp/127.0.0.1:7447",
         "derl trainer --run local-smoke --name local-trainer-1 --threads 1 "
-        "--listen tcp/127.0.0.1:7449 --connect tcp/127.0.0.1:7447",
+        "--listen tcp/127.0.0.1:0 --connect tcp/127.0.0.1:7447",
         "derl evaluator --run local-smoke --name local-evaluator-0 --threads 1 "
-        "--listen tcp/127.0.0.1:7450 --connect tcp/127.0.0.1:7447",
+        "--listen tcp/127.0.0.1:0 --connect tcp/127.0.0.1:7447",
     ]
     for line in lines:
         _parses(line)
     assert not list(tmp_path.iterdir())  # a dry run starts and writes nothing
+
+
+def test_derl_run_starts_the_local_launch_files_graph_with_its_numbers(tmp_path: Path) -> None:
+    """`derl run` and `derl study` start the nodes launch/local.yaml declares (one declaration,
+    packaged with derl), with the run's id, directory, profile, port and worker counts."""
+    assert LOCAL.resolve() == LOCAL_FILE.resolve()
+    declared = {spec.role: spec for spec in load(LOCAL).hosts[0].nodes}
+    endpoint = "tcp/127.0.0.1:9000"
+    run = local_launch("r1", endpoint, {"trainer": 3, "evaluator": 1}, run_dir=tmp_path,
+                       profile="demo", seed=2)  # fmt: skip
+    commands = build_commands(run)
+    assert [c.name for c in commands] == [
+        "local-coordinator-0",
+        *(f"local-trainer-{k}" for k in range(3)),
+        "local-evaluator-0",
+    ]
+    assert commands[0].args == ("coordinator", "--run", "r1", "--profile", "demo", "--seed", "2",
+                                "--run-dir", str(tmp_path), "--listen", endpoint)  # fmt: skip
+    assert all(c.args[-2:] == ("--connect", endpoint) for c in commands[1:])
+    assert all(c.max_restarts == declared[c.role].max_restarts for c in commands)
+    no_evaluator = local_launch("r1", endpoint, {"trainer": 1, "evaluator": 0}, run_dir=tmp_path)
+    assert [c.role for c in build_commands(no_evaluator)] == ["coordinator", "trainer"]
+    study = build_commands(local_launch("s1", endpoint, {"evaluator": 2}, study=tmp_path))
+    assert [c.role for c in study] == ["coordinator", "evaluator", "evaluator"]
+    assert study[0].args == ("coordinator", "--run", "s1", "--study", str(tmp_path), "--listen",
+                             endpoint)  # fmt: skip
 
 
 def test_cluster_example_dry_run_starts_ssh_hosts_over_ssh() -> None:
@@ -222,6 +249,21 @@ def test_wildcard_listen_on_the_seed_host_is_the_seed(tmp_path: Path) -> None:
     commands = {c.name: c.derl_args() for c in build_commands(LaunchFile.model_validate(data))}
     assert "--connect" not in commands["head-coordinator-0"]
     assert "--connect" in commands["head-trainer-0"]
+
+
+def test_a_node_entry_can_say_where_its_processes_listen(tmp_path: Path) -> None:
+    """A node entry's `listen` wins over its host's (process k of the entry on port + k); in a
+    router topology nodes are clients, and the key is refused."""
+    data = _mesh(tmp_path)
+    data["hosts"][1]["nodes"][0]["listen"] = "tcp/10.1.0.2:8000"
+    commands = {c.name: c.derl_args() for c in build_commands(LaunchFile.model_validate(data))}
+    listens = [commands[f"a-trainer-{k}"][commands[f"a-trainer-{k}"].index("--listen") + 1]
+               for k in range(3)]  # fmt: skip
+    assert listens == ["tcp/10.1.0.2:8000", "tcp/10.1.0.2:8001", "tcp/10.1.0.2:8002"]
+    router = {"kind": "router", "endpoint": "tcp/10.1.0.1:7447", "host": "head"}
+    data["hosts"][0]["nodes"].append({"role": "router"})
+    with pytest.raises(ValueError, match="`listen` is for a peer mesh"):
+        LaunchFile.model_validate({**data, "topology": router})
 
 
 def test_restarted_worker_gets_a_new_node_id(tmp_path: Path) -> None:

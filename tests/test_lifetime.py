@@ -33,8 +33,13 @@ def _random_policy_fitness(genome: Genome, episodes: int = 64) -> float:
 
 
 def test_fitness_window_scales_with_the_budget() -> None:
-    assert fitness_window(4096) == 409_600  # the released code's last 100 iterations
-    assert fitness_window(2048) == 204_800
+    # the released code's last 100 of its 1220 iterations, as a share of the training
+    assert fitness_window(5_000_000, 4096) == 409_600  # the paper's budget: the code's window
+    assert fitness_window(5_000_000, 2048) == 200 * 2048  # 2441 iterations: the last 200
+    assert fitness_window(1_000_000, 4096) == 20 * 4096  # 244 iterations: the last 20
+    assert fitness_window(300_000, 4096) == 6 * 4096  # 73 iterations: 6
+    assert fitness_window(8192, 4096) == 4096  # at least one iteration
+    assert ppo_config("ft", 1_000_000, seed=0).fitness_window_steps == 81_920
     config = ppo_config("mvt", 8192, seed=3)
     assert config.fitness_component == "manipulation" and config.seed == 3
 
@@ -58,15 +63,18 @@ def test_train_and_rollout_commands(quadruped: Genome, tmp_path: Path) -> None:
     genome.write_text(quadruped.model_dump_json())
     out = tmp_path / "run"
     command = [sys.executable, "-m", "derl.nodes.cli"]
-    subprocess.run(
-        [*command, "train", "--genome", str(genome), "--task", "mvt", "--steps", "8192",
+    trained = subprocess.run(
+        [*command, "train", "--genome", str(genome), "--task", "mvt", "--steps", "9000",
          "--envs", "16", "--out", str(out)],
-        check=True, capture_output=True, timeout=300,
+        check=True, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
+    # 9,000 steps are 4 whole rollouts of 16 x 128 steps, and derl says so
+    assert "training 8,192 env steps: --steps 9000 rounded down" in trained.stdout
     for name in ("genome.json", "checkpoint.pt", "result.json", "curve.csv", "curve.png"):
         assert (out / name).stat().st_size > 0
     result = json.loads((out / "result.json").read_text())
     assert result["task"] == "mvt" and result["config"]["fitness_component"] == "manipulation"
+    assert result["env_steps"] == 8192
     rows = list(csv.reader((out / "curve.csv").open()))
     assert rows[0] == ["env_steps", "mean_return"] and len(rows) > 1
     video = tmp_path / "episode.gif"

@@ -13,8 +13,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from derl.messages import FitnessReport, MessageBase, encode
+from derl.messages import Birth, FitnessReport, MessageBase, encode, kind_of
 from derl.messages.examples import examples
+from derl.nodes.errors import REFUSED
+from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import Journal, JournalWriter, segments
 from derl.nodes.tools.logs import LogError, export_json, info, read_log, repair
 from mcap.reader import make_reader
@@ -100,15 +102,20 @@ def test_info_on_a_clean_log(log: Path) -> None:
     assert 0 < file.span_s < 10
 
 
-def test_a_truncated_log_gives_its_prefix_and_repairs(log: Path, tmp_path: Path) -> None:
+def test_a_truncated_log_gives_its_prefix_and_repairs(
+    log: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     cut = _cut(log, 0.4)
     (file,) = info(cut)
     assert file.integrity == "truncated" and not file.indexed
     recovered = [entry.message for entry in read_log(cut)]
     assert 0 < len(recovered) == file.messages < len(_messages())
     assert _same(recovered, _messages()[: len(recovered)])
+    caplog.clear()
     fixed = repair(cut, tmp_path / "fixed.mcap")
     assert (fixed.integrity, fixed.indexed, fixed.compression) == ("clean", True, ["zstd"])
+    damaged = [r.getMessage() for r in caplog.records if "broken tail" in r.getMessage()]
+    assert damaged and all(m.startswith(f"{cut}:") for m in damaged)  # not the new file
     assert _same([e.message for e in read_log(tmp_path / "fixed.mcap")], recovered)
     with pytest.raises(LogError, match="exists"):
         repair(cut, tmp_path / "fixed.mcap")
@@ -121,7 +128,7 @@ def test_a_corrupt_byte_is_reported_with_what_is_readable(log: Path) -> None:
     (file,) = info(log)
     assert file.integrity == "corrupt"
     assert 0 < file.messages < len(_messages())
-    assert f"of {len(_messages())} messages readable" in file.detail
+    assert f"{file.messages} of {len(_messages())} readable in all" in file.detail
 
 
 def test_undecodable_messages_are_counted_and_skipped(tmp_path: Path) -> None:
@@ -183,8 +190,8 @@ def test_a_segment_its_run_went_on_after_is_recovered_not_a_failure(tmp_path: Pa
     data[data.find(encode(first[5])) + 5] ^= 0x40
     crashed.write_bytes(data)
     damaged = info(run)[0]
-    assert damaged.integrity == "corrupt" and "not at the end of the run" in damaged.detail
-    assert damaged.messages == 5
+    assert damaged.integrity == "corrupt" and "will not resume from it" in damaged.detail
+    assert "5 messages before the damage, 9 readable in all" in damaged.detail
     done = _derl("log", "info", str(run))
     assert done.returncode == 3 and f"repair with: derl log repair {crashed}" in done.stdout
 
@@ -210,7 +217,7 @@ def test_a_damaged_segment_stops_the_coordinator_and_its_advice_resumes_the_run(
                    "tcp/127.0.0.1:0"]  # fmt: skip
     done = _derl(*coordinator)
     said = done.stderr.strip().splitlines()[-1]
-    assert done.returncode == 1 and f"{first} is damaged" in said, done.stderr
+    assert done.returncode == REFUSED and f"{first} is damaged" in said, done.stderr
     advice = re.search(r"`derl (log repair \S+ \S+)`", said)
     assert advice is not None, said
     command = advice[1].split()
@@ -245,3 +252,40 @@ def test_command_lines(log: Path, tmp_path: Path) -> None:
     assert done.returncode == 0 and f"exported {len(_messages())} messages" in done.stdout
     done = _derl("log", "info", "--json", str(tmp_path / "out.mcap"))
     assert json.loads(done.stdout)[0]["integrity"] == "clean"
+
+
+def test_damage_in_the_last_segment_is_damage_for_every_tool(tmp_path: Path) -> None:
+    """A bad record with whole records after it, in the segment a crash could have cut, is
+    damage, not a torn tail (the coordinator once cut there, dropping every later record, and
+    `derl replay` called it a broken tail, replayed the prefix and exited 0): `log info` calls it
+    corrupt, the coordinator refuses to start and `replay` refuses (exit 1) unless told to skip the
+    damage, each naming `derl log repair`; every reader and the repair keep the records after the
+    damage, even those whose channel was defined in the damaged chunk."""
+    run = tmp_path / "run"
+    messages = _messages()
+    crashed = _ended_by_a_crash(run, messages)
+    data = bytearray(crashed.read_bytes())
+    data[data.find(encode(messages[0])) + 5] ^= 0x40  # the chunk that defines its channel
+    crashed.write_bytes(data)
+    kept = [entry for entry in read_log(run)]
+    assert _same([entry.message for entry in kept], messages[1:])
+    births = [m.child for m in messages[1:] if isinstance(m, Birth)]
+    assert [b.child for b in load_history(run).births] == births  # derl report's reading
+    assert [entry.topic for entry in kept] == [f"derl/r1/{kind_of(m)}" for m in messages[1:]]
+    done = _derl("log", "info", str(run))
+    assert done.returncode == 3 and "integrity:   corrupt: damaged at byte" in done.stdout
+    assert "whole records follow" in done.stdout and "will not resume from it" in done.stdout
+    done = _derl("coordinator", "--run", "r1", "--run-dir", str(run), "--listen",
+                 "tcp/127.0.0.1:0")  # fmt: skip
+    said = done.stderr.strip().splitlines()[-1]
+    assert done.returncode == REFUSED and "not the torn tail" in said and "derl log repair" in said
+    assert crashed.read_bytes() == data  # nothing cut
+    replay = ["replay", str(run), "--rate", "0", "--listen", "tcp/127.0.0.1:0"]
+    done = _derl(*replay)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.count("\n") == 1 and f"derl log repair {crashed} OUT.mcap" in done.stderr
+    done = _derl(*replay, "--skip-damaged")
+    assert done.returncode == 0 and f"replayed {len(messages) - 1} messages" in done.stdout
+    fixed = repair(crashed, tmp_path / "fixed.mcap")
+    assert fixed.integrity == "clean" and fixed.messages == len(messages) - 1
+    assert _same([entry.message for entry in read_log(tmp_path / "fixed.mcap")], messages[1:])

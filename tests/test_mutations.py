@@ -18,14 +18,10 @@ from derl.unimal import (
     sample_population,
     shape_key,
 )
+from derl.unimal.genome import Joint, Limb
 from derl.unimal.geometry import MIRROR, layout
 from derl.unimal.mjcf import agent_spec
-from derl.unimal.mutations import (
-    PAIR_ON_PAIR_DIRECTIONS,
-    PAIR_ON_SAGITTAL_DIRECTIONS,
-    SAGITTAL_DIRECTIONS,
-    draw_direction,
-)
+from derl.unimal.mutations import PAIR_ON_SAGITTAL_DIRECTIONS, SAGITTAL_DIRECTIONS
 from derl.unimal.space import MAX_LIMBS
 
 
@@ -125,26 +121,36 @@ def test_any_mutation_sequence_gives_a_valid_symmetric_body(seed: int, steps: in
         _assert_symmetric_and_valid(genome)
 
 
-@pytest.mark.parametrize(
-    ("allowed", "down", "others"),
-    [
-        (SAGITTAL_DIRECTIONS, 8 / 12, 1 / 12),  # theta 0 or 180 with phi 90 or 135
-        (PAIR_ON_SAGITTAL_DIRECTIONS, 0.0, 1 / 6),  # each theta or its mirror twin's
-        (PAIR_ON_PAIR_DIRECTIONS, 8 / 24, 1 / 24),
-    ],
-)
-def test_directions_are_drawn_as_the_released_code_draws_them(
-    allowed: tuple[tuple[int, int], ...], down: float, others: float
-) -> None:
-    """theta and phi independently, again until allowed: straight down, which every theta
-    gives with phi 180, is 8 times likelier than another direction (not uniform)."""
+def test_directions_are_drawn_as_the_released_code_draws_them() -> None:
+    """theta and phi once per attempt, independently, a pair's theta beyond 180 taken as its
+    twin's: on the bare head a single limb and a pair are equally likely (each allowed in half
+    of their draws), and straight down, which every theta gives with phi 180, is 8 times
+    likelier than another single limb's direction (not uniform)."""
     rng = np.random.default_rng(0)
-    draws = [draw_direction(rng, allowed) for _ in range(24_000)]
-    share = {d: draws.count(d) / len(draws) for d in allowed}
-    assert share.get((0, 180), 0.0) == pytest.approx(down, abs=0.015)
-    for direction, value in share.items():
-        if direction != (0, 180):
-            assert value == pytest.approx(others, abs=0.015)
+    bare = Genome(head_density=700, limb_density=600)
+    draws = [mutate(bare, rng, op="grow_limb")[0].limbs[0] for _ in range(3000)]
+    keys = [(limb.paired, limb.theta, limb.phi) for limb in draws]
+    share = {key: keys.count(key) / len(keys) for key in set(keys)}
+    expected = {(False, *d): 1 / 24 for d in SAGITTAL_DIRECTIONS} | {(False, 0, 180): 1 / 3}
+    expected |= {(True, *d): 1 / 12 for d in PAIR_ON_SAGITTAL_DIRECTIONS}
+    assert share.keys() == expected.keys()
+    for key, value in share.items():
+        assert value == pytest.approx(expected[key], abs=0.02), key
+
+
+def test_a_failed_attempt_draws_a_new_site() -> None:
+    """The released code's `grow_limb` draws the site anew after every failed attempt (derl
+    kept the site and drew directions until one fitted): a site that allows fewer of the
+    draws gets fewer limbs. With a sideways pair on the head (5 sites: the head, each twin's mid
+    and end), a new limb fits the head in 1 attempt of 4 (a single limb, in the sagittal plane;
+    every pair there meets the old pair) and a twin's site in nearly every attempt: the head
+    gets 1 new limb in 15, not 1 in 5 less the pairs that meet the old one (1 in 7)."""
+    joints = (Joint(axis="x", range=(-30, 60), gear=200),)
+    sideways = Limb(id=0, paired=True, length=0.2, theta=90, phi=90, joints=joints)
+    body = Genome(head_density=700, limb_density=600, limbs=(sideways,))
+    rng = np.random.default_rng(0)
+    parents = [mutate(body, rng, op="grow_limb")[0].limbs[-1].parent for _ in range(1500)]
+    assert parents.count(None) / len(parents) == pytest.approx(1 / 15, abs=0.015)
 
 
 def test_joint_mutations_redraw_every_limb_entry_half_the_time(quadruped: Genome) -> None:

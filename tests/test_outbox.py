@@ -8,6 +8,7 @@ fault of its own stops the coordinator instead of stalling it)."""
 from __future__ import annotations
 
 import errno
+import logging
 import threading
 import time
 from concurrent.futures import Future
@@ -42,6 +43,23 @@ def test_a_batch_of_checkpoints_is_written_whole_and_links_share_its_files(
     assert not list(files.folder.glob("*.tmp"))
 
 
+def test_a_link_whose_source_file_is_missing_waits_for_it(tmp_path: Path) -> None:
+    """After a crash, a repeat's link may come before its source's file, which comes back with
+    the source's re-sent report: the link waits for it (it failed, and nothing made it again:
+    found by bench/crash.py), and fails only if the file never comes."""
+    files = CheckpointFiles(tmp_path)
+    waits = files.link("r0", "a0")
+    never = files.link("r1", "a9")
+    time.sleep(0.5)
+    assert not waits.done() and not never.done()
+    assert files.save("a0", b"w0").result(timeout=10) is None
+    assert waits.result(timeout=10) is None
+    assert files.path("r0").read_bytes() == b"w0"
+    files.close()
+    assert isinstance(never.exception(timeout=10), FileNotFoundError)
+    assert not files.path("r1").exists()
+
+
 def test_without_syncfs_each_file_is_fsynced(tmp_path: Path) -> None:
     """Where there is no syncfs (not Linux), the same batch with one fsync per file."""
     batch = {"a0": b"w0", "r0": "a0", "missing/a": b"x", "big": bytes(3 << 20)}
@@ -74,7 +92,7 @@ def _status(run: str, born: int) -> RunStatus:
 
 
 def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     journal = Journal(tmp_path)
     synced: list[int] = []
@@ -99,9 +117,14 @@ def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
     assert [data for _, data in outbox.take()] == [b"first", b"later"]
 
     written.set_result(None)
-    lost.set_exception(OSError("disk full"))
+    lost.set_exception(OSError(errno.ENOSPC, "No space left on device", "/r/c1.pt.tmp"))
     outbox.drain()
     assert [data for _, data in outbox.take()] == [b"ack"]  # the lost one is never sent
+    (said,) = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert said == (  # one readable line (it was the whole Ack's repr)
+        "the Ack of c1 (job j1 of n1) is held back: its checkpoint was not written ([Errno 28] "
+        "No space left on device: '/r/c1.pt.tmp'); the trainer sends its report again"
+    )
     outbox.close()
     journal.close()
 

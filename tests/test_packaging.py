@@ -48,6 +48,7 @@ def test_the_wheel_holds_one_top_level_package(tmp_path: Path) -> None:
     }
     assert "derl/messages/codec.py" in names
     assert "derl/nodes/cli/main.py" in names
+    assert "derl/nodes/launch/local.yaml" in names  # the graph `derl run` starts
 
 
 def _imports(path: Path) -> set[str]:

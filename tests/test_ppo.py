@@ -53,18 +53,19 @@ def test_config_defaults_are_the_papers_and_unknown_keys_fail() -> None:
 
 
 def test_gae_by_hand_with_termination_and_truncation() -> None:
-    # Copy 0 terminates at step 1; copy 1 is truncated at step 0 with V(final_obs) = 10.
-    rewards = np.ones((3, 2), np.float32)
-    values = np.array([[1, 5], [2, 6], [3, 7], [4, 8]], np.float32)
-    final_values = np.array([[0, 10], [0, 0], [0, 0]], np.float32)
-    terminated = np.array([[0, 0], [1, 0], [0, 0]], bool)
-    truncated = np.array([[0, 1], [0, 0], [0, 0]], bool)
-    adv, ret = compute_gae(rewards, values, final_values, terminated, truncated, 0.5, 0.5)
+    # The released code's Buffer.compute_returns: copy 0 terminates at step 1; copy 1 hits the
+    # time limit at step 1; copy 2 hits it at step 2 while also terminating (a timeout there).
+    rewards = np.ones((3, 3), np.float32)
+    values = np.array([[1, 5, 1], [2, 6, 1], [3, 7, 1], [4, 8, 1]], np.float32)
+    terminated = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1]], bool)
+    truncated = np.array([[0, 0, 0], [0, 1, 0], [0, 0, 1]], bool)
+    adv, ret = compute_gae(rewards, values, terminated, truncated, 0.5, 0.5)
     # Copy 0: d2 = 1 + .5*4 - 3 = 0; d1 = 1 - 2 = -1 (no bootstrap); d0 = 1 + .5*2 - 1 = 1,
     #   A0 = d0 + .25*A1 = .75.
-    # Copy 1: d2 = 1 + .5*8 - 7 = -2; d1 = 1 + .5*7 - 6 = -1.5, A1 = -1.5 + .25*(-2) = -2;
-    #   d0 = 1 + .5*10 - 5 = 1 and the trace stops at the truncation, A0 = 1.
-    expected = np.array([[0.75, 1.0], [-1.0, -2.0], [0.0, -2.0]])
+    # Copy 1: A1 = 0 (its reward unused, its return V(s1) = 6); d2 = 1 + .5*8 - 7 = -2;
+    #   d0 = 1 + .5*6 - 5 = -1 bootstraps from V(s1), A0 = -1 + .25*0 = -1.
+    # Copy 2: A2 = 0; d1 = 1 + .5*1 - 1 = .5 = A1; A0 = .5 + .25*.5 = .625.
+    expected = np.array([[0.75, -1.0, 0.625], [-1.0, 0.0, 0.5], [0.0, -2.0, 0.0]])
     np.testing.assert_allclose(adv, expected, atol=1e-6)
     np.testing.assert_allclose(ret, expected + values[:-1], atol=1e-6)
 
@@ -77,8 +78,11 @@ def test_network_shapes_and_init() -> None:
     assert net.actor.fuse[0].in_features == 128
     assert torch.equal(net.log_std, torch.zeros(12))
     assert all(not m.bias.any() for m in net.modules() if isinstance(m, torch.nn.Linear))
-    single = ActorCritic({"obs": 4}, 1)
-    assert single.actor.fuse[0].in_features == 64
+    # One observation type: its MLP straight into the heads (the released MLPObsEncoder)
+    single = ActorCritic({"proprioception": 4}, 1)
+    assert single.actor.fuse is None and single.critic.fuse is None
+    assert sum(p.numel() for p in single.actor.parameters()) == (4 + 1) * 64 + 65 * 64
+    assert single.action_mean({"proprioception": torch.zeros(3, 4)}).shape == (3, 1)
 
 
 def _released_loss(
@@ -104,20 +108,30 @@ def _released_loss(
     return pi_loss + coef.value_coef * value_loss - coef.entropy_coef * entropy
 
 
-@pytest.mark.parametrize("flat", [slice(None, None, 3), slice(None)], ids=["some", "all"])
-def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
+@pytest.mark.parametrize(
+    ("spaces", "flat"),
+    [
+        (DERL_OBS, slice(None, None, 3)),
+        (DERL_OBS, slice(None)),
+        ({"proprioception": 50}, slice(0)),
+    ],
+    ids=["heightmap-some-flat", "heightmap-all-flat", "proprioception-only"],
+)
+def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: slice) -> None:
     """Sampling, values and the hand-written PPO gradient equal torch's on the released loss,
-    with some or all heightmap rows zero (flat ground, which the first layer skips)."""
+    with some or all heightmap rows zero (flat ground, which the first layer skips), and with
+    proprioception alone (no fuse layer)."""
     torch.manual_seed(0)
     rows, a = 64, 12
-    net = ActorCritic(DERL_OBS, a)
+    net = ActorCritic(spaces, a)
     with torch.no_grad():
         net.log_std.copy_(torch.linspace(-1.0, 0.5, a))
         for p in net.parameters():  # biases away from their zero init, so their gradients count
             p.add_(0.05 * torch.randn_like(p))
     fused = FusedActorCritic(net, lr=3e-4, adam_eps=1e-5)
-    obs = {k: torch.randn(rows, d) for k, d in DERL_OBS.items()}
-    obs["heightmap"][flat] = 0.0
+    obs = {k: torch.randn(rows, d) for k, d in spaces.items()}
+    if "heightmap" in obs:
+        obs["heightmap"][flat] = 0.0
 
     noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
     actions = np.empty_like(noise)
@@ -150,17 +164,18 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
         1,
     )
     coef = PPOCoefficients(
-        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9, kl_stop=1e9
     )
     net.zero_grad()
     _released_loss(net, obs, aux, coef).backward()
-    mb = fused.minibatch(rows, [DERL_OBS[k] for k in fused.keys], aux.shape[1])
+    mb = fused.minibatch(rows, [spaces[k] for k in fused.keys], aux.shape[1])
     sources = [obs[k] for k in fused.keys]
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.randperm(rows, generator=gen))
     flat_rows = len(range(rows)[flat])
-    assert [None if at is None else len(at) for at in mb.at] == [rows - flat_rows, None]
+    expected_at = [rows - flat_rows, None] if "heightmap" in obs else [None]
+    assert [None if at is None else len(at) for at in mb.at] == expected_at
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.arange(rows))
-    fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
+    assert fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
     flat = torch.cat(
         [
             g
@@ -176,9 +191,65 @@ def test_fused_network_matches_torch_and_autograd(flat: slice) -> None:
     # (all rows flat: the heightmap's first weights have no gradient)
     assert still == (
         {f"{tower}.branches.heightmap.0.weight" for tower in ("actor", "critic")}
-        if flat_rows == rows
+        if flat_rows == rows and "heightmap" in obs
         else set()
     )
+
+
+def test_a_minibatch_beyond_the_kl_limit_stops_the_update() -> None:
+    """The released code's `train_on_batch`: before each minibatch's step, the approximate KL
+    mean(old log-prob - log-prob) over the minibatch; above KL_TARGET_COEF x 0.01 = 0.2 the
+    update ends without that step."""
+    torch.manual_seed(0)
+    rows, a = 64, 3
+    obs_spaces = {"proprioception": 5}
+    fused = FusedActorCritic(ActorCritic(obs_spaces, a), lr=3e-4, adam_eps=1e-5)
+    obs = {"proprioception": torch.randn(rows, 5)}
+    noise = np.random.default_rng(0).standard_normal((rows, a), dtype=np.float32)
+    actions = np.empty_like(noise)
+    fused.begin_sampling()
+    fused.act({"proprioception": obs["proprioception"].numpy()}, noise, actions)
+    log_prob = torch.from_numpy(fused.log_prob_of_noise(noise))
+    coef = PPOCoefficients(
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=0.5, kl_stop=0.2
+    )
+    mb = fused.minibatch(rows, [5], a + 4)
+    for shift, steps in ((0.25, False), (0.15, True)):  # the KL is the old log-prob's excess
+        aux = torch.cat(
+            [torch.from_numpy(actions), (log_prob + shift)[:, None], torch.randn(rows, 3)], 1
+        )
+        mb.gather([obs["proprioception"]], [None], aux, torch.arange(rows))
+        before = fused.theta.clone()
+        assert fused.step(mb, coef) is steps
+        assert torch.equal(fused.theta, before) is not steps
+    assert PPOConfig().kl_stop == 0.2
+
+
+def test_value_gradient_where_the_clipped_term_wins_by_rounding() -> None:
+    """Within the value clip the clipped term equals the unclipped one, but in float32
+    v_old + (v - v_old) need not round back to v: where the clipped term comes out larger, the
+    max passes its gradient (autograd's), which the hand-written gradient had dropped."""
+    torch.manual_seed(0)
+    rows, spaces = 512, {"proprioception": 7}
+    net = ActorCritic(spaces, 2)
+    fused = FusedActorCritic(net, lr=3e-4, adam_eps=1e-5)
+    obs = {"proprioception": torch.randn(rows, 7)}
+    gen = torch.Generator().manual_seed(1)
+    value = net.value(obs).detach()
+    old_value = value + 0.1 * torch.randn(rows, generator=gen)  # every row within the clip
+    actions = net.action_mean(obs).detach()
+    old_log_prob = torch.distributions.Normal(actions, 1.0).log_prob(actions).sum(-1)
+    aux = torch.cat([actions, old_log_prob[:, None], torch.zeros(rows, 1), old_value[:, None]], 1)
+    aux = torch.cat([aux, torch.randn(rows, 1, generator=gen)], 1)
+    coef = PPOCoefficients(
+        clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=1e9, kl_stop=1e9
+    )
+    net.zero_grad()
+    _released_loss(net, obs, aux, coef).backward()
+    mb = fused.minibatch(rows, [7], aux.shape[1])
+    mb.gather([obs["proprioception"]], [None], aux, torch.arange(rows))
+    fused.step(mb, coef)
+    torch.testing.assert_close(fused.critic.head.gb, net.value_head.bias.grad, atol=1e-7, rtol=1e-5)
 
 
 def test_fused_adam_steps_as_torch_optim_adam() -> None:
@@ -319,6 +390,11 @@ def test_checkpoint_bytes_give_identical_actions() -> None:
     torch.save(old, buffer)
     with pytest.raises(ValueError, match="checkpoint format 1"):
         Checkpoint.from_bytes(buffer.getvalue())
+    old["format"] = 2  # a proprioception-only network had a fuse layer
+    buffer = io.BytesIO()
+    torch.save(old, buffer)
+    with pytest.raises(ValueError, match="format 2 gave a network of one observation type"):
+        Checkpoint.from_bytes(buffer.getvalue())
 
 
 def test_gym_adapter_autoresets_and_reports_truncation() -> None:
@@ -331,12 +407,12 @@ def test_gym_adapter_autoresets_and_reports_truncation() -> None:
     for _ in range(5):
         step = env.step(np.zeros((3, 1), np.float32))
     assert step.truncated.all() and not step.terminated.any()
-    assert not np.array_equal(step.final_obs["proprioception"], step.obs["proprioception"])
+    assert not env.step(np.zeros((3, 1), np.float32)).truncated.any()  # new episodes
     np.testing.assert_array_equal(step.components["reward"], step.reward)
     env.close()
 
 
-def _short_run(seed: int) -> tuple[TrainResult, list[Progress]]:
+def _short_run(seed: int, **options: object) -> tuple[TrainResult, list[Progress]]:
     env = GymBatchedEnv("InvertedPendulum-v5", 4)
     config = PPOConfig(
         num_envs=4,
@@ -345,6 +421,7 @@ def _short_run(seed: int) -> tuple[TrainResult, list[Progress]]:
         minibatch_size=64,
         fitness_component="reward",
         seed=seed,
+        **options,
     )
     progress = []
     result = train(env, config, callback=progress.append)
@@ -360,6 +437,10 @@ def test_training_is_reproducible() -> None:
     assert first.curve == second.curve
     assert first.num_episodes == second.num_episodes > 0
     assert first.time_split.physics_s is None  # the gymnasium adapter does not count it
+    assert first.kl_stops == 0
+    stopped, _ = _short_run(seed=3, kl_stop=1e-12)  # every update stops at once
+    assert stopped.kl_stops == 2
+    assert stopped.curve != first.curve
     for key, value in first.checkpoint.weights.items():
         assert torch.equal(value, second.checkpoint.weights[key]), key
 

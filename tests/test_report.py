@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from body_variants import variants
 from derl.messages import Ack, Birth, Curve, EvalResult, FitnessReport, Tournament, TrainJob
 from derl.nodes.cli.main import main
 from derl.nodes.cli.report import _thresholds
@@ -106,19 +107,20 @@ def _birth(report: FitnessReport, parent: str | None, birth: int, generation: in
 def write_journal(run_dir: Path, genome: Genome) -> None:
     """P = 3 founders i0..i2, then c0 (of i2, its job reassigned once) and c1 (of c0); a repeated
     fitness report and a repeated evaluation result, as a journal may hold after restarts."""
-    c0_body = breed(genome, 7)[0]
+    founders = [*variants(genome, 2), genome]  # three bodies
+    c0_body = breed(founders[2], 7)[0]
     c1_body = breed(c0_body, 7)[0]
     with Journal(run_dir) as journal:
         for k, fitness in enumerate((10.0, 20.0, 30.0)):
-            journal.write(_job(f"i{k}", genome, None))
-            report = _report(f"i{k}", fitness, (fitness / 2, fitness, fitness), genome)
+            journal.write(_job(f"i{k}", founders[k], None))
+            report = _report(f"i{k}", fitness, (fitness / 2, fitness, fitness), founders[k])
             journal.write(report)
             journal.write(_birth(report, None, k, 0))
             journal.write(
                 Ack(run="hand", of="FitnessReport", job=f"i{k}.1", child=f"i{k}", node="t0")
             )
-        journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0), genome))  # repeated: the first counts
-        for child, parent, body, k in (("c0", "i2", genome, 0), ("c1", "c0", c0_body, 1)):
+        journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0), founders[1]))  # repeated: 1st counts
+        for child, parent, body, k in (("c0", "i2", founders[2], 0), ("c1", "c0", c0_body, 1)):
             journal.write(
                 Tournament(
                     run="hand",
@@ -131,7 +133,7 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
                 )
             )
             journal.write(_job(child, body, parent))
-        journal.write(_job("c0", genome, "i2", attempt=2))
+        journal.write(_job("c0", founders[2], "i2", attempt=2))
         for report, parent, k in (
             (_report("c0", 150.0, (20.0, 40.0, 150.0), c0_body, "grow_limb", 2), "i2", 3),
             (_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body, "gear"), "c0", 4),
@@ -166,7 +168,7 @@ def test_the_journal_folds_into_records(tmp_path: Path, quadruped: Genome) -> No
     assert run.bodies[1].fitness == 20.0
     assert run.bodies[4].curve_returns == (30.0, 200.0, 400.0)
     assert run.bodies[3].genome == breed(quadruped, 7)[0] != quadruped  # the bodies bred
-    assert run.bodies[0].genome == quadruped and run.population == 3
+    assert run.bodies[2].genome == quadruped != run.bodies[0].genome and run.population == 3
     assert [(e.task, e.seed, e.reward) for e in run.evaluations] == [
         ("patrol", 0, 5.0),
         ("patrol", 1, 7.0),
@@ -221,12 +223,13 @@ def _check_report(out: Path) -> dict:
                     if r["series"] == "fitness_top"})  # fmt: skip
     assert times[0] == min(size, len(bodies)) and times[-1] == len(bodies), times
     for row in _table(out / "series.csv"):
-        assert list(row) == ["series", "run", "x", "n", "mean", "low", "high"]
-        if row["low"]:
-            assert float(row["low"]) <= float(row["mean"]) <= float(row["high"]), row
+        assert list(row) == ["series", "run", "x", "statistic", "n", "censored", "value", "low",
+                             "high"]  # fmt: skip
+        if row["low"] and row["high"]:
+            assert float(row["low"]) <= float(row["value"]) <= float(row["high"]), row
         if row["series"] == "fitness_top":  # the mean of the population's k fittest
             fittest = sorted(fitness[i] for i in population(int(float(row["x"]))))[-top:]
-            assert float(row["mean"]) == pytest.approx(sum(fittest) / top), row
+            assert float(row["value"]) == pytest.approx(sum(fittest) / top), row
             assert row["low"] == "" or float(row["low"]) >= min(fittest) - 1e-9, row
     lineages = _table(out / "lineages.csv")
     assert sorted(r["founder"] for r in lineages) == sorted(set(founders))
@@ -294,8 +297,9 @@ def test_study_plan_only_writes_the_retraining_jobs(tmp_path: Path, quadruped: G
     argv = ["study", str(tmp_path / "run"), "--study-dir", str(study), "--plan-only"]
     assert main([*argv, "--profile", str(profile)]) == 0
     result = RetrainPlan.model_validate_json((study / "plan.json").read_text())
-    # the final population (the last 3 born: i2, c0, c1) is one lineage, i2's
-    assert [j.agent for j in result.jobs[::3]] == ["c1", "c0"]
+    # the final population (the last 3 born: i2, c0, c1) is one lineage, i2's; c1 is c0's body
+    # (its gear mutation drew the gears c0's had drawn): counted once, as c0 (was c1, c0)
+    assert [j.agent for j in result.jobs[::3]] == ["c0", "i2"]
     assert len(result.jobs) == 6 and 1409 not in result.seeds
     assert {(j.task, j.steps, j.lineage) for j in result.jobs} == {("vt", 300, "i2")}
 
@@ -322,6 +326,8 @@ def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
     study = tmp_path / "study"
     derl("study", str(run_dir), "--study-dir", str(study), "--profile", "paper", "--plan-only")
     result = RetrainPlan.model_validate_json((study / "plan.json").read_text())
-    lineages = [line.split(",") for line in (out / "lineages.csv").read_text().splitlines()[1:]]
-    surviving = [min(3, int(row[4])) for row in lineages if row[7] == "True"]
+    lineages = _table(out / "lineages.csv")  # each lineage's top 3, each body once
+    surviving = [
+        min(3, int(row["distinct_bodies"])) for row in lineages if row["surviving"] == "True"
+    ]
     assert len(result.jobs) == 5 * sum(surviving) and len(result.seeds) == 5

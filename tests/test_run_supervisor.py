@@ -2,10 +2,11 @@
 again (the coordinator alone, on the same endpoint, resuming from its journal), every body is
 born once, the run finishes, and the progress view (a Zenoh peer of the coordinator's endpoint)
 follows the run across the restart. A run stopped with Ctrl-C prints the command that resumes
-it."""
+it. A run its coordinator refuses stops at once with the coordinator's reason."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -15,6 +16,9 @@ from pathlib import Path
 import pytest
 from derl.messages import RunStatus
 from derl.nodes.cli.run import TrainingRate
+from derl.nodes.errors import REFUSED
+from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.launch.supervisor import Supervisor
 from nodes_fixtures import (
     Processes,
     assert_born_once,
@@ -25,6 +29,11 @@ from nodes_fixtures import (
     pid_alive,
     wait_for,
 )
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from derl.evolution import load_profile
+
+COORDINATOR = "local-coordinator-0"  # the node names of launch/local.yaml
 
 
 def _pids(log: str) -> dict[str, list[int]]:
@@ -43,26 +52,26 @@ def test_run_restarts_a_killed_trainer_and_a_killed_coordinator(tmp_path: Path) 
                                                str(run_dir), "--port", str(port)))  # fmt: skip
         # the trainer that got the first job (the other may not be ready by then)
         first = wait_for(lambda: jobs(run_dir), 120, "the first job")[0].node
-        other = {"trainer-0": "trainer-1", "trainer-1": "trainer-0"}[first]
+        other = {"local-trainer-0": "local-trainer-1", "local-trainer-1": "local-trainer-0"}[first]
         os.killpg(_pids(processes.log("run"))[first][0], signal.SIGKILL)
         wait_for(lambda: f"{first} exited with -9: restart 1/" in processes.log("run"), 10,
                  "derl run noticing the killed trainer")  # fmt: skip
         wait_for(lambda: len(births(run_dir)) >= 2, 120, "two births")
         assert len(births(run_dir)) < 8, "the run ended before the coordinator could be killed"
-        os.killpg(_pids(processes.log("run"))["coordinator"][0], signal.SIGKILL)
-        wait_for(lambda: "coordinator exited with -9: restart 1/" in processes.log("run"), 10,
+        os.killpg(_pids(processes.log("run"))[COORDINATOR][0], signal.SIGKILL)
+        wait_for(lambda: f"{COORDINATOR} exited with -9: restart 1/" in processes.log("run"), 10,
                  "derl run noticing the killed coordinator")  # fmt: skip
         wait_for(lambda: run.poll() is not None, 240, "derl run to finish the run")
         log = processes.log("run")
         assert run.returncode == 0, log
         pids = _pids(log)
-        assert len(pids["coordinator"]) == 2 and len(pids[first]) == 2, pids
-        assert len(pids[other]) == 1 and len(pids["evaluator-0"]) == 1, pids  # untouched
+        assert len(pids[COORDINATOR]) == 2 and len(pids[first]) == 2, pids
+        assert len(pids[other]) == 1 and len(pids["local-evaluator-0"]) == 1, pids  # untouched
         assert_born_once(run_dir, 8)
         # the progress view heard the restarted coordinator; the rate is the run's mean, not 0
         assert re.search(r"done: 8 bodies, best [ic]\d+ \(.+\), [1-9][\d,]* env steps/s", log), log
         assert f"tcp/127.0.0.1:{port}" in log
-        coordinator_log = (run_dir / "logs" / "coordinator.log").read_text()
+        coordinator_log = (run_dir / "logs" / f"{COORDINATOR}.log").read_text()
         assert "journaled messages replayed" in coordinator_log.split("start 1:")[-1]
         assert not [pid for ps in pids.values() for pid in ps if pid_alive(pid)]
     finally:
@@ -89,22 +98,65 @@ def test_the_rate_shown_once_the_run_is_done_is_the_mean_while_it_trained() -> N
 
 @pytest.mark.slow
 def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> None:
-    """Ctrl-C: `derl run` stops every node and prints the command that resumes the run (a
-    profile file's run refuses to resume under another profile); that command finishes it."""
+    """Ctrl-C: `derl run` stops every node and prints the command that resumes the run, with
+    its --set changes (a profile file's run refuses to resume under another profile); that
+    command finishes it with the same settings."""
     run_dir = tmp_path / "my run"
     processes = Processes(tmp_path / "test-logs")
     try:
-        argv = ["run", "--profile", "smoke", "--seed", "3", "--run-dir", str(run_dir)]
+        board = tmp_path / "tb"
+        argv = ["run", "--profile", "smoke", "--set", "total=6", "--set", "ppo.lr=1e-4", "--seed",
+                "3", "--run-dir", str(run_dir), "--tensorboard", str(board)]  # fmt: skip
         run = processes.start("run", derl_argv(*argv, "--port", str(free_port())))
         wait_for(lambda: births(run_dir), 120, "a birth")
         run.send_signal(signal.SIGINT)
         assert run.wait(timeout=30) == 130
         said = re.search(r"stopped; `(derl run .+)` resumes the run", processes.log("run"))
         assert said is not None, processes.log("run")
-        assert said[1] == f"derl run --profile smoke --seed 3 --run-dir '{run_dir}'"
+        assert said[1] == (f"derl run --profile smoke --set total=6 --set ppo.lr=1e-4 --seed 3 "
+                           f"--run-dir '{run_dir}' --tensorboard {board}")  # fmt: skip
         again = processes.start("again", derl_argv(*shlex.split(said[1])[1:], "--port",
                                                    str(free_port())))  # fmt: skip
         assert again.wait(timeout=240) == 0, processes.log("again")
-        assert_born_once(run_dir, 8)
+        assert_born_once(run_dir, 6)
+        saved = json.loads((run_dir / "profile.json").read_text())
+        assert (saved["total"], saved["ppo"]["lr"]) == (6, 1e-4)
+        resumed = (run_dir / "logs" / f"{COORDINATOR}.log").read_text().split("start 0:")[-1]
+        assert "saved settings" not in resumed  # the resume asked for the run's own settings
+        # the run's curves in TensorBoard, each birth once across the two watchers
+        events = EventAccumulator(str(board / "my-run"), size_guidance={"scalars": 0})
+        events.Reload()
+        assert [e.step for e in events.Scalars("birth/fitness")] == list(range(6))
+        assert events.Scalars("run/born")[-1].value == 6
     finally:
         processes.close()
+
+
+def test_a_run_its_coordinator_refuses_stops_at_once_with_the_reason(tmp_path: Path) -> None:
+    """A refusal no restart can change (here a run directory of another profile) stops `derl run`
+    at once, with the coordinator's reason as its last line and the refusal's exit status; it
+    used to restart the coordinator 10 times over 3 minutes, then print the failed command as
+    the one that resumes the run."""
+    run_dir = tmp_path / "smoke-run"
+    run_dir.mkdir()
+    (run_dir / "profile.json").write_text(load_profile("smoke").model_dump_json())
+    argv = ["run", "--profile", "demo", "--run-dir", str(run_dir), "--port", "0", "--workers", "1"]
+    processes = Processes(tmp_path / "test-logs")
+    try:
+        run = processes.start("run", derl_argv(*argv))
+        assert processes.finish(run, 60) == REFUSED, processes.log("run")
+    finally:
+        processes.close()
+    lines = processes.log("run").strip().splitlines()
+    assert lines[-1].startswith("derl: the coordinator refused: ") and (
+        f"{run_dir} holds a run of profile smoke" in lines[-1]
+    ), lines
+    assert not [line for line in lines if "restart 1/" in line or "resumes the run" in line]
+
+
+def test_a_node_whose_exit_says_no_restart_helps_is_not_restarted(tmp_path: Path) -> None:
+    """A worker that exits with a `FINAL` status (here 2: a usage error) is not started again."""
+    command = NodeCommand(host="local", name="w", role="trainer",
+                          args=("trainer", "--no-such-flag"), max_restarts=3)  # fmt: skip
+    assert Supervisor([command], tmp_path).run(poll_s=0.1) == 1
+    assert (tmp_path / "w.log").read_text().count("--- derl launch, start") == 1

@@ -5,20 +5,32 @@ resumed by real coordinator and evaluator processes, and `derl report` drawing F
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 from pathlib import Path
 
 import pytest
 import yaml
+from body_variants import variants
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
-from derl.nodes.coordinator.study import SETUP_FILE, StudySetup, StudyState, read_plan, read_setup
-from nodes_fixtures import Processes, derl_argv, free_port, journaled, wait_for, write_profile
+from derl.nodes.coordinator.study import StudyState
+from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
+from nodes_fixtures import (
+    HandBirth,
+    Processes,
+    derl_argv,
+    free_port,
+    journaled,
+    wait_for,
+    write_hand_run,
+    write_profile,
+)
 
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
 from derl.rl import PPOConfig
-from derl.unimal import Genome
+from derl.unimal import Genome, body_hash
 
 CONFIG = StudyConfig(
     per_lineage=2,
@@ -33,9 +45,12 @@ CONFIG = StudyConfig(
 )
 
 
-def _plan(genome: Genome) -> RetrainPlan:
-    """Per world two runs' bodies: in ft, a1 (evolution fitness 90) and b1 (10); in vt, c1."""
-    bodies = (("r1", "a1", 90.0, "ft"), ("r2", "b1", 10.0, "ft"), ("r3", "c1", 5.0, "vt"))
+def _plan(genome: Genome, bodies=(("r1", "a1", 90.0, "ft", 0), ("r2", "b1", 10.0, "ft", 1),
+                                   ("r3", "c1", 5.0, "vt", 2))) -> RetrainPlan:  # fmt: skip
+    """Retraining jobs of (run, agent, evolution fitness, world, body) with seeds 7 and 8, body k
+    being variant k of `genome`; by default, two runs' bodies in ft, a1 (evolution fitness 90)
+    and b1 (10), and c1 in vt."""
+    genomes = variants(genome, 1 + max(body[-1] for body in bodies))
     jobs = tuple(
         RetrainJob(
             run=run,
@@ -45,9 +60,9 @@ def _plan(genome: Genome) -> RetrainPlan:
             task=world,
             steps=4096,
             seed=seed,
-            genome=genome,
+            genome=genomes[k],
         )
-        for run, agent, fitness, world in bodies
+        for run, agent, fitness, world, k in bodies
         for seed in (7, 8)
     )
     return RetrainPlan(per_lineage=2, seeds=(7, 8), jobs=jobs)
@@ -98,6 +113,35 @@ def test_the_tests_wait_for_every_retraining_and_take_the_best_by_mean(quadruped
                             task="patrol", ppo=ppo, lease_s=30.0))  # fmt: skip
         state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject="r3.c1", error="x"))
     assert state.eval_given_up == {tests[3]} and state.finished
+
+
+def test_the_kept_hold_each_body_once_ranked_on_every_seed(quadruped: Genome) -> None:
+    """An old plan selected body 0 twice (r1.a1, and r2.b1 of another run) and its retrainings
+    are the same: it is kept and tested once. a3 has 1 of its 2 retrainings (the other given up):
+    its 99 would rank first, it is not ranked."""
+    bodies = (("r1", "a1", 50.0, "ft", 0), ("r2", "b1", 50.0, "ft", 0),
+              ("r1", "a2", 40.0, "ft", 1), ("r1", "a3", 30.0, "ft", 2))  # fmt: skip
+    config = CONFIG.model_copy(update={"top": 2, "keep": 3})
+    state = StudyState(config, _plan(quadruped, bodies))
+    rewards = {"r1.a1": (20.0, 30.0), "r2.b1": (20.0, 30.0), "r1.a2": (10.0, 10.0),
+               "r1.a3": (99.0, None)}  # fmt: skip
+    for n, key in enumerate(state.retraining):
+        reward = rewards[key[0]][key[2] - 7]
+        if reward is None:  # given up
+            genome, ppo = state.evaluation_order(key)
+            for attempt in range(config.max_attempts):
+                state.apply(EvalJob(run="s", job=f"f{attempt}", agent=key[0], node="w",
+                                    genome=genome, task=key[1], ppo=ppo, lease_s=30.0))  # fmt: skip
+                state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject=key[0],
+                                      error="x"))  # fmt: skip
+            continue
+        for msg in _answer(state, key, reward, n):
+            state.apply(msg)
+    assert state.kept() == {"ft": [("r1.a1", 25.0), ("r1.a2", 10.0)]}  # was a3, a1, b1
+    assert state.next_evaluation()[0] == "r1.a1"  # the test stage starts
+    assert state.tested == {"ft": [("r1.a1", 25.0), ("r1.a2", 10.0)]}  # was a3 and a1
+    tests = {key[0] for key in state.planned if key not in state.retraining}
+    assert tests == {"r1.a1", "r1.a2"}
 
 
 def test_a_retraining_given_up_still_lets_the_tests_start(quadruped: Genome) -> None:
@@ -215,3 +259,52 @@ def test_a_study_saved_when_ppo_held_every_ppoconfig_field_reads_back(tmp_path: 
     saved["config"]["ppo"] = PPOConfig(num_envs=64, total_steps=10**7, seed=5).model_dump()
     (tmp_path / SETUP_FILE).write_text(json.dumps(saved))
     assert read_setup(tmp_path) == setup
+
+
+@pytest.mark.slow
+def test_a_study_selects_retrains_and_tests_each_body_once(
+    tmp_path: Path, quadruped: Genome
+) -> None:
+    """Two FT runs: in ra, c1 (a sibling) and c2 (a child) repeat c0's body D; rb's founder j0 is
+    D too. The top 2 of each surviving lineage, each body once: ra's c0 (D) and i2, rb's k0 and
+    j1, j2 (its j0 is D, selected from ra). A real study retrains and tests them, none twice,
+    and its report says what was counted once."""
+    a, b, c, d, e, f, g = variants(quadruped, 7)
+    write_hand_run(tmp_path / "ra", "ra", "ft", [
+        HandBirth("i0", None, a, 10.0), HandBirth("i1", None, b, 20.0),
+        HandBirth("i2", None, c, 30.0), HandBirth("c0", "i2", d, 50.0),
+        HandBirth("c1", "i2", d, repeat_of="c0"), HandBirth("c2", "c0", d, repeat_of="c0"),
+    ])  # fmt: skip
+    write_hand_run(tmp_path / "rb", "rb", "ft", [
+        HandBirth("j0", None, d, 60.0), HandBirth("j1", None, e, 5.0),
+        HandBirth("j2", None, f, 6.0), HandBirth("k0", "j0", g, 70.0),
+    ])  # fmt: skip
+    profile = tmp_path / "study.yaml"
+    profile.write_text(yaml.safe_dump({"profile": "smoke", "per_lineage": 2, "keep": 3, "top": 2,
+                                       "test_tasks": ["patrol"], "budgets": [2048]}))  # fmt: skip
+    study = tmp_path / "study"
+    _derl("study", str(tmp_path / "ra"), str(tmp_path / "rb"), "--study-dir", str(study),
+          "--profile", str(profile), "--workers", "2", "--port", "0", timeout=600)  # fmt: skip
+    plan = read_plan(study)
+    selected = list(dict.fromkeys((j.run, j.agent) for j in plan.jobs))
+    assert selected == [("ra", "c0"), ("ra", "i2"), ("rb", "k0"), ("rb", "j1"), ("rb", "j2")]
+    assert len({body_hash(j.genome) for j in plan.jobs}) == len(selected)  # D once, not 3 times
+    results = journaled(study, EvalResult)
+    genomes = {f"{j.run}.{j.agent}": body_hash(j.genome) for j in plan.jobs}
+    trained = [(genomes[r.agent], r.task, r.seed, r.steps) for r in results]
+    assert len(trained) == len(set(trained)) == 5 * 2 + 2  # each training of a body once
+    selection = json.loads((study / "selection.json").read_text())["ft"]
+    kept = [genomes[f"{k['run']}.{k['agent']}"] for k in selection["kept"]]
+    tested = [genomes[f"{t['run']}.{t['agent']}"] for t in selection["tested"]]
+    assert len(kept) == len(set(kept)) == 3 and len(tested) == len(set(tested)) == 2
+    out = tmp_path / "report"
+    printed = _derl("report", str(study), "--out", str(out), "--gaits", "0", "--pictures", "0")
+    text = " ".join(printed.stdout.split())
+    assert "ra: 6 births, 4 distinct bodies (2 repeats" in text
+    assert "median fitness of the first 1 births 10, of the last 1 50" in text
+    stats = json.loads((out / "stats.json").read_text())
+    (world,) = stats["worlds"]
+    assert (world["retrained_bodies"], world["shared_bodies"], world["top_agents"]) == (5, 1, 5)
+    bodies = [row for row in csv.DictReader((out / "bodies.csv").open())]
+    counted = [(r["run"], r["id"]) for r in bodies if r["counted"] == "True"]
+    assert ("ra", "c1") not in counted and ("rb", "j0") not in counted and len(counted) == 7

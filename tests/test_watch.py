@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import signal
 import sys
 import threading
 import time
@@ -33,7 +34,7 @@ from derl.nodes.runtime.processes import stop_all
 from derl.nodes.tools.logs import read_log
 from derl.nodes.tools.monitor import RunView, sparkline
 from derl.nodes.tools.topic import key_expression, rate_line
-from nodes_fixtures import Processes, derl_argv, free_port, wait_for
+from nodes_fixtures import LocalRun, Processes, derl_argv, free_port, wait_for
 
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
 STEPS, GAP_S = 6, 0.4
@@ -258,6 +259,29 @@ def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpo
     assert re.search(rf"derl/{bus.run}/fitness/n/x\s+rejected\s+\d+", procs.log("list"))
 
 
+def test_watchers_given_no_endpoint_find_the_local_run(
+    tmp_path: Path, procs: Processes, run_log: Path
+) -> None:
+    """`derl topic list` and `derl monitor` with no flag connect to the local run's endpoint
+    ($DERL_LOCAL_PORT here, 7447 for a user), where a real coordinator listens, and find its
+    run; with nothing there, `derl replay` listens on it and they hear the replay."""
+    run = LocalRun.at(tmp_path)
+    local = {"DERL_LOCAL_PORT": run.endpoint.rsplit(":", 1)[1]}
+    procs.start("coordinator", run.coordinator())
+    listing = procs.start("list", derl_argv("topic", "list", "--duration", "3"), local)
+    monitor = procs.start("monitor", derl_argv("monitor", "--once", "3"), local)
+    assert procs.finish(listing) == 0, procs.log("list")
+    assert re.search(rf"derl/{run.run}/status\s+RunStatus\s+\d+", procs.log("list"))
+    assert procs.finish(monitor) == 0, procs.log("monitor")
+    assert f"derl run {run.run}" in procs.log("monitor")
+    procs.kill("coordinator", signal.SIGTERM)
+    replay = procs.start("replay", derl_argv("replay", str(run_log), "--loop"), local)
+    listing = procs.start("list-replay", derl_argv("topic", "list", "--duration", "3"), local)
+    assert procs.finish(listing) == 0, procs.log("list-replay")
+    assert "derl/recorded/status" in procs.log("list-replay")
+    stop_all([replay])
+
+
 # --- monitor and the example -----------------------------------------------------------------
 
 
@@ -285,6 +309,24 @@ def test_monitor_once_shows_the_run(
                   "evaluated 1/4", "trainer-1", "4,096/8,192 (50%)", "1.50", "grow_limb",
                   "9.75", "fitness over 1 births"):  # fmt: skip
         assert shown in text, f"{shown!r} not in\n{text}"
+
+
+def test_a_flood_of_junk_gives_a_few_warnings_and_a_count(
+    procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
+) -> None:
+    """Every node and tool warns about a rejected sample; under a flood (here 50 junk samples
+    every 0.1 s) it printed one line each, hundreds a second. Now: the first few, then a count."""
+    junk = tuple((bus.keys.status(), b"\xffjunk %d" % k) for k in range(50))
+    repeater.start(_a_run(bus.run)[:1], 0.1, raw=junk)
+    monitor = procs.start(
+        "monitor", derl_argv("monitor", "--once", "2", "--run", bus.run, "--connect", endpoint)
+    )
+    procs.finish(monitor)
+    lines = procs.log("monitor").splitlines()
+    rejected = [line for line in lines if "WARNING rejected (malformed)" in line]
+    counts = [line for line in lines if "more like it in 10 s, not shown" in line]
+    assert len(rejected) == 5, lines
+    assert len(counts) == 1 and int(counts[0].split("... and ")[1].split()[0]) > 5, counts
 
 
 def test_example_monitor_prints_fitness(

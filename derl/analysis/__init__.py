@@ -13,7 +13,7 @@ __getattr__, __all__ = exports(
         "config": ("AnalysisConfig",),
         "records": ("Body", "Evaluation", "Retraining", "RunLog"),
         "report": ("ReportFiles", "write_report"),
-        "selection": ("RetrainJob", "RetrainPlan", "by_mean_fitness", "plan"),
+        "selection": ("RetrainJob", "RetrainPlan", "kept_bodies", "plan", "rank_by_mean"),
         "statistics": ("BootstrapConfig",),
     },
 )

@@ -2,53 +2,87 @@
 
 A body's learning speed is the number of env steps at which its learning curve first reaches a
 criterion: the 75th percentile of the initial population's fitness. A body that never reaches it
-has no learning speed (NaN): it is counted and left out, never given a made-up value. The top
-agents' ancestors are followed generation by generation: at generation g, each top agent
-contributes the value of its ancestor at depth g (the paper's "as a function of generations"),
-pooled over the runs of a world. Fig. 5d's numbers compare a lineage's founder with its last
-generation: how much more it reaches at the end of learning and how much sooner it learns.
+is censored: it needs more than its whole budget (the last step of its curve), and is counted so
+(`statistics.censored_median`), never left out nor given a made-up value. The top agents'
+ancestors are followed generation by generation: at generation g, each top agent contributes the
+value of its ancestor at depth g (the paper's "as a function of generations"), pooled over the
+runs of a world. Fig. 5d's numbers compare a lineage's founder with its last generation: how
+much more it reaches at the end of learning and how much sooner it learns.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from derl.analysis.lineage import Tree
 from derl.analysis.records import Body, Record, RunLog
-from derl.analysis.statistics import BootstrapConfig, Point, point
+from derl.analysis.statistics import Estimate, Measure, Point
 
 
 def criterion(run: RunLog, percentile: float) -> float:
     """The given percentile of the initial population's fitness."""
-    initial = run.fitness[[body.parent is None for body in run.bodies]]
-    return float(np.percentile(initial, percentile))
+    return criterion_of(run.fitness[[body.parent is None for body in run.bodies]], percentile)
+
+
+def criterion_of(initial_fitness: Sequence[float] | np.ndarray, percentile: float) -> float:
+    """The learning criterion: the given percentile of the initial population's fitness."""
+    return float(np.percentile(initial_fitness, percentile))
 
 
 def steps_to_reach(body: Body, level: float) -> float:
     """Env steps at which the learning curve first reaches `level` (NaN if it never does)."""
-    returns = np.asarray(body.curve_returns, dtype=float)
-    reached = np.flatnonzero(returns >= level)
-    return float(body.curve_steps[reached[0]]) if reached.size else float("nan")
+    return first_reaching(body.curve_steps, body.curve_returns, level)
 
 
-def learning_speed(run: RunLog, level: float) -> np.ndarray:
-    """`steps_to_reach` of every body."""
-    return np.array([steps_to_reach(body, level) for body in run.bodies])
+def first_reaching(steps: Sequence[int], returns: Sequence[float], level: float) -> float:
+    """Env steps at which a learning curve (`returns` after `steps`) first reaches `level`
+    (NaN if it never does)."""
+    reached = np.flatnonzero(np.asarray(returns, dtype=float) >= level)
+    return float(steps[reached[0]]) if reached.size else float("nan")
 
 
-def top_agents(run: RunLog, count: int) -> np.ndarray:
-    """The `count` fittest bodies of the run, fittest first (earlier birth first among equals)."""
-    return np.argsort(-run.fitness, kind="stable")[:count]
+def learning_speed(run: RunLog, level: float) -> Measure:
+    """`steps_to_reach` of every body; censored at its budget (the last step of its curve)
+    where it never reaches `level`, missing (NaN) without a curve."""
+    steps = np.array([steps_to_reach(body, level) for body in run.bodies])
+    budget = np.array([body.curve_steps[-1] if body.curve_steps else np.nan for body in run.bodies])
+    never = np.isnan(steps) & ~np.isnan(budget)
+    return Measure(np.where(never, budget, steps), never)
+
+
+def cost_of_work(run: RunLog) -> Measure:
+    """Every body's cost of work; where it is undefined because the reward was not positive
+    (energy spent for no work), censored beyond every measured value (+inf)."""
+    cost = run.cost_of_work
+    none = np.isnan(cost) & (run.fitness <= 0)
+    return Measure(np.where(none, np.inf, cost), none)
+
+
+def top_agents(run: RunLog, count: int, counted: np.ndarray) -> np.ndarray:
+    """The `count` fittest of the `counted` bodies of the run, fittest first (earlier birth
+    first among equals)."""
+    order = np.argsort(-run.fitness, kind="stable")
+    return order[counted[order]][:count]
 
 
 def by_generation(
-    parts: list[tuple[Tree, np.ndarray, np.ndarray]], config: BootstrapConfig
+    parts: list[tuple[Tree, np.ndarray, Measure]], statistic: Callable[[Measure], Estimate]
 ) -> list[Point]:
-    """Mean (with CI) over the agents of every part (tree, agents, values: one run's) of the
-    value of their ancestor at each generation."""
+    """`statistic` over the agents of every part (tree, agents, measure: one run's) of the
+    measure of their ancestor at each generation."""
     lines = [values[tree.ancestry(int(a))] for tree, agents, values in parts for a in agents]
-    depth = max((line.size for line in lines), default=0)
-    return [point(g, [line[g] for line in lines if line.size > g], config) for g in range(depth)]
+    depth = max((len(line.values) for line in lines), default=0)
+    return [
+        Point(
+            x=g,
+            **statistic(
+                Measure.concat([line[g : g + 1] for line in lines if len(line.values) > g])
+            ).model_dump(),
+        )
+        for g in range(depth)
+    ]
 
 
 class LineageGain(Record):

@@ -4,6 +4,11 @@ the aging population over time and its lineage abundances (the paper's fig. 2b-h
 A lineage is everything descended from one founder (a body of the initial population, generation
 0); a body's generation is its depth below its founder. The population after t births is the P
 most recent of them, so a lineage survives when it has a member among the last P bodies born.
+
+The tree, the population and the lineages' shares hold every birth, repeats included (a repeat
+takes a place in the population like any child). A mutation is counted once: a birth that turns
+a parent body into a child body (each as its original, `RunLog.original`) that an earlier birth
+already made is the same mutation found again, not another beneficial one.
 """
 
 from __future__ import annotations
@@ -90,9 +95,22 @@ def fitness_gain(run: RunLog, tree: Tree) -> np.ndarray:
     return gain
 
 
+def new_mutations(run: RunLog, tree: Tree) -> np.ndarray:
+    """Which births are a mutation made for the first time: from a parent body to a child body
+    (each as its original) that no earlier birth made."""
+    made: set[tuple[int, int]] = set()
+    flags = np.zeros(len(run.bodies), bool)
+    for i in np.flatnonzero(tree.parent >= 0):
+        pair = (int(run.original[tree.parent[i]]), int(run.original[i]))
+        flags[i] = pair not in made
+        made.add(pair)
+    return flags
+
+
 def beneficial(run: RunLog, tree: Tree, threshold: float) -> np.ndarray:
-    """Which bodies come from a beneficial mutation: a gain over the parent of >= `threshold`."""
-    return fitness_gain(run, tree) >= threshold  # NaN (no parent) compares False
+    """Which births are a beneficial mutation: made for the first time (`new_mutations`), with
+    a gain over the parent of >= `threshold`."""
+    return (fitness_gain(run, tree) >= threshold) & new_mutations(run, tree)  # NaN: False
 
 
 def final_members(run: RunLog, tree: Tree) -> dict[int, int]:
@@ -113,6 +131,9 @@ class Lineage(Record):
     founder_rank: int
     """Rank of the founder's fitness in the initial population (1 = fittest)."""
     bodies: int
+    """Births in the lineage, repeats included."""
+    distinct_bodies: int
+    """Its bodies counted once (repeats as their original)."""
     final_members: int
     final_abundance: float
     """Share of the final population that belongs to this lineage."""
@@ -143,6 +164,7 @@ def lineages(run: RunLog, tree: Tree, threshold: float) -> list[Lineage]:
                 founder_fitness=float(run.fitness[f]),
                 founder_rank=rank[int(f)],
                 bodies=members.size,
+                distinct_bodies=int(run.distinct[members].sum()),
                 final_members=count,
                 final_abundance=count / size,
                 surviving=count > 0,

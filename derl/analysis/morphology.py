@@ -5,7 +5,8 @@ Length, width, height (bounding box at rest), DoF and limb count are cheap and m
 body; mass is the one lifetime learning reported. Coverage and passive stability come from
 `derl.unimal.describe`, which simulates 400 uncontrolled steps (tens of ms a body): it runs on
 every body of a small run and on an evenly spaced sample in birth order (every k-th body) of a
-big one, in `processes` worker processes.
+big one, in `processes` worker processes, once per body: a repeat has its original's values
+(also where only its original was in the sample).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ def measure(run: RunLog, sample_size: int, processes: int = 1) -> list[Morpholog
     missing = [body.id for body in run.bodies if body.genome is None]
     if missing:
         raise ValueError(f"{run.name}: no genome for {', '.join(missing[:5])}")
-    simulated = sample(len(run.bodies), sample_size).tolist()
+    simulated = np.unique(run.original[sample(len(run.bodies), sample_size)]).tolist()
     log.info("%s: simulating the passive stability of %d bodies", run.name, len(simulated))
     genomes = [run.bodies[i].genome for i in simulated]
     physics = dict(zip(simulated, _describe_all(genomes, processes), strict=True))
@@ -61,7 +62,7 @@ def measure(run: RunLog, sample_size: int, processes: int = 1) -> list[Morpholog
     for i, body in enumerate(run.bodies):
         low, high = bounding_box(layout(body.genome))
         length, width, height = (high - low).tolist()
-        described = physics.get(i)
+        described = physics.get(int(run.original[i]))
         rows.append(
             Morphology(
                 length=length,

@@ -1,7 +1,8 @@
-"""The report's HTML page: the figures beside it with their captions, the best bodies' gaits,
-the run and world summaries, links to the tables and the notes (what was sampled, what had too
-little data). One file, no scripts, no external resources; the PNGs and GIFs are referenced by
-relative path.
+"""The report's HTML page: the headline numbers (each run's first and last quarter of births
+compared), the figures beside it with their captions, the best bodies' gaits, the run and world
+summaries, links to the tables and the notes (what was sampled, counted once, censored, what had
+too little data). One file, no scripts, no external resources; the PNGs and GIFs are referenced
+by relative path.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ figure.gait { display: inline-block; margin: 0.5em; vertical-align: top; }
 SUMMARY_COLUMNS = {
     "run": "run",
     "world": "world",
-    "bodies": "bodies",
-    "repeats": "repeats (untrained)",
+    "bodies": "births",
+    "distinct_bodies": "bodies",
+    "repeats": "repeats (counted once)",
     "population": "P",
     "generations": "generations",
     "surviving_lineages": "surviving lineages",
@@ -34,8 +36,22 @@ SUMMARY_COLUMNS = {
     "beneficial_mutations": "beneficial mutations",
     "gain_p75": "p75 of positive gains",
     "criterion": "learning criterion",
-    "learning_speed_undefined": "never reached it",
+    "criterion_censored": "never reached it (censored)",
+    "no_positive_reward": "no positive reward (censored cost of work)",
     "stability_simulated": "stability simulated",
+}
+
+
+QUARTER_COLUMNS = {
+    "run": "run",
+    "births": "births per quarter",
+    "first": "first quarter: median fitness",
+    "last": "last quarter: median fitness",
+    "difference": "difference (last - first)",
+    "low": "CI low",
+    "high": "CI high",
+    "first_repeats": "repeats in the first",
+    "last_repeats": "repeats in the last",
 }
 
 
@@ -45,7 +61,10 @@ WORLD_COLUMNS = {
     "top_rule": "top agents chosen by",
     "top_agents": "top agents (n)",
     "retrained_bodies": "retrained bodies",
+    "partially_retrained": "not every seed (not ranked)",
     "retrainings": "retrainings",
+    "retrainings_repeated": "repeated retrainings left out",
+    "shared_bodies": "bodies of several runs (counted once)",
     "top_of_population": "fig. 2a left n",
     "births": "pooled up to birth",
 }
@@ -77,14 +96,32 @@ def _cell(value: object) -> str:
     return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
 
 
-def _table(rows: list[Record], columns: dict[str, str]) -> str:
+def _table(rows: list[dict[str, object]], columns: dict[str, str]) -> str:
     """`rows` as an HTML table of the given fields, headed by their names."""
     header = "".join(f"<th>{escape(name)}</th>" for name in columns.values())
     cells = "".join(
-        "<tr>" + "".join(f"<td>{_cell(getattr(row, key))}</td>" for key in columns) + "</tr>"
-        for row in rows
+        "<tr>" + "".join(f"<td>{_cell(row[key])}</td>" for key in columns) + "</tr>" for row in rows
     )
     return f"<table><tr>{header}</tr>{cells}</table>"
+
+
+def _quarters(summaries: list[RunSummary]) -> list[dict[str, object]]:
+    """Each run's first and last quarter of births compared, as rows of `QUARTER_COLUMNS`."""
+    return [
+        {
+            "run": s.run,
+            "births": q.births,
+            "first": q.first.value,
+            "last": q.last.value,
+            "difference": q.difference.value,
+            "low": q.difference.low,
+            "high": q.difference.high,
+            "first_repeats": q.first_repeats,
+            "last_repeats": q.last_repeats,
+        }
+        for s in summaries
+        if (q := s.quarters) is not None
+    ]
 
 
 def _gaits(gaits: list[Gait]) -> list[str]:
@@ -107,6 +144,7 @@ def _gaits(gaits: list[Gait]) -> list[str]:
 def write_page(
     path: Path,
     title: str,
+    headline: list[str],
     figures: list[FigureEntry],
     summaries: list[RunSummary],
     worlds: list[WorldSummary],
@@ -116,9 +154,15 @@ def write_page(
 ) -> Path:
     body = [
         f"<h1>{escape(title)}</h1>",
-        _table(summaries, SUMMARY_COLUMNS),
+        "<ul>",
+        *(f"<li>{escape(line)}</li>" for line in headline),
+        "</ul>",
+        "<h2>Evolution's progress: the first and the last quarter of births</h2>",
+        _table(_quarters(summaries), QUARTER_COLUMNS),
+        "<h2>Runs</h2>",
+        _table([dict(s) for s in summaries], SUMMARY_COLUMNS),
         "<h2>Worlds (runs pooled)</h2>",
-        _table(worlds, WORLD_COLUMNS),
+        _table([dict(w) for w in worlds], WORLD_COLUMNS),
         "<h2>Tables</h2><ul>",
         *(f'<li><a href="{escape(t.name)}">{escape(t.name)}</a></li>' for t in tables),
         "</ul>",

@@ -19,9 +19,9 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis
+from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis, pooled
 from derl.analysis.morphology import DESCRIPTORS
-from derl.analysis.statistics import Point
+from derl.analysis.statistics import Correlation, Point
 from derl.analysis.testsuite import budget_label, budgets, tasks_and_worlds
 from derl.unimal import Genome
 from derl.unimal.render import GRID_GAP, render_grid
@@ -81,13 +81,14 @@ def _note(axis: Axes, text: str) -> None:
 
 
 def _band(axis: Axes, points: list[Point], style: dict[str, str]) -> bool:
-    """Mean line and CI band of `points`; False (and nothing drawn) when none has a value."""
+    """Mean (or median) line and CI band of `points` (no band where a limit is unknown or
+    unbounded); False (and nothing drawn) when none has a value."""
     shown = [p for p in points if p.value is not None]
     if not shown:
         return False
     x = np.array([p.x for p in shown])
     axis.plot(x, [p.value for p in shown], marker="o" if len(shown) < 12 else None, ms=3, **style)
-    ci = [p for p in shown if p.low is not None]
+    ci = [p for p in shown if p.low is not None and p.high is not None]
     if ci:
         axis.fill_between(
             [p.x for p in ci],
@@ -286,18 +287,45 @@ def morphology(path: Path, analysis: Analysis) -> Path:
 
 
 def baldwin(path: Path, analysis: Analysis) -> Path:
-    """Fig. 5a-c: learning speed and cost of work of the top agents' ancestors by generation,
-    and the passively stable share of the population over time, each world's runs pooled."""
-    figure = Figure(figsize=(14, 4), layout="constrained")
-    a, b, c = figure.subplots(1, 3)
-    _curves(a, analysis, "steps_to_criterion", "generation", "env steps to the criterion")
+    """Fig. 5a-c: learning speed and cost of work of the top agents' ancestors by generation
+    (Kaplan-Meier medians, censored values counted, and below each the share censored), and the
+    passively stable share of the population over time, each world's runs pooled."""
+    figure = Figure(figsize=(14, 6), layout="constrained")
+    grid = figure.add_gridspec(2, 3, height_ratios=(3, 1.2))
+    a, b, c = (figure.add_subplot(grid[0, k]) for k in range(3))
+    _curves(a, analysis, "steps_to_criterion", "generation", "median env steps to the criterion")
     percentile = analysis.config.criterion_percentile
     a.set_title(f"a. steps to the {percentile:g}th percentile of the initial fitness", fontsize=10)
     _curves(b, analysis, "passively_stable", "bodies born", "passively stable share")
     b.set_title("b. passively stable bodies in the population", fontsize=10)
-    _curves(c, analysis, "cost_of_work", "generation", "cost of work")
+    _curves(c, analysis, "cost_of_work", "generation", "median cost of work")
     c.set_title("c. cost of work of the top agents' ancestors", fontsize=10)
+    for column, axis, name, what in ((0, a, "steps_to_criterion", "never reach it"),
+                                     (2, c, "cost_of_work", "no positive reward")):  # fmt: skip
+        below = figure.add_subplot(grid[1, column], sharex=axis)
+        _censored(below, analysis, name, what)
+        generations = [p.x for w in analysis.worlds for p in w.series[name]]
+        if generations:
+            axis.set_xlim(min(generations) - 0.5, max(generations) + 0.5)
     return _save(figure, path)
+
+
+def _censored(axis: Axes, analysis: Analysis, name: str, what: str) -> None:
+    """The share of censored values at each point of the world-pooled curve `name`."""
+    colors = world_colors([w.summary.world for w in analysis.worlds])
+    for w in analysis.worlds:
+        shown = [p for p in w.series[name] if p.n]
+        axis.plot(
+            [p.x for p in shown],
+            [p.censored / p.n for p in shown],
+            marker="o" if len(shown) < 12 else None,
+            ms=3,
+            color=colors[w.summary.world],
+            label=world_label(w),
+        )
+    axis.set(xlabel="generation", ylabel=f"share: {what}", ylim=(-0.05, 1.05))
+    axis.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axis.grid(alpha=0.3)
 
 
 def number(value: float | None) -> str:
@@ -339,48 +367,113 @@ def illustrative_curves(path: Path, analysis: Analysis) -> Path:
 
 
 def energy(path: Path, analysis: Analysis) -> Path:
-    """Fig. 6: fitness and learning speed against cost of work; top agents in colour, every
-    body in grey; Pearson r and p per world in the legend."""
+    """Fig. 6: fitness and learning speed against cost of work (top agents in colour, every body
+    once in grey, censored values as triangles beyond the measured ones; Pearson and Spearman
+    per world in the legend); below, both correlations of every body at each generation."""
     runs = analysis.runs
     colors = world_colors([r.run.world for r in runs])
-    figure = Figure(figsize=(12, 4.5), layout="constrained")
-    panels = dict(zip(("fitness", "steps_to_criterion"), figure.subplots(1, 2), strict=True))
-    for y, axis in panels.items():
-        for r in runs:
-            axis.scatter(r.run.cost_of_work, r.values(y), s=8, color="0.75", edgecolors="none")
-        for world, color in colors.items():
-            mine = [r for r in runs if r.run.world == world]
-            stats = {
-                row.agents: row.correlation
-                for row in analysis.correlations
-                if row.world == world and row.y == y
-            }
-            label = f"{world.upper()} top agents; " + "; ".join(
-                f"{agents}: r={c.r:.2f}, p={c.p:.2g}, n={c.n}"
-                if c.r is not None
-                else f"{agents}: n={c.n} ({c.note})"
-                for agents, c in stats.items()
-            )
-            axis.scatter(
-                np.concatenate([r.run.cost_of_work[r.top] for r in mine]),
-                np.concatenate([r.values(y)[r.top] for r in mine]),
-                s=18,
-                color=color,
-                edgecolors="k",
-                linewidths=0.4,
-                label=label,
-            )
-        axis.set(
-            xlabel="cost of work",
-            ylabel="fitness" if y == "fitness" else "env steps to the criterion",
-        )
-        axis.set_title(
-            "a. fitness vs cost of work" if y == "fitness" else "b. learning speed vs cost of work",
-            fontsize=10,
-        )
-        axis.grid(alpha=0.3)
-        axis.legend(fontsize=7)
+    figure = Figure(figsize=(12, 9), layout="constrained")
+    grid = figure.subplots(2, 2)
+    for k, y in enumerate(("fitness", "steps_to_criterion")):
+        _energy_scatter(grid[0, k], analysis, y, colors)
+        _by_generation(grid[1, k], analysis, y, colors)
     return _save(figure, path)
+
+
+YLABELS = {"fitness": "fitness", "steps_to_criterion": "env steps to the criterion"}
+
+
+def _edge(values: np.ndarray) -> float:
+    """Where censored values (+inf) are drawn: 5% of the range beyond the largest measured one."""
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return 1.0
+    return float(finite.max() + 0.05 * (np.ptp(finite) or abs(finite.max()) or 1.0))
+
+
+def _place(values: np.ndarray, edge: float) -> np.ndarray:
+    return np.where(np.isposinf(values), edge, values)
+
+
+def _energy_scatter(axis: Axes, analysis: Analysis, y: str, colors: dict[str, str]) -> None:
+    """Fig. 6a or b: y against cost of work, every body once in grey, the top agents by world."""
+
+    def values(runs: list[RunAnalysis], name: str, top: bool) -> np.ndarray:
+        return pooled(runs, [r.top if top else np.flatnonzero(r.counted) for r in runs], name)
+
+    x_all, y_all = values(analysis.runs, "cost_of_work", False), values(analysis.runs, y, False)
+    edges = _edge(x_all), _edge(y_all)
+    _points(axis, x_all, y_all, edges, s=8, color="0.75", edgecolors="none")
+    lines = []
+    for world, color in colors.items():
+        mine = [r for r in analysis.runs if r.run.world == world]
+        top = values(mine, "cost_of_work", True), values(mine, y, True)
+        _points(axis, *top, edges, s=18, color=color, edgecolors="k", linewidths=0.4,
+                label=f"{world.upper()} top agents")  # fmt: skip
+        lines.extend(
+            f"{world.upper()} {row.agents}: {_r(row.pearson, 'Pearson')}; "
+            f"{_r(row.spearman, 'Spearman')}"
+            for row in analysis.correlations
+            if row.world == world and row.y == y and row.generation is None
+        )
+    axis.text(0.01, 0.01, "\n".join(lines), transform=axis.transAxes, fontsize=6, va="bottom",
+              bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.8"})  # fmt: skip
+    axis.set(xlabel="cost of work (>: no positive reward)", ylabel=YLABELS[y])
+    axis.set_title(
+        "a. fitness vs cost of work"
+        if y == "fitness"
+        else "b. learning speed vs cost of work (^: never reached)",
+        fontsize=10,
+    )
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7, loc="upper right")
+
+
+def _points(
+    axis: Axes, x: np.ndarray, y: np.ndarray, edges: tuple[float, float], **style: object
+) -> None:
+    """Measured pairs as dots; pairs with a censored y at the top edge (^), with only a censored
+    x at the right edge (>)."""
+    up, right = np.isinf(y), np.isinf(x) & ~np.isinf(y)
+    drawn_x, drawn_y = _place(x, edges[0]), _place(y, edges[1])
+    for mask, marker in ((~(up | right), "o"), (up, "^"), (right, ">")):
+        if mask.any() or marker == "o":
+            axis.scatter(drawn_x[mask], drawn_y[mask], marker=marker, **style)
+            style.pop("label", None)
+
+
+def _r(c: Correlation, name: str) -> str:
+    if c.r is None:
+        return f"{name} n={c.n} ({c.note})"
+    return f"{name} r={c.r:.2f} p={c.p:.2g} n={c.n}"
+
+
+def _by_generation(axis: Axes, analysis: Analysis, y: str, colors: dict[str, str]) -> None:
+    """Pearson (solid) and Spearman (dashed) r of every body at each generation, per world."""
+    drawn = False
+    for world, color in colors.items():
+        rows = [row for row in analysis.correlations if row.world == world and row.y == y
+                and row.agents == "all" and row.generation is not None]  # fmt: skip
+        for statistic, style in (("pearson", "-"), ("spearman", "--")):
+            shown = [(row.generation, getattr(row, statistic).r) for row in rows
+                     if getattr(row, statistic).r is not None]  # fmt: skip
+            if shown:
+                drawn = True
+                axis.plot(*zip(*shown, strict=True), ls=style, marker="o", ms=3, color=color,
+                          label=f"{world.upper()} {statistic.capitalize()}")  # fmt: skip
+    axis.axhline(0, color="0.4", lw=0.8)
+    axis.set(xlabel="generation", ylabel="r", ylim=(-1.05, 1.05))
+    axis.set_title(
+        f"{'c' if y == 'fitness' else 'd'}. cost of work vs {YLABELS[y]}, each generation "
+        "(all bodies)",
+        fontsize=10,
+    )
+    axis.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axis.grid(alpha=0.3)
+    if drawn:
+        axis.legend(fontsize=7)
+    else:
+        _note(axis, "no generation with 3 or more bodies")
 
 
 def tests(path: Path, analysis: Analysis) -> Path:

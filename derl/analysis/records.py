@@ -1,8 +1,13 @@
 """The plain records the analyses work on: one run's bodies in birth order and its test results.
 
-Whoever reads a run builds these (`nodes/report_cli.py` folds the coordinator's journal into them);
-nothing here knows about messages, the bus or MCAP. A body's `birth` is its place in the run's
-birth order (the order in which the coordinator accepted fitness), the analyses' time axis.
+Whoever reads a run builds these (`nodes/journal/history.py` folds the coordinator's journal into
+them); nothing here knows about messages, the bus or MCAP. A body's `birth` is its place in the
+run's birth order (the order in which the coordinator accepted fitness), the analyses' time axis.
+
+A body is identified by `derl.unimal.body_hash` of its genome (the same body whatever its limbs'
+numbering): a birth whose body was born before in the run (a repeat, `Body.repeat_of`) is that
+body again, and the analyses that are about bodies rather than births count it once, as its
+first birth (`RunLog.original`).
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
 
-from derl.unimal import Genome
+from derl.unimal import Genome, body_hash
 
 
 class Record(BaseModel):
@@ -112,3 +117,27 @@ class RunLog(Record):
     def cost_of_work(self) -> np.ndarray:
         """Every body's cost of work, in birth order (NaN where undefined)."""
         return np.array([body.cost_of_work for body in self.bodies], dtype=float)
+
+    @cached_property
+    def body_keys(self) -> tuple[str, ...]:
+        """Each body's identity: that of the earlier body it repeats (it took that body's
+        result), else the `body_hash` of its genome, else (no genome) its own id."""
+        keys: dict[str, str] = {}
+        for body in self.bodies:
+            if body.repeat_of in keys:
+                keys[body.id] = keys[body.repeat_of]
+            else:
+                keys[body.id] = body.id if body.genome is None else body_hash(body.genome)
+        return tuple(keys[body.id] for body in self.bodies)
+
+    @cached_property
+    def original(self) -> np.ndarray:
+        """Per body, the index of the run's first body with its identity (its own index for a
+        body born new): a repeat counts as its original."""
+        first: dict[str, int] = {}
+        return np.array([first.setdefault(key, i) for i, key in enumerate(self.body_keys)], int)
+
+    @cached_property
+    def distinct(self) -> np.ndarray:
+        """Which bodies are born new (not a body born before in the run)."""
+        return self.original == np.arange(len(self.bodies))

@@ -16,6 +16,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from derl.analysis import plots
@@ -23,6 +24,7 @@ from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis, WorldSum
 from derl.analysis.config import AnalysisConfig
 from derl.analysis.gaits import write_gaits
 from derl.analysis.page import FigureEntry, write_page
+from derl.analysis.progress import describe as describe_quarters
 from derl.analysis.records import Body, RunLog
 from derl.analysis.tables import write_tables
 from derl.analysis.testsuite import budget_label, budgets
@@ -40,6 +42,9 @@ class ReportFiles(BaseModel):
     gaits: list[Path]
     tables: list[Path]
     notes: list[str]
+    headline: list[str]
+    """The numbers `derl report` prints: each run's first and last quarter of births compared,
+    what was counted once and what was censored."""
 
 
 def write_report(
@@ -57,14 +62,36 @@ def write_report(
     title = "DERL report: " + ", ".join(f"{r.name} ({r.world.upper()})" for r in runs)
     summaries = [r.summary for r in analysis.runs]
     worlds = [w.summary for w in analysis.worlds]
-    page = write_page(out / PAGE, title, entries, summaries, worlds, tables, notes, gaits)
+    lines = headline(analysis)
+    page = write_page(out / PAGE, title, lines, entries, summaries, worlds, tables, notes, gaits)
     return ReportFiles(
         page=page,
         figures=[out / e.file for e in entries],
         gaits=[out / g.file for g in gaits],
         tables=tables,
         notes=notes,
+        headline=lines,
     )
+
+
+def headline(analysis: Analysis) -> list[str]:
+    """Per run: its first and last quarter of births compared, its repeats and censored bodies;
+    per world of a study: how many retrained bodies were ranked."""
+    lines = []
+    for r in analysis.runs:
+        s = r.summary
+        if s.quarters is not None:
+            lines.append(describe_quarters(s.run, s.quarters, analysis.config.bootstrap))
+        lines.append(
+            f"{s.run}: {s.bodies} births, {s.distinct_bodies} distinct bodies ({s.repeats} "
+            f"repeats, each counted once as its body); of those bodies {s.criterion_censored} "
+            f"never reached the learning criterion and {s.no_positive_reward} had no positive "
+            "reward: kept as censored values, not dropped"
+        )
+    for w in analysis.worlds:
+        if w.summary.top_rule == "retrained":
+            lines.append(f"{w.summary.world.upper()}: top agents are {top_rule(w.summary)}")
+    return lines
 
 
 def _runs_text(analysis: Analysis, what: Callable[[RunAnalysis], str]) -> str:
@@ -83,14 +110,17 @@ def _worlds_text(analysis: Analysis, what: Callable[[WorldAnalysis], str]) -> st
 def top_rule(summary: WorldSummary) -> str:
     """How a world's top agents were chosen, and how many they are."""
     if summary.top_rule == "retrained":
+        ranked = summary.retrained_bodies - summary.partially_retrained
         return (
-            f"the {summary.top_agents} best of {summary.retrained_bodies} retrained bodies by "
-            f"mean fitness over {summary.retrainings} retrainings with new seeds (appendix D), "
-            "its runs pooled"
+            f"the {summary.top_agents} best of {ranked} retrained bodies by mean fitness over "
+            f"{summary.retrainings} retrainings with new seeds (appendix D), its runs pooled, "
+            f"each body once; {summary.partially_retrained} bodies without a result for every "
+            f"seed are not ranked, {summary.retrainings_repeated} results of a body's retraining "
+            "counted already are left out"
         )
     return (
-        f"the {summary.top_agents} fittest in evolution (each run's fittest bodies, pooled; "
-        "no retrainings)"
+        f"the {summary.top_agents} fittest in evolution (each run's fittest bodies, each body "
+        "once, pooled; no retrainings)"
     )
 
 
@@ -135,8 +165,9 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             file=plots.fitness(out / "fitness.png", analysis).name,
             title="Fig. 2a: fitness of the top agents",
             caption=(
-                "Left: mean fitness of the k fittest members of each run's population (the P "
-                f"most recently born bodies) after each number of births, with {ci}, the runs of "
+                "Left (the paper's fig. 2a, as its caption says): mean fitness of the k fittest "
+                "members of each run's population (the P most recently born, repeats included as "
+                f"the population holds them) after each number of births, with {ci}, the runs of "
                 "a world pooled (n = runs x k at each point; the axis ends where the world's "
                 "shortest run ends). Right: mean fitness, generation by generation, of the "
                 "ancestors of the world's top agents (n at generation g = top agents whose "
@@ -158,7 +189,8 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 "Each dot is a lineage with members in the final population: its founder's "
                 "fitness rank among the initial bodies against its share of the final population; "
                 "dot size is the number of beneficial mutations in the lineage (child fitness - "
-                "parent fitness >= the world's threshold). "
+                "parent fitness >= the world's threshold; the same mutation found again, a "
+                "repeat of a sibling, counts once). "
                 + _runs_text(
                     analysis,
                     lambda r: (
@@ -221,32 +253,41 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 "Top: median reward per test task and evolution world at each training budget "
                 "of env steps, side by side, largest first (the paper's 5M steps, fig. 4b, and "
                 "1M, fig. 4c); bottom: median cost of work at the largest budget (fig. 4d). "
-                f"With {ci} of the median, over every evaluated (agent, seed) of a world's runs; "
-                "marks: two-tailed Mann-Whitney U tests between worlds at the same budget (* "
-                "p<0.05, ** p<0.01, *** p<0.001, **** p<0.0001, ns). "
-                f"{len(analysis.tests)} evaluation results: {_tests_text(analysis) or 'none'}."
+                f"With {ci} of the median, over every evaluated (body, seed) of a world's runs, "
+                "each body once; a result with no positive reward has no cost of work and counts "
+                "as beyond every measured one (Kaplan-Meier median with its 95% CI where there "
+                "are such); marks: two-tailed Mann-Whitney U tests between worlds at the same "
+                "budget (* p<0.05, ** p<0.01, *** p<0.001, **** p<0.0001, ns). "
+                f"{len(analysis.tests)} evaluation results: {_tests_text(analysis) or 'none'}"
+                f"; {analysis.tests_repeated} left out as the same body's training again."
             ),
         ),
         FigureEntry(
             file=plots.baldwin(out / "baldwin.png", analysis).name,
             title="Fig. 5a-c: the morphological Baldwin effect, stability and cost of work",
             caption=(
-                f"a: env steps until the learning curve first reaches the "
+                f"a: median env steps until the learning curve first reaches the "
                 f"{config.criterion_percentile:g}th percentile of the initial population's "
                 "fitness (each run's own), for the ancestors of the world's top agents by "
-                "generation (bodies that never reach it are left out). b: share of passively "
+                "generation. A body that never reaches it within its budget is censored at its "
+                "budget and counted: the median is Kaplan-Meier's (scipy.stats.ecdf), its 95% CI "
+                "where Greenwood's log-log band of the survival curve crosses 1/2 (no point where "
+                "half or more are censored, no band where the upper limit is unbounded); "
+                "below it, the share censored at each generation. b: share of passively "
                 f"stable bodies in the population over time, a world's runs pooled ({ci}; "
-                "simulated bodies only: n <= runs x P, as in fig. 3). c: mean cost of work of the "
-                "same ancestors by generation. In a and c, n at generation g = top agents whose "
-                "lineage is that deep, at most the world's top agents: "
+                "simulated bodies only: n <= runs x P, as in fig. 3). c: median cost of work of "
+                "the same ancestors by generation, a body whose reward is not positive (no work "
+                "for its energy) counted as beyond every measured one (Kaplan-Meier as in a); "
+                "below it, the share with no positive reward. In a and c, n at generation g = top "
+                "agents whose lineage is that deep, at most the world's top agents: "
                 + _worlds_text(analysis, lambda w: top_rule(w.summary))
                 + ". "
                 + _runs_text(
                     analysis,
                     lambda r: (
-                        f"criterion {r.summary.criterion:.4g}, "
-                        f"{r.summary.learning_speed_undefined} of {r.summary.bodies} bodies never "
-                        "reach it"
+                        f"criterion {r.summary.criterion:.4g}, {r.summary.criterion_censored} of "
+                        f"{r.summary.distinct_bodies} bodies never reach it, "
+                        f"{r.summary.no_positive_reward} have no positive reward"
                     ),
                 )
             ),
@@ -268,13 +309,20 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
             caption=(
                 "a: fitness and b: env steps to the learning criterion against cost of work, for "
                 "the top agents of each world (colour; their fitness and cost of work in "
-                "evolution) and for every body (grey); "
-                "two-tailed Pearson r and p in the legends (bodies with an undefined cost of work "
-                "or learning speed are left out). "
+                "evolution) and for every body, each once (grey); bodies whose cost of work or "
+                "learning speed is censored (no positive reward; never reaching the criterion) "
+                "are drawn as triangles beyond the axis' last measured value. The legends give "
+                "two-tailed Pearson r and p over the measured values (the paper's statistic; "
+                "censored bodies left out) and Spearman's rank correlation counting the censored "
+                "bodies as beyond every measured one. c, d: the same correlations of every body "
+                "at each fixed generation (the paper: the relation holds at any generation), "
+                "solid Pearson, dashed Spearman, where a generation has at least 3 bodies. "
                 + "; ".join(
-                    f"{row.world.upper()} {row.agents} {row.y}: n={row.correlation.n}, "
-                    f"excluded {row.correlation.excluded}"
+                    f"{row.world.upper()} {row.agents} {row.y}: n={row.spearman.n} "
+                    f"({row.spearman.censored} censored, counted by Spearman, left out by "
+                    f"Pearson: n={row.pearson.n})"
                     for row in analysis.correlations
+                    if row.generation is None
                 )
             ),
         ),
@@ -284,9 +332,10 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
 
 
 def _ranked(analysis: Analysis) -> list[tuple[RunLog, Body]]:
-    """Every body of the runs with its run, fittest first."""
+    """Every body of the runs, each once, with its run, fittest first."""
     return sorted(
-        ((r.run, b) for r in analysis.runs for b in r.run.bodies), key=lambda rb: -rb[1].fitness
+        ((r.run, r.run.bodies[i]) for r in analysis.runs for i in np.flatnonzero(r.counted)),
+        key=lambda rb: -rb[1].fitness,
     )
 
 
@@ -323,11 +372,26 @@ def _notes(analysis: Analysis) -> list[str]:
                 f"{s.stability_simulated} of {s.bodies} bodies, evenly spaced in birth order; "
                 "population shares and means of those use the simulated members only"
             )
-        if s.learning_speed_undefined:
+        if s.repeats:
             notes.append(
-                f"{s.run}: {s.learning_speed_undefined} of {s.bodies} bodies never reached the "
-                f"learning criterion {s.criterion:.4g}; they have no learning speed and are left "
-                "out of figs. 5a and 6b"
+                f"{s.run}: {s.repeats} of {s.bodies} births are a body born before in the run "
+                "(repeats): each body counts once, as its first birth, in the top agents, the "
+                "selection, the beneficial mutations, fig. 6, the test suite and the pictures; "
+                "the population (figs. 2a left, 3, 5b, the Muller diagrams) holds every birth"
+            )
+        if s.criterion_censored:
+            notes.append(
+                f"{s.run}: {s.criterion_censored} of {s.distinct_bodies} bodies never reached the "
+                f"learning criterion {s.criterion:.4g} within their budget: censored at it, "
+                "counted in fig. 5a's Kaplan-Meier medians and fig. 6b's Spearman correlation "
+                "(Pearson's r leaves them out)"
+            )
+        if s.no_positive_reward:
+            notes.append(
+                f"{s.run}: {s.no_positive_reward} of {s.distinct_bodies} bodies had no positive "
+                "reward, so no cost of work: counted as beyond every measured one in fig. 5c's "
+                "Kaplan-Meier medians and fig. 6's Spearman correlations (Pearson's r leaves "
+                "them out)"
             )
         if not s.beneficial_mutations and s.gain_p75 is not None:
             notes.append(
@@ -349,6 +413,11 @@ def _notes(analysis: Analysis) -> list[str]:
                 f"{w.summary.world.upper()}: its runs differ in length ({min(lengths)} to "
                 f"{max(lengths)} bodies); the pooled time series end at {w.summary.births} births"
             )
+        if w.summary.shared_bodies:
+            notes.append(
+                f"{w.summary.world.upper()}: {w.summary.shared_bodies} bodies were born in more "
+                "than one of its runs; each counts once, in the first run given"
+            )
         missing = [r.run.name for r in w.runs if not r.run.retrained]
         if w.summary.top_rule == "retrained" and missing:
             notes.append(
@@ -356,11 +425,16 @@ def _notes(analysis: Analysis) -> list[str]:
                 "their bodies can be among the world's top agents"
             )
     for row in analysis.correlations:
-        if row.correlation.r is None:
+        if row.generation is None and row.pearson.r is None:
             notes.append(
                 f"fig. 6 ({row.world.upper()}, {row.agents} bodies, cost of work vs {row.y}): "
-                f"no correlation: {row.correlation.note}"
+                f"no Pearson correlation: {row.pearson.note}"
             )
+    if analysis.tests_repeated:
+        notes.append(
+            f"fig. 4: {analysis.tests_repeated} evaluation results were the same body's training "
+            "again (a repeat or a body of two runs, same task, seed and budget): left out"
+        )
     worlds = {t.world for t in analysis.tests}
     if not analysis.tests:
         notes.append("fig. 4: these runs hold no evaluation (test-task) results")

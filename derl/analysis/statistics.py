@@ -1,14 +1,23 @@
 """The statistics of the paper, from scipy: bootstrapped confidence intervals (95%, of a mean or a
-median), two-tailed Pearson correlation and two-tailed Mann-Whitney U tests.
+median, or of the difference of two medians), two-tailed Pearson and Spearman correlations,
+two-tailed Mann-Whitney U tests, and Kaplan-Meier medians of censored values.
 
 Each wrapper takes plain arrays, drops missing values (NaN) and says when there is too little
 data instead of failing: a CI needs two values, a correlation three non-constant pairs, a
 Mann-Whitney test one value on each side.
+
+Censored values are kept, never dropped: a body that never reaches the learning criterion within
+its budget, or whose reward is not positive (its cost of work is undefined: energy spent for no
+work), is only known to lie beyond what was measured. `censored_median` counts them as the
+Kaplan-Meier estimator does (`scipy.stats.ecdf` of `CensoredData`); the rank statistics
+(Spearman, Mann-Whitney) count a value of +inf as larger than every measured one; Pearson's r,
+which needs numbers, leaves them out and says how many.
 """
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -30,12 +39,15 @@ class BootstrapConfig(_Model):
 
 
 class Estimate(_Model):
-    """A statistic of `n` values with its bootstrapped CI (None below two values)."""
+    """A statistic of `n` values with its CI (None below two values, or where a censored CI is
+    unbounded)."""
 
     n: int
     value: float | None = None
     low: float | None = None
     high: float | None = None
+    censored: int = 0
+    """Of the n, values only known to lie beyond what was measured (counted, not dropped)."""
 
 
 class Point(Estimate):
@@ -45,12 +57,14 @@ class Point(Estimate):
 
 
 class Correlation(_Model):
-    """Two-tailed Pearson correlation of `n` complete pairs (`excluded` had a missing value)."""
+    """A two-tailed correlation of `n` pairs (`excluded`: pairs left out, with a missing value
+    or, for Pearson's r, a censored one; `censored`: pairs counted with a censored value)."""
 
     n: int
     excluded: int
     r: float | None = None
     p: float | None = None
+    censored: int = 0
     note: str = ""
 
 
@@ -62,6 +76,36 @@ class Comparison(_Model):
     u: float | None = None
     p: float | None = None
     stars: str = ""
+
+
+@dataclass(frozen=True)
+class Measure:
+    """One measurement of some bodies: `values` (NaN: missing; where `censored`, a value only
+    known to lie beyond the one given, which may be +inf: beyond every measured value)."""
+
+    values: np.ndarray
+    censored: np.ndarray
+
+    @classmethod
+    def exact(cls, values: np.ndarray) -> Measure:
+        """Values with none censored."""
+        values = np.asarray(values, dtype=float)
+        return cls(values, np.zeros(values.shape, bool))
+
+    @classmethod
+    def concat(cls, parts: list[Measure]) -> Measure:
+        return cls(
+            np.concatenate([p.values for p in parts]) if parts else np.zeros(0),
+            np.concatenate([p.censored for p in parts]) if parts else np.zeros(0, bool),
+        )
+
+    def __getitem__(self, index: object) -> Measure:
+        return Measure(self.values[index], self.censored[index])
+
+    def ranked(self) -> np.ndarray:
+        """The values with every censored one at +inf: for rank statistics and Pearson's r
+        (which leaves +inf out)."""
+        return np.where(self.censored, np.inf, self.values)
 
 
 STATISTICS = {"mean": np.mean, "median": np.median}
@@ -88,17 +132,19 @@ def estimate(
         return Estimate(n=1, value=value)
     if np.ptp(data) == 0:  # every resample is the same: the interval is the value itself
         return Estimate(n=data.size, value=value, low=value, high=value)
-    interval = _bootstrap(data, function, config, config.method)
+    interval = _bootstrap((data,), function, config, config.method)
     if not np.all(np.isfinite(interval)):  # BCa is undefined for some tiny samples
-        interval = _bootstrap(data, function, config, "percentile")
+        interval = _bootstrap((data,), function, config, "percentile")
     return Estimate(n=data.size, value=value, low=float(interval[0]), high=float(interval[1]))
 
 
-def _bootstrap(data: np.ndarray, function, config: BootstrapConfig, method: str) -> np.ndarray:
+def _bootstrap(
+    samples: tuple[np.ndarray, ...], function, config: BootstrapConfig, method: str
+) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # DegenerateDataWarning: handled by the caller
         result = stats.bootstrap(
-            (data,),
+            samples,
             function,
             confidence_level=config.confidence,
             n_resamples=config.n_resamples,
@@ -114,17 +160,98 @@ def point(x: float, values: np.ndarray | list[float], config: BootstrapConfig) -
 
 
 def pearson(x: np.ndarray | list[float], y: np.ndarray | list[float]) -> Correlation:
-    """Pearson's r and two-tailed p over the pairs where both values are present."""
+    """Pearson's r and two-tailed p over the pairs where both values are measured numbers (a
+    missing or censored value, +inf, excludes its pair)."""
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    complete = ~(np.isnan(x) | np.isnan(y))
-    n, excluded = int(complete.sum()), int((~complete).sum())
+    return _correlation(x, y, np.isfinite(x) & np.isfinite(y), stats.pearsonr)
+
+
+def spearman(x: np.ndarray | list[float], y: np.ndarray | list[float]) -> Correlation:
+    """Spearman's rank correlation and two-tailed p over the pairs where both values are
+    present, a censored value (+inf) ranked above every measured one (ties among them)."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    return _correlation(x, y, ~(np.isnan(x) | np.isnan(y)), stats.spearmanr)
+
+
+def _correlation(x: np.ndarray, y: np.ndarray, counted: np.ndarray, test) -> Correlation:
+    n, excluded = int(counted.sum()), int((~counted).sum())
+    x, y = x[counted], y[counted]
+    censored = int((np.isinf(x) | np.isinf(y)).sum())
     if n < 3:
-        return Correlation(n=n, excluded=excluded, note="fewer than 3 complete pairs")
-    x, y = x[complete], y[complete]
-    if np.ptp(x) == 0 or np.ptp(y) == 0:
-        return Correlation(n=n, excluded=excluded, note="a constant variable")
-    result = stats.pearsonr(x, y)
-    return Correlation(n=n, excluded=excluded, r=float(result.statistic), p=float(result.pvalue))
+        return Correlation(n=n, excluded=excluded, censored=censored, note="fewer than 3 pairs")
+    if np.ptp(stats.rankdata(x)) == 0 or np.ptp(stats.rankdata(y)) == 0:
+        return Correlation(n=n, excluded=excluded, censored=censored, note="a constant variable")
+    result = test(x, y)
+    return Correlation(n=n, excluded=excluded, censored=censored, r=float(result.statistic),
+                       p=float(result.pvalue))  # fmt: skip
+
+
+def censored_median(
+    values: np.ndarray | list[float],
+    censored: np.ndarray | list[bool],
+    confidence: float,
+) -> Estimate:
+    """The Kaplan-Meier median of the present values, where a censored one is only known to be
+    larger than its value (its budget; +inf: larger than every measured value), with the
+    `confidence` interval found where the survival function's confidence band (scipy's
+    log-log Greenwood band) crosses 1/2. The median is None when at least half the values are
+    censored, the upper limit None when the band stays above 1/2 (unbounded). Without censored
+    values it is the plain median."""
+    values, censored = np.asarray(values, dtype=float), np.asarray(censored, dtype=bool)
+    keep = ~np.isnan(values)
+    values, censored = values[keep], censored[keep]
+    n, lost = values.size, int(censored.sum())
+    measured = values[~censored]
+    if measured.size == 0:
+        return Estimate(n=n, censored=lost)
+    bound = np.minimum(values[censored], measured.max())  # beyond everything: at the largest
+    data = stats.CensoredData(uncensored=measured, right=bound)
+    survival = stats.ecdf(data).sf
+    value = _halfway(survival.quantiles, survival.probabilities)
+    if n < 2:
+        return Estimate(n=n, value=value, censored=lost)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # undefined at the ends of the curve: handled below
+        band = survival.confidence_interval(confidence, method="log-log")
+    low = _halfway(band.low.quantiles, np.nan_to_num(band.low.probabilities, nan=0.0))
+    high = _halfway(band.high.quantiles, np.nan_to_num(band.high.probabilities, nan=0.0))
+    return Estimate(n=n, value=value, low=low, high=high, censored=lost)
+
+
+def _halfway(times: np.ndarray, survival: np.ndarray) -> float | None:
+    """Where a step survival curve first falls to 1/2 or below (None: never); where it is
+    exactly 1/2 from one time until a later drop, the midpoint of the two times (the plain
+    median's rule), and None if it stays at 1/2 to the end (half the values are censored)."""
+    below = np.flatnonzero(survival <= 0.5 + 1e-12)
+    if below.size == 0:
+        return None
+    k = int(below[0])
+    if not np.isclose(survival[k], 0.5):
+        return float(times[k])
+    later = np.flatnonzero(survival[k:] < 0.5 - 1e-12)
+    return float((times[k] + times[k + later[0]]) / 2) if later.size else None
+
+
+def difference_of_medians(
+    first: np.ndarray | list[float], last: np.ndarray | list[float], config: BootstrapConfig
+) -> Estimate:
+    """median(last) - median(first) of two independent samples, with its bootstrapped CI
+    (`config`: method, resamples, seed; n counts both samples)."""
+    a, b = present(first), present(last)
+    n = a.size + b.size
+    if a.size == 0 or b.size == 0:
+        return Estimate(n=n)
+    value = float(np.median(b) - np.median(a))
+    if a.size < 2 or b.size < 2:
+        return Estimate(n=n, value=value)
+
+    def difference(x: np.ndarray, y: np.ndarray, axis: int = -1) -> np.ndarray:
+        return np.median(y, axis=axis) - np.median(x, axis=axis)
+
+    interval = _bootstrap((a, b), difference, config, config.method)
+    if not np.all(np.isfinite(interval)):
+        interval = _bootstrap((a, b), difference, config, "percentile")
+    return Estimate(n=n, value=value, low=float(interval[0]), high=float(interval[1]))
 
 
 def mann_whitney(a: np.ndarray | list[float], b: np.ndarray | list[float]) -> Comparison:

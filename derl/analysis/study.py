@@ -11,6 +11,8 @@ starts from a built-in one).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from derl.envs.registry import TASKS, TEST_TASKS, WORLDS
@@ -97,6 +99,9 @@ STUDY_PROFILES: dict[str, StudyConfig] = {
 }
 
 
-def load_study_profile(name_or_path: str) -> StudyConfig:
-    """A built-in study profile by name, or a YAML file of `StudyConfig` fields."""
-    return load_settings(StudyConfig, STUDY_PROFILES, name_or_path)
+def load_study_profile(
+    name_or_path: str, changes: Iterable[tuple[str, object]] = ()
+) -> StudyConfig:
+    """A built-in study profile by name, or a YAML file of `StudyConfig` fields, with `changes`
+    (dotted key, value) made to it."""
+    return load_settings(StudyConfig, STUDY_PROFILES, name_or_path, changes)

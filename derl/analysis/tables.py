@@ -2,12 +2,17 @@
 stats.json (run and world sizes, the top agents' rule, fig. 5d's numbers, thresholds,
 correlations, Mann-Whitney tests, what was sampled).
 
-bodies.csv      one row per body: tree, fitness, energy, descriptors, stability, learning speed,
-                the earlier body a repeat took its result from (repeat_of)
-lineages.csv    one row per lineage: founder, rank, size, survival, beneficial mutations
-series.csv      every run's own curves: figure series, run, x, n, mean and CI
+bodies.csv      one row per birth: tree, fitness, energy, descriptors, stability, learning speed,
+                the earlier body a repeat took its result from (repeat_of), the first birth of
+                the same body in the run (same_body_as), whether it counts as a body (counted:
+                the first birth of its body in the world)
+lineages.csv    one row per lineage: founder, rank, births and distinct bodies, survival,
+                beneficial mutations
+series.csv      every run's own curves: figure series, run, x, statistic, n, censored, value, CI
 world_series.csv  the curves the figures draw, each world's runs pooled (n counts every run's)
 muller.csv      abundance and mean fitness of the top lineages after each number of births
+correlations.csv  fig. 6: per world, top agents or all bodies, pooled (generation empty) or per
+                generation: Pearson's r over measured values, Spearman's counting censored ones
 tests.csv       one row per evaluation result (with its budget, steps); test_summary.csv medians
                 and CIs per budget, world and task
 """
@@ -48,6 +53,10 @@ class BodyRow(Record):
     mass: float
     mutation: str | None
     repeat_of: str | None
+    same_body_as: str | None
+    """The first birth of this body in the run, where it is a later one."""
+    counted: bool
+    """The first birth of its body in the world: it counts as that body."""
     beneficial: bool
     descendants: int
     length: float
@@ -59,6 +68,9 @@ class BodyRow(Record):
     passively_stable: bool | None
     stability_ratio: float | None
     steps_to_criterion: float | None
+    """None where never reached (criterion_censored) or without a learning curve."""
+    criterion_censored: bool
+    """Its curve never reached the criterion within its budget."""
     top_agent: bool
 
 
@@ -70,15 +82,26 @@ class Stats(Record):
     worlds: list[WorldSummary]
     correlations: list[CorrelationRow]
     mann_whitney: list[WorldComparison]
+    tests_repeated: int
+    """Evaluations left out as the same body's training again."""
     notes: list[str]
+
+
+SERIES_STATISTICS = {
+    "steps_to_criterion": "median (Kaplan-Meier)",
+    "cost_of_work": "median (Kaplan-Meier)",
+}
+"""The statistic of each series that is not a mean (a share is the mean of 0s and 1s)."""
 
 
 class SeriesRow(Record):
     series: str
     run: str
     x: float
+    statistic: str
     n: int
-    mean: float | None
+    censored: int
+    value: float | None
     low: float | None
     high: float | None
 
@@ -88,8 +111,10 @@ class WorldSeriesRow(Record):
     world: str
     runs: int
     x: float
+    statistic: str
     n: int
-    mean: float | None
+    censored: int
+    value: float | None
     low: float | None
     high: float | None
 
@@ -105,6 +130,7 @@ class MullerRow(Record):
 def body_rows(result: RunAnalysis) -> list[BodyRow]:
     run, tree = result.run, result.tree
     top = set(result.top.tolist())
+    speed = result.measures["steps_to_criterion"]
     return [
         BodyRow(
             run=run.name,
@@ -119,9 +145,14 @@ def body_rows(result: RunAnalysis) -> list[BodyRow]:
             mass=body.mass,
             mutation=body.mutation,
             repeat_of=body.repeat_of,
+            same_body_as=None if run.distinct[i] else run.bodies[run.original[i]].id,
+            counted=bool(result.counted[i]),
             beneficial=bool(result.beneficial[i]),
             descendants=int(tree.descendants[i]),
-            steps_to_criterion=None if math.isnan(result.speed[i]) else float(result.speed[i]),
+            steps_to_criterion=(
+                None if speed.censored[i] or math.isnan(speed.values[i]) else float(speed.values[i])
+            ),
+            criterion_censored=bool(speed.censored[i]),
             top_agent=i in top,
             **result.morphology[i].model_dump(exclude={"mass"}),
         )
@@ -132,7 +163,10 @@ def body_rows(result: RunAnalysis) -> list[BodyRow]:
 def series_rows(result: RunAnalysis) -> list[SeriesRow]:
     return [
         SeriesRow(
-            series=name, run=result.run.name, x=p.x, n=p.n, mean=p.value, low=p.low, high=p.high
+            series=name,
+            run=result.run.name,
+            statistic=SERIES_STATISTICS.get(name, "mean"),
+            **p.model_dump(),
         )
         for name, points in result.series.items()
         for p in points
@@ -145,11 +179,8 @@ def world_series_rows(result: WorldAnalysis) -> list[WorldSeriesRow]:
             series=name,
             world=result.summary.world,
             runs=len(result.runs),
-            x=p.x,
-            n=p.n,
-            mean=p.value,
-            low=p.low,
-            high=p.high,
+            statistic=SERIES_STATISTICS.get(name, "mean"),
+            **p.model_dump(),
         )
         for name, points in result.series.items()
         for p in points
@@ -215,6 +246,7 @@ def write_tables(analysis: Analysis, out: Path, notes: list[str]) -> list[Path]:
             WorldSeriesRow,
         ),
         write_csv(out / "muller.csv", (row for r in runs for row in muller_rows(r)), MullerRow),
+        write_csv(out / "correlations.csv", analysis.correlations, CorrelationRow),
         write_csv(out / "tests.csv", analysis.tests, TestResult),
         write_csv(out / "test_summary.csv", analysis.test_summary, TaskSummary),
     ]
@@ -224,6 +256,7 @@ def write_tables(analysis: Analysis, out: Path, notes: list[str]) -> list[Path]:
         worlds=[w.summary for w in analysis.worlds],
         correlations=analysis.correlations,
         mann_whitney=analysis.comparisons,
+        tests_repeated=analysis.tests_repeated,
         notes=notes,
     )
     path = out / "stats.json"

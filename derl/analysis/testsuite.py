@@ -2,9 +2,13 @@
 the median reward and cost of work with bootstrapped CIs, and two-tailed Mann-Whitney U tests
 between worlds.
 
-Runs of the same world are pooled: every evaluation (agent, task, seed) is one sample. Results
-with different budgets are never pooled: the paper trains the same agents for 5M steps (fig. 4b)
-and for 1M steps (fig. 4c); results without a known budget form a group of their own.
+Runs of the same world are pooled: every evaluation (agent, task, seed) is one sample, each body
+once (a second evaluation of the same body, as a repeat or from another run of the world, with
+the same task, seed and budget is the same training: it is left out and counted). Results with
+different budgets are never pooled: the paper trains the same agents for 5M steps (fig. 4b) and
+for 1M steps (fig. 4c); results without a known budget form a group of their own. A result whose
+reward is not positive has no cost of work: it is counted as beyond every measured one (a
+censored value: Kaplan-Meier median, and ranked last by Mann-Whitney's test), never dropped.
 """
 
 from __future__ import annotations
@@ -15,7 +19,15 @@ from itertools import combinations
 import numpy as np
 
 from derl.analysis.records import Record, RunLog
-from derl.analysis.statistics import BootstrapConfig, Comparison, Estimate, estimate, mann_whitney
+from derl.analysis.statistics import (
+    BootstrapConfig,
+    Comparison,
+    Estimate,
+    Measure,
+    censored_median,
+    estimate,
+    mann_whitney,
+)
 from derl.envs.registry import TEST_TASKS, WORLDS
 
 METRICS = ("reward", "cost_of_work")
@@ -57,12 +69,20 @@ class WorldComparison(Record):
     test: Comparison
 
 
-def results(runs: list[RunLog]) -> list[TestResult]:
-    return [
-        TestResult(run=run.name, world=run.world, **evaluation.model_dump())
-        for run in runs
-        for evaluation in run.evaluations
-    ]
+def results(runs: list[RunLog]) -> tuple[list[TestResult], int]:
+    """Every evaluation of the runs, each body's training once; and how many were left out as
+    the same body's training again."""
+    rows, seen = [], set()
+    for run in runs:
+        index = {body.id: i for i, body in enumerate(run.bodies)}
+        for evaluation in run.evaluations:
+            i = index.get(evaluation.agent)
+            body = evaluation.agent if i is None else run.body_keys[i]
+            training = (run.world, body, evaluation.task, evaluation.seed, evaluation.steps)
+            if training not in seen:
+                seen.add(training)
+                rows.append(TestResult(run=run.name, world=run.world, **evaluation.model_dump()))
+    return rows, sum(len(run.evaluations) for run in runs) - len(rows)
 
 
 def budgets(rows: list[TestResult]) -> list[int | None]:
@@ -75,10 +95,21 @@ def budget_label(steps: int | None) -> str:
     return "budget unknown" if steps is None else f"{steps:,} env steps"
 
 
-def _values(rows: list[TestResult], world: str, task: str, metric: str) -> np.ndarray:
-    return np.array(
-        [getattr(r, metric) for r in rows if r.world == world and r.task == task], dtype=float
-    )
+def _measure(rows: list[TestResult], world: str, task: str, metric: str) -> Measure:
+    """`metric` of a world's results on a task; a cost of work censored where the reward is not
+    positive."""
+    mine = [r for r in rows if r.world == world and r.task == task]
+    values = np.array([getattr(r, metric) for r in mine], dtype=float)
+    if metric == "reward":
+        return Measure.exact(values)
+    none = np.isnan(values) & np.array([r.reward <= 0 for r in mine], dtype=bool)
+    return Measure(np.where(none, np.inf, values), none)
+
+
+def _estimate(measure: Measure, config: BootstrapConfig) -> Estimate:
+    if measure.censored.any():
+        return censored_median(measure.values, measure.censored, config.confidence)
+    return estimate(measure.values, config, "median")
 
 
 def tasks_and_worlds(rows: list[TestResult]) -> tuple[list[str], list[str]]:
@@ -103,7 +134,7 @@ def summarize(rows: list[TestResult], config: BootstrapConfig) -> list[TaskSumma
             steps=steps,
             world=world,
             task=task,
-            **{m: estimate(_values(group, world, task, m), config, "median") for m in METRICS},
+            **{m: _estimate(_measure(group, world, task, m), config) for m in METRICS},
         )
         for steps, group in _groups(rows)
         for task in tasks_and_worlds(group)[0]
@@ -122,11 +153,14 @@ def compare(rows: list[TestResult]) -> list[WorldComparison]:
             metric=metric,
             world_a=a,
             world_b=b,
-            test=mann_whitney(_values(group, a, task, metric), _values(group, b, task, metric)),
+            test=mann_whitney(
+                _measure(group, a, task, metric).values, _measure(group, b, task, metric).values
+            ),
         )
         for steps, group in _groups(rows)
         for task in tasks_and_worlds(group)[0]
         for metric in METRICS
         for a, b in combinations(tasks_and_worlds(group)[1], 2)
-        if _values(group, a, task, metric).size and _values(group, b, task, metric).size
+        if _measure(group, a, task, metric).values.size
+        and _measure(group, b, task, metric).values.size
     ]

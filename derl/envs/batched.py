@@ -1,12 +1,13 @@
 """N copies of one body in one task, stepped together in C by `mujoco.batch.Batch`.
 
 The model is compiled once per body and task; terrain, objects and goals change per episode by
-writing into the model copies and the state, never by recompiling. Observations, rewards and
-endings are numpy operations over all copies at once. Each step applies the actions (clipped to
-[-1, 1]) for 4 physics steps of 5 ms (50 Hz control); an episode lasts 1000 control steps unless
-the head falls below half its resting height (or the task's `fall_ratio`), leaves the arena, the
-task is achieved, or the physics goes unstable (MuJoCo error, warning, non-finite state, or a
-speed no body reaches: that copy ends, its step earns nothing, and it is counted).
+writing into the model copies and the state, never by recompiling. A body spawns with its lowest
+point `FLOOR_OFFSET` (0.2 m) above the ground and drops. Observations, rewards and endings are
+numpy operations over all copies at once. Each step applies the actions (clipped to [-1, 1]) for
+4 physics steps of 5 ms (50 Hz control); an episode lasts 1000 control steps unless the head
+falls below half its resting height (`rest_height`; or the task's `fall_ratio`), leaves the
+arena, the task is achieved, or the physics goes unstable (MuJoCo error, warning, non-finite
+state, or a speed no body reaches: that copy ends, its step earns nothing, and it is counted).
 Finished copies reset themselves inside `step`, which satisfies `derl.rl.BatchedEnv`.
 """
 
@@ -27,7 +28,7 @@ from derl.envs.task import Arrays, Task
 from derl.envs.view import MAX_SPEED, FreeJoint
 from derl.unimal import Genome, agent_spec
 from derl.unimal.geometry import layout
-from derl.unimal.mjcf import rest_height
+from derl.unimal.mjcf import FLOOR_OFFSET, rest_height
 from derl.unimal.space import HEAD_RADIUS
 
 ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
@@ -54,7 +55,7 @@ class EnvConfig(BaseModel):
     episode_steps: int = Field(1000, ge=1)
     frame_skip: int = Field(4, ge=1)
     reset_noise: float = Field(0.005, ge=0)
-    spawn_clearance: float = Field(0.05, ge=0)
+    spawn_clearance: float = Field(FLOOR_OFFSET, ge=0)
     fall_ratio: float = Field(0.5, ge=0, le=1)
     sleep: bool = True
     """MuJoCo's sleeping for the bodies allowed to sleep (those no actuator moves: MVT's box): a
@@ -65,7 +66,8 @@ class EnvConfig(BaseModel):
 
 @dataclass(frozen=True)
 class StepResult:
-    """One batched step (the fields of `derl.rl.StepResult`)."""
+    """One batched step: the fields of `derl.rl.StepResult`, and the observations the finished
+    copies ended with (`final_obs`, for `derl.envs.gym_env`)."""
 
     obs: Arrays
     reward: np.ndarray
@@ -162,7 +164,7 @@ class UnimalEnv:
         terminated |= self._off_arena()
         if self.task.success is not None:
             terminated |= self.task.success(self)
-        truncated = ~terminated & (self.steps >= self.config.episode_steps)
+        truncated = self.steps >= self.config.episode_steps  # terminated or not (the code's)
         obs = self._observe(self.all)
         final_obs = obs
         done = (terminated | truncated).nonzero()[0]
@@ -238,17 +240,13 @@ class UnimalEnv:
         self.gear = model.actuator_gear[:, 0].copy()
         sensors = [model.sensor(i) for i in range(model.nsensor)]
         agent_sensors = [s for s in sensors if s.name.startswith(("head_", "limb"))]
+        # a limb end's position in x and y of the head frame (the released code's `extremities`)
         self.sensor_index = np.concatenate(
-            [np.arange(s.adr[0], s.adr[0] + s.dim[0]) for s in agent_sensors]
-        )
-        acc = np.concatenate(
             [
-                np.full(s.dim[0], model.sensor_needstage[s.id] == mujoco.mjtStage.mjSTAGE_ACC)
+                np.arange(s.adr[0], s.adr[0] + (2 if s.name.endswith("_end_pos") else s.dim[0]))
                 for s in agent_sensors
             ]
         )
-        # proprioception columns of the sensors that need accelerations
-        self._acc_columns = len(self.joint_qpos) + len(self.agent_dofs) + np.flatnonzero(acc)
         sites = ["head_imu"] + [
             f"{model.body(b).name}_{kind}"
             for b in sorted(agent_bodies - {self.head})
@@ -300,6 +298,7 @@ class UnimalEnv:
         spawn[:] = self.task.spawn
         ground = self.task.arena.ground(spawn, ids)
         qpos[:, self.root + 2] = ground + self.rest_height + config.spawn_clearance
+        qpos[:, self.root + 3 : self.root + 7] = self.task.arena.tilt  # upright on a slope
         qpos[:, self.agent_qpos] += self.rng.uniform(-noise, noise, (n, len(self.agent_qpos)))
         quat = qpos[:, self.root + 3 : self.root + 7]
         quat /= np.sqrt(np.square(quat).sum(axis=1, keepdims=True))
@@ -308,16 +307,14 @@ class UnimalEnv:
         qvel_noise = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
         self.qvel[ids[:, None], self.agent_dofs] = qvel_noise
         start = time.perf_counter()
-        batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_VEL)
+        # mj_forward, as the released code's reset (`set_state`): the first observation reads
+        # the accelerometer and touch sensors at the spawn state
+        batch.forward(ids, stage=mujoco.mjtStage.mjSTAGE_ACC)
         self.physics_s += time.perf_counter() - start
         self.steps[ids] = 0
         self.prev_head[ids] = self.head_pos[ids]
         self.task.placed(self, ids)
-        obs = self._observe(ids)
-        # The copies' MjData still hold their last acceleration-stage sensor values, which the
-        # forward pass to mjSTAGE_VEL does not compute: they read 0, as after mj_resetData.
-        obs["proprioception"][:, self._acc_columns] = 0.0
-        return obs
+        return self._observe(ids)
 
     def _unstable(self, warnings_before: np.ndarray, failed: np.ndarray | None) -> np.ndarray:
         """(N,) copies whose last step failed (``failed`` ids), warned, or left a non-finite

@@ -148,6 +148,13 @@ class TerrainStack(HeightStack):
         """Write the rest of copy ``i``'s terrain (to show or check all of it)."""
         self._extend(i, self.padded.shape[2], 0, self.padded.shape[1])
 
+    def hfield_heights(self, i: int) -> np.ndarray:
+        """Copy ``i``'s whole terrain as its heightfield holds it (in [0, 1] of the maximum
+        height), without the padding; the rest of it is written first (`complete`)."""
+        self.complete(i)
+        m, (nrow, ncol) = self.margin, self.config.grid_shape
+        return self._hfields[i][m : m + nrow, m : m + ncol]
+
     @property
     def heights(self) -> np.ndarray:
         for i in range(len(self.padded)):

@@ -1,5 +1,5 @@
-"""Offscreen frames of copy 0 of a batched environment, with a camera that follows the head, and
-those frames written as a video."""
+"""Clips of copy 0 of a batched environment: the body on a dressed set (`derl.envs.film_set`)
+seen by a camera that follows it, and the frames written as a video."""
 
 from __future__ import annotations
 
@@ -9,10 +9,19 @@ import mujoco
 import numpy as np
 
 from derl.envs.batched import UnimalEnv
+from derl.envs.film_set import FilmSet
 from derl.unimal.render import offscreen_renderer
 
 FPS = 50 // 2
 """Frames per second of a video: every control step is 20 ms, played at half speed."""
+FOLLOW = 0.08
+"""Share of the way to the head that the camera's target moves each frame (a lag of about
+0.25 s at 50 frames a second: the body's bobbing does not shake the picture)."""
+SIDE, BEHIND = 60.0, 20.0
+"""The camera looks this many degrees to the left of where the body is going, from behind its
+right: from the side (a gait is best read there) when it walks along +x; from nearly behind
+when it has an object or a goal to reach, which then stays in view."""
+ELEVATION = -18.0
 
 
 class FrameRecorder:
@@ -20,32 +29,34 @@ class FrameRecorder:
     when offscreen OpenGL is missing."""
 
     def __init__(self, env: UnimalEnv, width: int = 480, height: int = 360) -> None:
-        self.env = env
-        terrains = getattr(env.task.arena, "terrains", None)
-        self.model = terrains.models[0] if terrains is not None else env.model
-        self.data = mujoco.MjData(self.model)
-        self.renderer = offscreen_renderer(self.model, width, height)
+        self.set = FilmSet(env)
+        self.renderer = offscreen_renderer(self.set.model, width, height)
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_FOG] = True
         self.camera = mujoco.MjvCamera()
-        self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
-        self.camera.trackbodyid = env.head
-        self.camera.distance = 3.0 + 2.0 * env.rest_height
-        self.camera.azimuth = 120.0
-        self.camera.elevation = -20.0
-        self.uploaded = -1
+        self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+        self.camera.distance = 2.5 + 2.5 * env.rest_height
+        self.camera.elevation = ELEVATION
+        self.target: np.ndarray | None = None
 
     def frame(self) -> np.ndarray:
         """An RGB image (height, width, 3) of copy 0 now."""
-        terrains = getattr(self.env.task.arena, "terrains", None)
-        if terrains is not None and terrains.generated != self.uploaded:
-            # the copy's terrain changed: send all of it to the GPU (the Renderer has no public
-            # call)
-            terrains.complete(0)
-            self.renderer._gl_context.make_current()
-            mujoco.mjr_uploadHField(self.model, self.renderer._mjr_context, terrains.hfield)
-            self.uploaded = terrains.generated
-        self.env.batch.get_data(0, self.data)
-        mujoco.mj_forward(self.model, self.data)
-        self.renderer.update_scene(self.data, self.camera)
+        head = self.set.pose(self.target)
+        focus = self.set.focus(head)
+        if focus is None:
+            azimuth = SIDE
+        else:
+            azimuth = BEHIND + float(np.degrees(np.arctan2(*(focus - head)[1::-1])))
+        if self.target is None:
+            self.target, self.camera.azimuth = head, azimuth
+        else:
+            self.target += FOLLOW * (head - self.target)
+            turn = (azimuth - self.camera.azimuth + 180.0) % 360.0 - 180.0
+            self.camera.azimuth += FOLLOW * turn
+        for hfield in self.set.take_uploads():
+            self.renderer._gl_context.make_current()  # the Renderer has no public upload call
+            mujoco.mjr_uploadHField(self.set.model, self.renderer._mjr_context, hfield)
+        self.camera.lookat[:] = self.target
+        self.renderer.update_scene(self.set.data, self.camera)
         return self.renderer.render().copy()
 
     def close(self) -> None:

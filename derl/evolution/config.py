@@ -2,12 +2,14 @@
 
 A profile is a pydantic model (unknown keys are errors), built in (`smoke`, `demo`, `paper`) or
 read from a YAML file whose keys are this model's fields (``profile: demo`` in the file starts
-from a built-in profile and overrides the rest).
+from a built-in profile and overrides the rest); a command's ``--set KEY=VALUE`` changes one
+setting more (`load_settings`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Literal, TypeVar
 
@@ -42,7 +44,12 @@ class EvolutionConfig(BaseModel):
     population: int = Field(576, ge=1, description="P: the aging window (most recent births)")
     tournament: int = Field(4, ge=1, description="T: contestants drawn with replacement")
     total: int = Field(4000, ge=1, description="N: bodies trained in all, initial ones included")
-    train_steps: int = Field(5_000_000, ge=1, description="PPO env steps per body")
+    train_steps: int = Field(
+        5_000_000,
+        ge=1,
+        description="PPO env steps per body, rounded down to whole rollouts (num_envs × "
+        "ppo.rollout_steps), as the released code does",
+    )
     num_envs: int = Field(32, ge=1, description="environment copies of every training")
     training_seed: int = Field(
         1409, ge=0, lt=SEED_LIMIT, description="the same for every lifetime (the paper's)"
@@ -94,6 +101,11 @@ class EvolutionConfig(BaseModel):
             raise ValueError(f"unknown eval tasks {sorted(unknown)}; choose from {sorted(TASKS)}")
         if self.total < self.population:
             raise ValueError(f"total ({self.total}) < population ({self.population})")
+        if self.tournament > self.population:
+            raise ValueError(
+                f"tournament ({self.tournament}) > population ({self.population}): a tournament "
+                "draws T of the P most recent births"
+            )
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
         self.training_ppo()  # the budget holds whole rollouts, the minibatch fits, ...
@@ -140,16 +152,24 @@ PROFILES: dict[str, EvolutionConfig] = {
 }
 
 
-def load_profile(name_or_path: str, **overrides: object) -> EvolutionConfig:
-    """A built-in profile by name, or a YAML file; `overrides` (e.g. world) win."""
-    return load_settings(EvolutionConfig, PROFILES, name_or_path, **overrides)
+def load_profile(
+    name_or_path: str, changes: Iterable[tuple[str, object]] = (), **overrides: object
+) -> EvolutionConfig:
+    """A built-in profile by name, or a YAML file, with `changes` (dotted key, value) made to
+    it; `overrides` (e.g. world) win."""
+    return load_settings(EvolutionConfig, PROFILES, name_or_path, changes, **overrides)
 
 
 def load_settings(
-    model: type[Settings], builtin: dict[str, Settings], name_or_path: str, **overrides: object
+    model: type[Settings],
+    builtin: dict[str, Settings],
+    name_or_path: str,
+    changes: Iterable[tuple[str, object]] = (),
+    **overrides: object,
 ) -> Settings:
     """One of `builtin` by name, or a YAML file of `model`'s fields (``profile: NAME`` in it
-    starts from a built-in one, its name is the file's stem); `overrides` that are set win."""
+    starts from a built-in one, its name is the file's stem), then each of `changes`: a value
+    set at a dotted key (``ppo.lr``), validated with the rest; `overrides` that are set win."""
     if name_or_path in builtin:
         base: dict[str, object] = builtin[name_or_path].model_dump()
     else:
@@ -158,10 +178,34 @@ def load_settings(
             raise ValueError(
                 f"no profile {name_or_path!r}: use {', '.join(builtin)} or a YAML file"
             )
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text())
+        if data is None:  # an empty file would silently be a run with every default
+            raise ValueError(
+                f"the file holds no settings: start it with `profile: NAME` ({', '.join(builtin)}) "
+                "and add the keys to change"
+            )
         if not isinstance(data, dict):
-            raise ValueError(f"{path}: a profile is a mapping of settings")
+            raise ValueError("a profile is a mapping of settings")
         parent = data.pop("profile", None)
+        if parent is not None and (not isinstance(parent, str) or parent not in builtin):
+            raise ValueError(
+                f"`profile: {parent}` is not a built-in profile; choose {', '.join(builtin)}"
+            )
         base = {**(builtin[parent].model_dump() if parent else {}), "name": path.stem, **data}
+    for key, value in changes:
+        set_dotted(base, key, value)
     chosen = {k: v for k, v in overrides.items() if v is not None}
     return model.model_validate({**base, **chosen})
+
+
+def set_dotted(settings: dict[str, object], key: str, value: object) -> None:
+    """Set `value` at the dotted `key` of nested `settings` (a key that is not a field is left
+    for validation to name); ValueError when a part of the path holds a single value."""
+    *groups, last = key.split(".")
+    inner = settings
+    for depth, part in enumerate(groups):
+        inner = inner.setdefault(part, {})  # type: ignore[assignment]
+        if not isinstance(inner, dict):
+            group = ".".join(groups[: depth + 1])
+            raise ValueError(f"cannot set {key}: {group} is one value, not a group of settings")
+    inner[last] = value

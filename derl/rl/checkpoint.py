@@ -2,8 +2,8 @@
 
 The bytes are `torch.save` of a plain dict of tensors, ints and strings, so `torch.load` reads
 them back with `weights_only=True` (no pickled code). Only the observation statistics are kept:
-the reward scale matters for training, not for acting. Checkpoints written before `FORMAT` 2
-(every observation type normalised) are refused with a `ValueError`.
+the reward scale matters for training, not for acting. Checkpoints of an earlier `FORMAT`
+(`OLD_FORMATS` says how each differs) are refused with a `ValueError`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,15 @@ from derl.rl.config import PPOConfig
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer
 
-FORMAT = 2
-"""Version of the byte layout: 2 normalises proprioception only (1 normalised every type)."""
+FORMAT = 3
+"""Version of the byte layout and of what the policy sees: 3, a network of one observation type
+has no fuse layer and proprioception has the limb ends in x and y (see `OLD_FORMATS`)."""
+OLD_FORMATS = {
+    1: "normalised every observation type (now only proprioception), so its policy would see "
+    "other inputs than it was trained on",
+    2: "gave a network of one observation type a third layer and observed the limb ends in 3-D, "
+    "which its policy no longer has",
+}
 
 
 @dataclass(frozen=True)
@@ -65,10 +72,10 @@ class Checkpoint:
         raw = torch.load(io.BytesIO(data), weights_only=True)
         version = raw.get("format", 1)
         if version != FORMAT:
+            why = OLD_FORMATS.get(version, "is unknown")
             raise ValueError(
-                f"checkpoint format {version}, this derl reads format {FORMAT}: format 1 "
-                "normalised every observation type (now only proprioception), so its policy "
-                "would see other inputs than it was trained on; train it again"
+                f"checkpoint format {version}, this derl reads format {FORMAT}: format "
+                f"{version} {why}; train it again"
             )
         return cls(
             obs_spaces=dict(raw["obs_spaces"]),

@@ -31,6 +31,12 @@ class PPOHyperparameters(BaseModel):
     lr: float = Field(3e-4, gt=0.0, description="Adam learning rate, decayed linearly to 0")
     adam_eps: float = Field(1e-5, gt=0.0, description="Adam's epsilon")
     max_grad_norm: float = Field(0.5, gt=0.0, description="gradients clipped to this global norm")
+    kl_stop: float = Field(
+        0.2,
+        gt=0.0,
+        description="an update stops at the first minibatch whose approximate KL to the "
+        "rollout's policy exceeds this (the released code's KL_TARGET_COEF 20 x 0.01)",
+    )
     obs_clip: float = Field(10.0, gt=0.0, description="normalised proprioception clipped to ±this")
     reward_clip: float = Field(10.0, gt=0.0, description="scaled rewards clipped to ±this")
     torch_threads: int = Field(1, ge=1, description="1: a second thread steals the sim's core")
@@ -66,7 +72,8 @@ class PPOConfig(PPOHyperparameters):
         409_600,
         ge=1,
         description="the fitness averages the curve's values of the iterations in the last this "
-        "many steps (the released code's 100 iterations)",
+        "many steps (a run's: the released code's last 100 of 1220 iterations, as a share of "
+        "the budget)",
     )
 
     @property

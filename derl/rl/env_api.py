@@ -28,10 +28,8 @@ class StepResult:
     terminated: np.ndarray
     """(N,) bool: the episode ended in a terminal state (no bootstrapping)."""
     truncated: np.ndarray
-    """(N,) bool: the episode hit its time limit (the value is bootstrapped from `final_obs`)."""
-    final_obs: Obs
-    """Same shapes as `obs`; rows of finished copies hold the last observation before the reset,
-    other rows are unspecified."""
+    """(N,) bool: the episode hit its time limit, terminated or not (this step's advantage is 0
+    and its value target its own value, the released code's)."""
     components: dict[str, np.ndarray]
     """Per-step reward components, each (N,) float, e.g. "forward", "ctrl", "energy"."""
 

@@ -12,7 +12,8 @@ weights into one flat vector (`store_into` copies them back) and runs
 - `step`: one minibatch of the clipped PPO loss of the released code (clipped surrogate, clipped
   value loss, entropy bonus as the mean over action dimensions), its gradient by the chain rule,
   gradient-norm clipping and one step of torch's fused Adam kernel on the flat vector, called
-  directly (`torch.optim.Adam` costs ~0.14 ms a step around it, and its constructor imports
+  directly, unless the minibatch's approximate KL exceeds its limit (the released code's early
+  stop) (`torch.optim.Adam` costs ~0.14 ms a step around it, and its constructor imports
   torch._dynamo: ~0.8 s once per process).
 
 Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed. The update's
@@ -88,7 +89,8 @@ class _Linear:
 @dataclass
 class _Activations(Generic[_Buffer]):
     """Forward buffers of one tower for a batch of `rows`: torch tensors (the update, the
-    values) or numpy arrays (sampling)."""
+    values) or numpy arrays (sampling). `f` is the encoding the head reads: the fuse layer's
+    output, or without one the single branch's (`a2[0]`, the same buffer)."""
 
     a1: list[_Buffer]
     a2: list[_Buffer]
@@ -97,12 +99,18 @@ class _Activations(Generic[_Buffer]):
 
     @classmethod
     def allocate(
-        cls, rows: int, branches: int, out: int, empty: Callable[[int, int], _Buffer]
+        cls,
+        rows: int,
+        branches: int,
+        out: int,
+        empty: Callable[[int, int], _Buffer],
+        fuse: bool,
     ) -> _Activations[_Buffer]:
+        a2 = [empty(rows, HIDDEN) for _ in range(branches)]
         return cls(
             a1=[empty(rows, HIDDEN) for _ in range(branches)],
-            a2=[empty(rows, HIDDEN) for _ in range(branches)],
-            f=empty(rows, HIDDEN),
+            a2=a2,
+            f=empty(rows, HIDDEN) if fuse else a2[0],
             y=empty(rows, out),
         )
 
@@ -119,19 +127,22 @@ class _Tower:
             (_Linear(slab, encoder.branches[key][0]), _Linear(slab, encoder.branches[key][2]))
             for key in encoder.keys
         ]
-        self.fuse = _Linear(slab, encoder.fuse[0])
-        self.head = _Linear(slab, head)
         self.layers = [layer for pair in self.branches for layer in pair]
-        self.layers += [self.fuse, self.head]
-        rows = range(0, HIDDEN * len(self.branches), HIDDEN)
-        self.fuse_w = [self.fuse.w[r : r + HIDDEN] for r in rows]
-        self.fuse_gw = [self.fuse.gw[r : r + HIDDEN] for r in rows]
-        self.fuse_w_np = [w.numpy() for w in self.fuse_w]
+        self.fuse = None if encoder.fuse is None else _Linear(slab, encoder.fuse[0])
+        if self.fuse is not None:
+            self.layers.append(self.fuse)
+            rows = range(0, HIDDEN * len(self.branches), HIDDEN)
+            self.fuse_w = [self.fuse.w[r : r + HIDDEN] for r in rows]
+            self.fuse_gw = [self.fuse.gw[r : r + HIDDEN] for r in rows]
+            self.fuse_w_np = [w.numpy() for w in self.fuse_w]
+        self.head = _Linear(slab, head)
+        self.layers.append(self.head)
         self.sparse = [key == SPARSE for key in encoder.keys]
 
-    def activations(self, rows: int) -> _Activations[torch.Tensor]:
+    def activations(self, rows: int, empty: Callable[[int, int], _Buffer]) -> _Activations[_Buffer]:
+        """Buffers for `rows`, of `empty`'s kind (`torch.empty`, or numpy's for sampling)."""
         out = self.head.module.out_features
-        return _Activations.allocate(rows, len(self.branches), out, torch.empty)
+        return _Activations.allocate(rows, len(self.branches), out, empty, self.fuse is not None)
 
     def forward(
         self, xs: list[torch.Tensor], at: _At, act: _Activations[torch.Tensor]
@@ -149,10 +160,11 @@ class _Tower:
                     a1.index_copy_(0, rows, torch.addmm(first.b, x, first.w))
             _tanh(a1)
             _tanh(torch.addmm(second.b, a1, second.w, out=a2))
-        torch.addmm(self.fuse.b, act.a2[0], self.fuse_w[0], out=act.f)
-        for a2, w in zip(act.a2[1:], self.fuse_w[1:], strict=True):
-            act.f.addmm_(a2, w)
-        _tanh(act.f)
+        if self.fuse is not None:
+            torch.addmm(self.fuse.b, act.a2[0], self.fuse_w[0], out=act.f)
+            for a2, w in zip(act.a2[1:], self.fuse_w[1:], strict=True):
+                act.f.addmm_(a2, w)
+            _tanh(act.f)
         return torch.addmm(self.head.b, act.f, self.head.w, out=act.y)
 
     def forward_numpy(self, xs: list[np.ndarray], act: _Activations[np.ndarray]) -> np.ndarray:
@@ -167,11 +179,12 @@ class _Tower:
             else:
                 _affine_tanh(x, first, a1)
             _affine_tanh(a1, second, a2)
-        np.matmul(act.a2[0], self.fuse_w_np[0], out=act.f)
-        for a1, a2, w in zip(act.a1[1:], act.a2[1:], self.fuse_w_np[1:], strict=True):
-            np.add(act.f, np.matmul(a2, w, out=a1), out=act.f)  # a1: free by now
-        np.add(act.f, self.fuse.b_np, out=act.f)
-        np.tanh(act.f, out=act.f)
+        if self.fuse is not None:
+            np.matmul(act.a2[0], self.fuse_w_np[0], out=act.f)
+            for a1, a2, w in zip(act.a1[1:], act.a2[1:], self.fuse_w_np[1:], strict=True):
+                np.add(act.f, np.matmul(a2, w, out=a1), out=act.f)  # a1: free by now
+            np.add(act.f, self.fuse.b_np, out=act.f)
+            np.tanh(act.f, out=act.f)
         np.matmul(act.f, self.head.w_np, out=act.y)
         return np.add(act.y, self.head.b_np, out=act.y)
 
@@ -188,7 +201,11 @@ class _Tower:
         g_fuse, g_act, g_pre = tmp
         torch.mm(act.f.T, g_y, out=self.head.gw)
         torch.sum(g_y, 0, out=self.head.gb)
-        torch.mm(g_y, self.head.w.T, out=g_act)
+        torch.mm(g_y, self.head.w.T, out=g_act)  # the gradient of the encoding
+        if self.fuse is None:
+            (first, second), x, rows = self.branches[0], xs[0], at[0]
+            _branch_backward(first, second, x, rows, act.a1[0], act.a2[0], g_act, g_pre)
+            return
         _tanh_backward(g_act, act.f, grad_input=g_fuse)
         torch.sum(g_fuse, 0, out=self.fuse.gb)
         for (first, second), x, rows, a1, a2, w, gw in zip(
@@ -196,18 +213,33 @@ class _Tower:
         ):
             torch.mm(a2.T, g_fuse, out=gw)
             torch.mm(g_fuse, w.T, out=g_act)
-            _tanh_backward(g_act, a2, grad_input=g_pre)
-            torch.mm(a1.T, g_pre, out=second.gw)
-            torch.sum(g_pre, 0, out=second.gb)
-            torch.mm(g_pre, second.w.T, out=g_act)
-            _tanh_backward(g_act, a1, grad_input=g_pre)
-            if rows is None:
-                torch.mm(x.T, g_pre, out=first.gw)
-            elif len(rows):
-                torch.mm(x.T, g_pre.index_select(0, rows), out=first.gw)
-            else:
-                first.gw.zero_()
-            torch.sum(g_pre, 0, out=first.gb)
+            _branch_backward(first, second, x, rows, a1, a2, g_act, g_pre)
+
+
+def _branch_backward(
+    first: _Linear,
+    second: _Linear,
+    x: torch.Tensor,
+    rows: torch.Tensor | None,
+    a1: torch.Tensor,
+    a2: torch.Tensor,
+    g_a2: torch.Tensor,
+    g_pre: torch.Tensor,
+) -> None:
+    """The gradients of one branch's two layers given `g_a2`, the gradient of its output
+    (overwritten); `g_pre` is scratch. `x` holds the input's rows at `rows` (None: all)."""
+    _tanh_backward(g_a2, a2, grad_input=g_pre)
+    torch.mm(a1.T, g_pre, out=second.gw)
+    torch.sum(g_pre, 0, out=second.gb)
+    torch.mm(g_pre, second.w.T, out=g_a2)
+    _tanh_backward(g_a2, a1, grad_input=g_pre)
+    if rows is None:
+        torch.mm(x.T, g_pre, out=first.gw)
+    elif len(rows):
+        torch.mm(x.T, g_pre.index_select(0, rows), out=first.gw)
+    else:
+        first.gw.zero_()
+    torch.sum(g_pre, 0, out=first.gb)
 
 
 def _affine_tanh(x: np.ndarray, layer: _Linear, out: np.ndarray) -> None:
@@ -238,9 +270,10 @@ class PPOCoefficients:
     value_coef: float
     entropy_coef: float
     max_grad_norm: float
+    kl_stop: float
 
 
-class _Minibatch:
+class Minibatch:
     """Buffers of one minibatch of `rows`: gathered inputs, activations and gradient scratch."""
 
     def __init__(self, net: FusedActorCritic, rows: int, dims: list[int], aux: int) -> None:
@@ -248,8 +281,8 @@ class _Minibatch:
         self.x = list(self.full)
         self.at: _At = [None] * len(dims)
         self.aux = torch.empty(rows, aux)
-        self.actor = net.actor.activations(rows)
-        self.critic = net.critic.activations(rows)
+        self.actor = net.actor.activations(rows, torch.empty)
+        self.critic = net.critic.activations(rows, torch.empty)
         self.g_mean = torch.empty(rows, net.action_dim)
         self.g_value = torch.empty(rows, 1)
         self.tmp = (torch.empty(rows, HIDDEN), torch.empty(rows, HIDDEN), torch.empty(rows, HIDDEN))
@@ -285,7 +318,7 @@ class FusedActorCritic:
         self.adam = _Adam(self.theta, self.grad, lr, adam_eps)
         self._acting: _Activations[np.ndarray] | None = None
         self._valuing: _Activations[torch.Tensor] | None = None
-        self._minibatch: _Minibatch | None = None
+        self._minibatch: Minibatch | None = None
 
     def load_from_net(self) -> None:
         for layer in self.actor.layers + self.critic.layers:
@@ -303,10 +336,8 @@ class FusedActorCritic:
         """Actions mean + std * noise for one batched step (`begin_sampling` first): `noise` holds
         standard normal draws, `actions` receives the result."""
         xs = [obs[key] for key in self.keys]
-        if self._acting is None or self._acting.f.shape[0] != len(xs[0]):
-            self._acting = _Activations.allocate(
-                len(xs[0]), len(self.keys), self.action_dim, _numpy_empty
-            )
+        if self._acting is None or self._acting.y.shape[0] != len(xs[0]):
+            self._acting = self.actor.activations(len(xs[0]), _numpy_empty)
         mean = self.actor.forward_numpy(xs, self._acting)
         np.multiply(noise, self.std, out=actions)
         actions += mean
@@ -330,10 +361,8 @@ class FusedActorCritic:
             for key, sparse in zip(self.keys, self.actor.sparse, strict=True)
         ]
 
-    def values(
-        self, obs: dict[str, torch.Tensor], cache: bool = True, nonzero: _At | None = None
-    ) -> np.ndarray:
-        """(rows,) critic values; `cache` keeps the buffers for the next call of the same size;
+    def values(self, obs: dict[str, torch.Tensor], nonzero: _At | None = None) -> np.ndarray:
+        """(rows,) critic values (the buffers are kept for the next call of the same size);
         `nonzero`: `nonzero_rows(obs)` where already known."""
         nonzero = self.nonzero_rows(obs) if nonzero is None else nonzero
         xs, at = [], []
@@ -342,23 +371,23 @@ class FusedActorCritic:
             xs.append(obs[key] if rows is None else obs[key].index_select(0, rows))
             at.append(rows)
         act = self._valuing
-        if act is None or act.f.shape[0] != len(obs[self.keys[0]]):
-            act = self.critic.activations(len(obs[self.keys[0]]))
-            if cache:
-                self._valuing = act
+        if act is None or act.y.shape[0] != len(obs[self.keys[0]]):
+            act = self._valuing = self.critic.activations(len(obs[self.keys[0]]), torch.empty)
         return self.critic.forward(xs, at, act)[:, 0].numpy().copy()
 
-    def minibatch(self, rows: int, dims: list[int], aux: int) -> _Minibatch:
+    def minibatch(self, rows: int, dims: list[int], aux: int) -> Minibatch:
         """Buffers for `step` (allocated on the first call)."""
         if self._minibatch is None:
-            self._minibatch = _Minibatch(self, rows, dims, aux)
+            self._minibatch = Minibatch(self, rows, dims, aux)
         return self._minibatch
 
-    def step(self, mb: _Minibatch, coef: PPOCoefficients) -> None:
-        """One PPO gradient step on the minibatch gathered in `mb` (`_Minibatch.gather`): its
+    def step(self, mb: Minibatch, coef: PPOCoefficients) -> bool:
+        """One PPO gradient step on the minibatch gathered in `mb` (`Minibatch.gather`): its
         inputs, and in `mb.aux` the columns [actions (A), old log-prob, advantage, old value,
         return]. The loss's gradient with respect to the heads' outputs is computed in numpy (on
-        512 values, a numpy call costs a fraction of a torch call)."""
+        512 values, a numpy call costs a fraction of a torch call). False, and no step, where the
+        minibatch's approximate KL, mean(old log-prob - log-prob), exceeds `coef.kl_stop` (the
+        released code's `train_on_batch`, which then ends the update)."""
         a_dim, rows = self.action_dim, mb.aux.shape[0]
         aux = mb.aux.numpy()
         actions = aux[:, :a_dim]
@@ -375,7 +404,10 @@ class FusedActorCritic:
         log_prob = np.add.reduce(sq, axis=1)
         log_prob *= -0.5
         log_prob -= np.float32(np.add.reduce(log_std) + a_dim * _HALF_LOG_2PI)
-        ratio = np.exp(np.subtract(log_prob, old_log_prob, out=log_prob), out=log_prob)
+        log_ratio = np.subtract(log_prob, old_log_prob, out=log_prob)
+        if -float(np.add.reduce(log_ratio)) / rows > coef.kl_stop:
+            return False
+        ratio = np.exp(log_ratio, out=log_ratio)
         surr = ratio * adv
         clipped = np.minimum(np.maximum(ratio, 1.0 - coef.clip), 1.0 + coef.clip, out=ratio)
         clipped *= adv
@@ -390,13 +422,18 @@ class FusedActorCritic:
         g_log_std -= np.float32(np.add.reduce(g_log_prob) + coef.entropy_coef / a_dim)
 
         # Value: 0.5 * mean(max((v - R)^2, (v_old + clip(v - v_old) - R)^2)), times value_coef.
+        # The max passes the gradient of the larger term: err, or where the clipped one is larger
+        # (by rounding alone while v - v_old lies within the clip) and v - v_old within the clip
+        # (inclusive, as torch.clamp's gradient), clipped_err; else nothing.
         err = value - ret
         clipped_err = np.subtract(value, old_value)
+        inside = np.abs(clipped_err) <= coef.value_clip
         np.minimum(np.maximum(clipped_err, -coef.value_clip), coef.value_clip, out=clipped_err)
         clipped_err += old_value
         clipped_err -= ret
-        keep = np.square(err) >= np.square(clipped_err, out=clipped_err)
-        g_value = np.multiply(err, keep, out=mb.g_value.numpy()[:, 0])
+        keep = np.square(err) >= np.square(clipped_err)
+        g_value = mb.g_value.numpy()[:, 0]
+        np.copyto(g_value, np.where(keep, err, np.multiply(clipped_err, inside)))
         g_value *= coef.value_coef / rows
 
         self.actor.backward(mb.x, mb.at, mb.actor, mb.g_mean, mb.tmp)
@@ -407,6 +444,7 @@ class FusedActorCritic:
         if scale < 1.0:
             self.grad.mul_(scale)
         self.adam.step()
+        return True
 
     def set_lr(self, lr: float) -> None:
         self.adam.lr = lr

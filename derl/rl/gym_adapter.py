@@ -45,7 +45,6 @@ class GymBatchedEnv:
     def step(self, actions: np.ndarray) -> StepResult:
         scaled = self._low + (np.clip(actions, -1.0, 1.0) + 1.0) * self._half_range
         obs = np.empty((self.num_envs, self.obs_spaces[OBS_KEY]), np.float32)
-        final_obs = np.empty_like(obs)
         reward = np.empty(self.num_envs)
         terminated = np.empty(self.num_envs, bool)
         truncated = np.empty(self.num_envs, bool)
@@ -53,15 +52,14 @@ class GymBatchedEnv:
             o, reward[i], terminated[i], truncated[i], _ = env.step(
                 scaled[i].reshape(self._action_shape)
             )
-            final_obs[i] = obs[i] = self._flat(o)
             if terminated[i] or truncated[i]:
-                obs[i] = self._flat(env.reset()[0])
+                o = env.reset()[0]
+            obs[i] = self._flat(o)
         return StepResult(
             obs={OBS_KEY: obs},
             reward=reward,
             terminated=terminated,
             truncated=truncated,
-            final_obs={OBS_KEY: final_obs},
             components={"reward": reward.copy()},
         )
 

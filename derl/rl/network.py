@@ -1,9 +1,11 @@
 """The paper's actor-critic: separate actor and critic encoders, a diagonal Gaussian, a value head.
 
-Each encoder runs one [dim -> 64 -> 64] tanh MLP per observation type, concatenates their outputs
-and passes them through a 64-unit tanh layer (also with a single type, so every body and task uses
-one code path). This module defines and initialises the network and acts for `Policy`; training
-runs its arithmetic by hand on a flat copy of the weights (`derl.rl.fused`).
+Each encoder runs one [dim -> 64 -> 64] tanh MLP per observation type; with several types it
+concatenates their outputs and passes them through a 64-unit tanh layer, with one type (FT and the
+flat test tasks: proprioception only) that MLP's output is the encoding (the released code's
+`ConcatMLPEncoder` and `MLPObsEncoder`). This module defines and initialises the network and acts
+for `Policy`; training runs its arithmetic by hand on a flat copy of the weights
+(`derl.rl.fused`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ TensorObs = dict[str, torch.Tensor]
 
 
 class Encoder(nn.Module):
-    """Per-type two-layer tanh MLPs, concatenated, then one more tanh layer."""
+    """Per-type two-layer tanh MLPs; several are concatenated and pass one more tanh layer
+    (`fuse`, None with a single type)."""
 
     def __init__(self, obs_spaces: dict[str, int]) -> None:
         super().__init__()
@@ -34,10 +37,15 @@ class Encoder(nn.Module):
                 for key in self.keys
             }
         )
-        self.fuse = nn.Sequential(nn.Linear(HIDDEN * len(self.keys), HIDDEN), nn.Tanh())
+        self.fuse = (
+            nn.Sequential(nn.Linear(HIDDEN * len(self.keys), HIDDEN), nn.Tanh())
+            if len(self.keys) > 1
+            else None
+        )
 
     def forward(self, obs: TensorObs) -> torch.Tensor:
-        return self.fuse(torch.cat([self.branches[key](obs[key]) for key in self.keys], dim=-1))
+        encoded = [self.branches[key](obs[key]) for key in self.keys]
+        return encoded[0] if self.fuse is None else self.fuse(torch.cat(encoded, dim=-1))
 
 
 class ActorCritic(nn.Module):

@@ -2,8 +2,11 @@
 
 One iteration collects `rollout_steps` batched steps into preallocated numpy buffers (the network
 reads them through shared-memory torch views), computes GAE, and runs `epochs` passes of shuffled
-minibatches. A time-limit truncation bootstraps from V(final_obs); a termination does not. The
-fitness and the learning curve come from raw (unscaled) reward components.
+minibatches, until a minibatch's approximate KL exceeds `kl_stop` (the released code's early
+stop). The step that ends an episode at its time limit gets advantage 0 and its own value
+as the return, and the steps before it bootstrap from that step's value (the released code's
+`Buffer.compute_returns`); a termination bootstraps from nothing. The fitness and the learning
+curve come from raw (unscaled) reward components.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from derl.rl.checkpoint import Checkpoint
 from derl.rl.config import PPOConfig
 from derl.rl.env_api import BatchedEnv
 from derl.rl.episodes import EpisodeLog, EpisodeTracker, FitnessSource
-from derl.rl.fused import FusedActorCritic, PPOCoefficients
+from derl.rl.fused import FusedActorCritic, Minibatch, PPOCoefficients
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer, RewardScaler
 
@@ -45,7 +48,7 @@ class TimeSplit:
     env_s: float
     """`env.step` (simulation, observations, rewards, resets)."""
     inference_s: float
-    """Network forward passes while sampling, including bootstrap values."""
+    """Network forward passes: the actions while sampling and the rollout's values."""
     update_s: float
     """GAE and the gradient updates."""
     other_s: float
@@ -78,6 +81,8 @@ class TrainResult:
     flat_rows: float | None
     """Share of the heightmap rows that were all zero (flat ground), whose first-layer products
     the update and the values skipped; None without a heightmap."""
+    kl_stops: int
+    """Updates that the approximate KL stopped before their last minibatch (`kl_stop`)."""
 
     @property
     def num_episodes(self) -> int:
@@ -87,22 +92,23 @@ class TrainResult:
 def compute_gae(
     rewards: np.ndarray,
     values: np.ndarray,
-    final_values: np.ndarray,
     terminated: np.ndarray,
     truncated: np.ndarray,
     gamma: float,
     lam: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Generalised advantage estimates and value targets, each (T, N).
+    """Generalised advantage estimates and value targets, each (T, N), as the released code
+    computes them (`Buffer.compute_returns`).
 
     `values` is (T + 1, N): V(s_0) .. V(s_T), where s_{t+1} is the observation after the reset
-    for copies that finished at step t. `final_values[t]` is V(final_obs) and is used as the
-    next value where step t was truncated. Terminated steps have no next value; both end the
-    lambda-trace.
+    for copies that finished at step t. A terminated step has no next value. A truncated step
+    (the time limit, terminated or not) has advantage 0 and return V(s_t): its reward is not
+    used, and the steps before it bootstrap from V(s_t). Both end the lambda-trace.
     """
-    next_values = np.where(truncated, final_values, values[1:])
-    deltas = rewards + gamma * next_values * ~terminated - values[:-1]
-    carry = gamma * lam * ~(terminated | truncated)
+    done = terminated | truncated
+    deltas = rewards + gamma * values[1:] * ~done - values[:-1]
+    deltas[truncated] = 0.0
+    carry = gamma * lam * ~done
     advantages = np.zeros_like(deltas)
     last = np.zeros_like(deltas[0])
     for t in range(len(deltas) - 1, -1, -1):
@@ -127,12 +133,9 @@ class _Rollout:
         self.aux = np.zeros((steps, num_envs, action_dim + 4), f32)
         self.actions = self.aux[..., :action_dim]
         self.values = np.zeros((steps + 1, num_envs), f32)
-        self.final_values = np.zeros((steps, num_envs), f32)
         self.rewards = np.zeros((steps, num_envs), f32)
         self.terminated = np.zeros((steps, num_envs), bool)
         self.truncated = np.zeros((steps, num_envs), bool)
-        self.finals: list[tuple[int, np.ndarray, dict[str, np.ndarray]]] = []
-        """(step, copies, normalised final observations) of the truncated episodes."""
 
     def obs_rows(self, t: int) -> dict[str, np.ndarray]:
         return {k: v[t] for k, v in self.obs.items()}
@@ -156,6 +159,7 @@ class _Trainer:
             value_coef=config.value_coef,
             entropy_coef=config.entropy_coef,
             max_grad_norm=config.max_grad_norm,
+            kl_stop=config.kl_stop,
         )
         self.rng = np.random.default_rng(config.seed)  # action noise and minibatch order
         self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip)
@@ -167,6 +171,7 @@ class _Trainer:
         self.env_steps = 0
         self.env_s = self.inference_s = self.update_s = 0.0
         self.sparse_rows = self.sparse_nonzero = 0
+        self.kl_stops = 0
 
     def reset(self) -> None:
         raw = self.env.reset(self.config.seed)
@@ -177,7 +182,6 @@ class _Trainer:
         """Fill the rollout buffers; row 0 of the observations is already in place. Values are
         computed afterwards, in one pass (`_values`)."""
         buf, fused, clock = self.buf, self.fused, time.perf_counter
-        buf.finals.clear()
         fused.begin_sampling()
         # the whole rollout's action noise in one call: the same draws as one call per step
         self.rng.standard_normal(dtype=np.float32, out=buf.noise)
@@ -197,32 +201,16 @@ class _Trainer:
             buf.truncated[t] = step.truncated
             self.obs_norm.update(step.obs)
             self.obs_norm.normalize(step.obs, out=buf.obs_rows(t + 1))
-            boot = np.flatnonzero(step.truncated & ~step.terminated)
-            if boot.size:
-                final = {k: v[boot] for k, v in step.final_obs.items()}
-                buf.finals.append((t, boot, self.obs_norm.normalize(final)))
 
     def _values(self, obs: dict[str, torch.Tensor], nonzero: list[torch.Tensor | None]) -> None:
         """V of every observation of the rollout (`obs`, one row per step and copy, with their
-        `nonzero` rows) and of the truncated episodes' final ones."""
-        buf, fused = self.buf, self.fused
+        `nonzero` rows)."""
         t0 = time.perf_counter()
-        buf.values.reshape(-1)[:] = fused.values(obs, nonzero=nonzero)
-        buf.final_values[:] = 0.0
-        if buf.finals:
-            final = {
-                k: torch.from_numpy(np.concatenate([f[k] for _, _, f in buf.finals]))
-                for k in buf.obs
-            }
-            values = fused.values(final, cache=False)
-            start = 0
-            for t, boot, _ in buf.finals:
-                buf.final_values[t, boot] = values[start : start + boot.size]
-                start += boot.size
+        self.buf.values.reshape(-1)[:] = self.fused.values(obs, nonzero=nonzero)
         self.inference_s += time.perf_counter() - t0
 
     def update(self, iteration: int) -> None:
-        """Values, GAE, then `epochs` passes of shuffled minibatches over the rollout."""
+        """Values, GAE, then the minibatch passes over the rollout (`_epochs`)."""
         config, buf, fused = self.config, self.buf, self.fused
         count = buf.values.size  # rows: every step of every copy, and the next observation
         obs = {k: v.view(count, -1) for k, v in buf.obs_t.items()}
@@ -237,7 +225,6 @@ class _Trainer:
         advantages, returns = compute_gae(
             buf.rewards,
             buf.values,
-            buf.final_values,
             buf.terminated,
             buf.truncated,
             config.gamma,
@@ -252,14 +239,29 @@ class _Trainer:
         sources = [obs[k][:n] for k in fused.keys]
         aux = torch.from_numpy(buf.aux.reshape(n, -1))
         mb = fused.minibatch(size, [s.shape[1] for s in sources], aux.shape[1])
-        for _ in range(config.epochs):
-            order = torch.from_numpy(self.rng.permutation(n))
-            for start in range(0, n - size + 1, size):
-                mb.gather(sources, nonzero, aux, order[start : start + size])
-                fused.step(mb, self.coef)
+        if not self._epochs(mb, sources, nonzero, aux):
+            self.kl_stops += 1
         for rows in buf.obs.values():
             rows[0] = rows[-1]  # the last observation starts the next rollout
         self.update_s += time.perf_counter() - t0
+
+    def _epochs(
+        self,
+        mb: Minibatch,
+        sources: list[torch.Tensor],
+        nonzero: list[torch.Tensor | None],
+        aux: torch.Tensor,
+    ) -> bool:
+        """`epochs` passes of shuffled minibatches; False where a minibatch's approximate KL
+        stopped them (the released code returns from its update there)."""
+        n, size = self.config.batch_size, self.config.minibatch_size
+        for _ in range(self.config.epochs):
+            order = torch.from_numpy(self.rng.permutation(n))
+            for start in range(0, n - size + 1, size):
+                mb.gather(sources, nonzero, aux, order[start : start + size])
+                if not self.fused.step(mb, self.coef):
+                    return False
+        return True
 
     def checkpoint(self) -> Checkpoint:
         self.fused.store_into_net()
@@ -316,4 +318,5 @@ def train(
         flat_rows=(
             1.0 - trainer.sparse_nonzero / trainer.sparse_rows if trainer.sparse_rows else None
         ),
+        kl_stops=trainer.kl_stops,
     )

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict
 
 from derl.unimal.genome import Genome
 from derl.unimal.geometry import bounding_box, layout
-from derl.unimal.mjcf import agent_spec, rest_height, standalone_spec
+from derl.unimal.mjcf import FLOOR_OFFSET, agent_spec, rest_height, standalone_spec
 from derl.unimal.space import HEAD_RADIUS, LIMB_RADIUS
 
 STABILITY_STEPS = 400  # control steps, as the paper
@@ -64,12 +64,12 @@ def describe(genome: Genome) -> Descriptors:
 def stability_ratio(genome: Genome, steps: int = STABILITY_STEPS) -> float:
     """Head height after `steps` control steps without control, over its resting height.
 
-    The body starts standing just above flat ground with the environments' small reset noise
-    (fixed seed, so the answer is deterministic; without it a ball balanced on a vertical stick
-    would stand forever); below 0.5 it has fallen (the same test ends an episode early), so the
-    body is passively stable when this ratio stays above 0.5.
+    The body starts as in the environments, its lowest point `FLOOR_OFFSET` above flat ground,
+    with their small reset noise (fixed seed, so the answer is deterministic; without it a ball
+    balanced on a vertical stick would stand forever); below 0.5 it has fallen (the same test
+    ends an episode early), so the body is passively stable when this ratio stays above 0.5.
     """
-    model = standalone_spec(genome).compile()
+    model = standalone_spec(genome, clearance=FLOOR_OFFSET).compile()
     data = mujoco.MjData(model)
     rng = np.random.default_rng(0)
     data.qpos[:] += rng.uniform(-RESET_NOISE, RESET_NOISE, model.nq)

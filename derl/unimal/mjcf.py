@@ -1,11 +1,12 @@
 """Compile a genome into a MuJoCo model with `mujoco.MjSpec`: bodies, motors, sensors, exclusions.
 
 `agent_spec` builds the body alone (a free-floating head with its limb tree), the piece every
-environment attaches to its world. `standalone_spec` puts it on a floor with a light, so the saved
+environment attaches to its world. `standalone_spec` puts it on a floor under a sky, so the saved
 MJCF opens in MuJoCo's viewer as it is. Names: body/geom ``head`` and ``limb<id>`` (a mirror twin
 is ``limb<id>_mirror``); sites ``<part>_mid``, ``<part>_end``, ``<part>_tip``, ``<part>_touch`` and
 ``head_imu``; hinges and their motors ``<part>_x`` / ``<part>_y``; sensors ``head_accel``,
-``head_gyro``, ``head_vel``, ``<part>_touch`` and ``<part>_end_pos`` (end site in the head frame).
+``head_gyro``, ``head_vel``, ``<part>_touch`` and ``<part>_end_pos`` (end site in the head's body
+frame; the environments observe its x and y).
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import mujoco
 import numpy as np
 
 from derl.unimal.genome import Genome
-from derl.unimal.geometry import LimbPart, bounding_box, layout
+from derl.unimal.geometry import LimbPart, layout
+from derl.unimal.scenery import add_scenery
 from derl.unimal.space import HEAD_RADIUS, LIMB_RADIUS
 
 TIMESTEP = 0.005
@@ -27,6 +29,9 @@ TOUCH_MARGIN = 0.01
 HEAD_RGBA = (0.85, 0.45, 0.2, 1.0)
 LIMB_RGBA = (0.25, 0.45, 0.75, 1.0)
 SITE_SIZE = 0.01
+FLOOR_OFFSET = 0.2
+"""m between a body's lowest point (`rest_height`) and the ground where it spawns (the released
+code's `BODY.FLOOR_OFFSET`): every environment drops it from there."""
 
 
 def agent_spec(genome: Genome, head_height: float | None = None) -> mujoco.MjSpec:
@@ -65,34 +70,15 @@ def agent_spec(genome: Genome, head_height: float | None = None) -> mujoco.MjSpe
 
 
 def standalone_spec(genome: Genome, clearance: float = 0.05) -> mujoco.MjSpec:
-    """The body standing `clearance` above a floor, with a light: a complete MJCF scene."""
+    """The body standing `clearance` above a floor, with a sky and lights: a complete MJCF scene
+    (for pictures and the saved MJCF; `FLOOR_OFFSET` where it starts as in the environments)."""
     spec = agent_spec(genome, head_height=rest_height(layout(genome)) + clearance)
-    spec.add_texture(
-        name="sky",
-        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
-        rgb1=[0.75, 0.85, 0.95],
-        rgb2=[1.0, 1.0, 1.0],
-        width=256,
-        height=256,
-    )
-    spec.add_texture(
-        name="checker",
-        type=mujoco.mjtTexture.mjTEXTURE_2D,
-        builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-        rgb1=[0.92, 0.92, 0.9],
-        rgb2=[0.8, 0.8, 0.78],
-        width=256,
-        height=256,
-    )
-    floor = spec.add_material(name="floor", texrepeat=[40, 40])
-    floor.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "checker"
-    spec.worldbody.add_light(pos=[0, 0, 4], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8])
+    material = add_scenery(spec, spec.body("head"))
     spec.worldbody.add_geom(
         name="floor",
         type=mujoco.mjtGeom.mjGEOM_PLANE,
         size=[50, 50, 0.1],
-        material="floor",
+        material=material,
         condim=3,
         friction=list(FRICTION),
     )
@@ -107,9 +93,11 @@ def to_mjcf(genome: Genome) -> str:
 
 
 def rest_height(parts: list[LimbPart]) -> float:
-    """Height of the head centre above the body's lowest point at rest."""
-    low, _ = bounding_box(parts)
-    return float(-low[2])
+    """Height of the head centre above the body's lowest point at rest, as the released code
+    measures it (`SymmetricUnimal.set_head_pos`, its `btm_pos` sites): the lowest limb tip on its
+    limb's axis (the capsule's end along the axis), or the head's bottom. A limb pointing 45
+    degrees down reaches r (1 - cos 45) = 1.5 cm below its tip."""
+    return float(-min([-HEAD_RADIUS, *(p.origin[2] + p.tip[2] for p in parts)]))
 
 
 def excluded_pairs(genome: Genome, parts: list[LimbPart]) -> list[tuple[str, str]]:
@@ -194,6 +182,6 @@ def _add_sensors(spec: mujoco.MjSpec, parts: list[LimbPart]) -> None:
             type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
             objtype=site,
             objname=f"{part.name}_end",
-            reftype=mujoco.mjtObj.mjOBJ_BODY,
+            reftype=mujoco.mjtObj.mjOBJ_XBODY,
             refname="head",
         )

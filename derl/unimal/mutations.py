@@ -30,7 +30,7 @@ MIN_LIMBS_TO_DELETE = 3
 Direction = tuple[int, int]
 """(theta, phi) in degrees."""
 
-# Distinct limb directions by where a new limb hangs.
+# The distinct limb directions by where a new limb hangs (the design space, `derl.unimal.count`).
 SAGITTAL_DIRECTIONS = ((0, 90), (180, 90), (0, 135), (180, 135), (0, 180))
 PAIR_ON_SAGITTAL_DIRECTIONS = tuple((t, p) for t in (45, 90, 135) for p in (90, 135))
 PAIR_ON_PAIR_DIRECTIONS = (*((t, p) for t in THETAS for p in PHIS if p != 180), (0, 180))
@@ -64,21 +64,6 @@ def _pick(rng: np.random.Generator, items: Sequence[T]) -> T:
     return items[int(rng.integers(len(items)))]
 
 
-def draw_direction(rng: np.random.Generator, allowed: Sequence[Direction]) -> Direction:
-    """A new limb's direction among those `allowed` at its site, drawn as the released code
-    draws it: theta (8 values) and phi (3) independently, again until they give an allowed
-    direction. So a direction is as likely as the draws that give it: straight down (phi 180)
-    for any theta, a pair's theta or its mirror twin's (360 - theta)."""
-    while True:
-        theta, phi = _pick(rng, THETAS), _pick(rng, PHIS)
-        if phi == 180:
-            theta = 0
-        elif (theta, phi) not in allowed:
-            theta = 360 - theta  # the mirror twin of a pair on the sagittal plane
-        if (theta, phi) in allowed:
-            return theta, phi
-
-
 def random_joint(rng: np.random.Generator, axis: str) -> Joint:
     return Joint(axis=axis, range=_pick(rng, JOINT_RANGES), gear=_pick(rng, GEARS))
 
@@ -100,20 +85,24 @@ def _replace(genome: Genome, limb: Limb, **changes: object) -> Genome:
 
 
 def grow_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """Add one sagittal limb or a mirror pair at a site drawn uniformly among the limb sites
-    (every physical limb's mid and end, and the head centre) that have room for it."""
-    room = MAX_LIMBS - genome.num_limbs
+    """One attempt of the released code's `grow_limb`: a site drawn uniformly among every
+    physical limb's mid and end and the head centre; one limb or a mirror pair on a sagittal
+    site (even chances), a pair on a mirrored one; theta (8 values) and phi (3) drawn once,
+    independently (phi 180 points straight down whatever theta; a pair on a sagittal site takes
+    a theta beyond 180 as its twin's, 360 - theta). The genome's rules reject what the site does
+    not allow (a single limb off the sagittal plane, a pair in it, a limb along its parent, more
+    than 10 limbs), and `mutate` then makes a new attempt from scratch, at a new site."""
     sites: list[tuple[int | None, str]] = [(None, "head")]
     for limb in genome.limbs:
-        if room >= 2 or not limb.paired:  # a mirrored site takes a pair
-            sites += [(limb.id, "mid"), (limb.id, "end")] * limb.count
+        sites += [(limb.id, "mid"), (limb.id, "end")] * limb.count
     parent, site = _pick(rng, sites)
-    if genome.is_sagittal(parent):
-        paired = room >= 2 and bool(rng.integers(2))
-        directions = PAIR_ON_SAGITTAL_DIRECTIONS if paired else SAGITTAL_DIRECTIONS
-    else:
-        paired, directions = True, PAIR_ON_PAIR_DIRECTIONS
-    theta, phi = draw_direction(rng, directions)
+    sagittal = genome.is_sagittal(parent)
+    paired = bool(rng.integers(2)) if sagittal else True
+    theta, phi = _pick(rng, THETAS), _pick(rng, PHIS)
+    if phi == 180:
+        theta = 0
+    elif paired and sagittal and theta > 180:
+        theta = 360 - theta
     new = Limb(
         id=genome.next_id(),
         parent=parent,

@@ -7,7 +7,7 @@ import logging
 import signal
 from pathlib import Path
 
-from derl.nodes.cli.options import fail_invalid, profile_from
+from derl.nodes.cli.options import fail, fail_invalid, profile_from
 from derl.nodes.launch.commands import dry_run_text, plan
 from derl.nodes.launch.model import LaunchFile, load
 from derl.nodes.launch.supervisor import Supervisor
@@ -46,16 +46,17 @@ def _launch(args: argparse.Namespace) -> int:
     except ValidationError as error:
         fail_invalid(f"{args.file} is not a valid launch file", error, LaunchFile)
     except ValueError as error:
-        raise SystemExit(f"derl launch: {error}") from None
+        fail(str(error))
     except KeyError as error:
-        raise SystemExit(f"derl launch: {error.args[0]}") from None
+        fail(error.args[0])
     if not commands:
-        raise SystemExit(f"derl launch: no nodes to start from {args.file} on this host")
+        fail(f"no nodes to start from {args.file} on this host")
     if args.dry_run:
         print(dry_run_text(commands))
         return 0
     if any(c.role == "coordinator" and c.remote is None for c in commands):
-        profile_from(argparse.Namespace(profile=launch.profile, env=launch.env, seed=launch.seed))
+        profile_from(argparse.Namespace(profile=launch.profile, set=[], env=launch.env,
+                                        seed=launch.seed))  # fmt: skip
     supervisor = Supervisor(commands, args.log_dir or launch.directory / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):  # SIGHUP: our ssh session ended
         signal.signal(sig, lambda *_: supervisor.stop.set())

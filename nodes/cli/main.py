@@ -1,4 +1,5 @@
-"""`derl`: one entry point whose subcommands are registered by the modules of `nodes.cli`."""
+"""`derl`: one entry point whose subcommands are registered by the modules of `nodes.cli`, and the
+one place where what went wrong (`DerlError`) becomes a line on stderr and an exit status."""
 
 from __future__ import annotations
 
@@ -18,6 +19,8 @@ from derl.nodes.cli import (
     unimal,
     watch,
 )
+from derl.nodes.errors import DerlError
+from derl.nodes.runtime import ratelimit
 
 
 class Parser(argparse.ArgumentParser):
@@ -60,10 +63,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(
+    logging.basicConfig(  # (nothing if a handler is there already: a test's)
         level=logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
-        stream=sys.stderr,
+        handlers=[ratelimit.install(logging.StreamHandler(sys.stderr))],
     )
     args = build_parser().parse_args(argv)
-    return args.handler(args)
+    try:
+        return args.handler(args)
+    except DerlError as error:
+        print(f"derl: {' '.join(str(error).split())}", file=sys.stderr)
+        raise SystemExit(error.code) from None

@@ -1,8 +1,10 @@
 """`derl coordinator|trainer|evaluator|router`: start one node of a run on this host.
 
-Exit status: the coordinator 0 only when the run finished (1 when stopped or failed, so a
-supervisor restarts it); a worker 0 when stopped or when the run is over; 2 when a port is taken;
-`--workers K` the status of the first of its K processes that failed, else 0.
+Exit status (`derl.nodes.errors`): the coordinator 0 only when the run finished (1 when stopped
+or failed, so a supervisor restarts it; 78 when it refuses to start: its run directory holds
+another run or profile, its journal is damaged, its configuration or study is not valid); a worker
+0 when stopped or when the run is over; 2 when a port or the run directory is taken; `--workers
+K` the status of the first of its K processes that failed, else 0.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import logging
 import signal
 import subprocess
 import threading
+from functools import partial
 from pathlib import Path
 
 import zenoh
@@ -25,6 +28,7 @@ from derl.nodes.cli.options import (
     run_directory,
     study_profile_from,
 )
+from derl.nodes.errors import DerlError, Refused
 from derl.nodes.launch.model import split_endpoint, with_port
 from derl.nodes.runtime.bus import node_name
 
@@ -67,17 +71,24 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _coordinator(args: argparse.Namespace) -> int:
+    from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import serve
     from derl.nodes.coordinator.study import serve_study
 
-    try:
+    try:  # its directory and settings: a restart would not change them
         if args.study is not None:
             config = study_profile_from(args) if args.study_runs else None
+        else:
+            run_dir, config = run_directory(args.run_dir), profile_from(args)
+    except DerlError as error:
+        raise Refused(str(error)) from None
+    try:
+        if args.study is not None:
             finished = serve_study(args.run, args.study, options_from(args), args.study_runs,
                                    config)  # fmt: skip
         else:
-            finished = serve(args.run, run_directory(args.run_dir), profile_from(args),
-                             options_from(args))  # fmt: skip
+            policy = partial(EvolutionPolicy, args.run, run_dir, config)
+            finished = serve(args.run, run_dir, policy, options_from(args))
     except zenoh.ZError as error:
         fail_on_bus(error)
     return 0 if finished is True else 1

@@ -1,30 +1,36 @@
 """Flags shared by the commands (how a node joins the bus, which profile a run uses), and the one
-way a command reports bad input: one line on stderr and a non-zero exit status (`fail`)."""
+way a command reports bad input (`fail`: a `DerlError`, printed by `main` in one line)."""
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import os
 import re
-import sys
+import shlex
+import socket
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn, TypeGuard, get_args
+from typing import NamedTuple, NoReturn, TypeGuard, get_args
 
 import yaml
 import zenoh
+from derl.nodes.errors import IN_USE, DerlError
 from derl.nodes.runtime.bus import ZenohOptions
 from pydantic import BaseModel, ValidationError
 
 from derl.validation import problems
 
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from
-IN_USE = 2  # exit status when a port or a run directory is taken by another process
+SUFFIX_CHARS = 64  # of a default directory name, for its --set changes
+DEFAULT_PORT = 7447  # Zenoh's own default: the local run's port unless $DERL_LOCAL_PORT says
+PORT_ENV = "DERL_LOCAL_PORT"
+PROBE_S = 0.5  # how long to try a TCP connection to tell whether something listens
 
 
 def fail(message: str, code: int = 1) -> NoReturn:
-    """Print `derl: message` on stderr (one line) and exit with `code`."""
-    print(f"derl: {' '.join(message.split())}", file=sys.stderr)
-    raise SystemExit(code)
+    """End the command: `derl: message` on stderr (one line) and exit status `code` (`main`)."""
+    raise DerlError(message, code)
 
 
 def at_least_one(text: str) -> int:
@@ -55,6 +61,94 @@ def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True
     group.add_argument("--multicast", action="store_true", help="turn multicast scouting on")
 
 
+def port_number(text: str) -> int:
+    """An argparse type: a TCP port, 0 to 65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port number (0-65535)")
+    return port
+
+
+def add_port_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    """`--port`: where this host's coordinator listens on 127.0.0.1, by default the local run's
+    port, where the watching tools connect when given no endpoint."""
+
+    def port(text: str) -> int:  # a default from $DERL_LOCAL_PORT is checked like the flag
+        try:
+            return port_number(text)
+        except argparse.ArgumentTypeError as error:
+            if text == os.environ.get(PORT_ENV):
+                raise argparse.ArgumentTypeError(f"{error} (${PORT_ENV})") from None
+            raise
+
+    parser.add_argument(
+        "--port",
+        type=port,
+        default=os.environ.get(PORT_ENV) or str(DEFAULT_PORT),
+        help=f"{what} (default ${PORT_ENV}, else {DEFAULT_PORT}: where `derl monitor`, "
+        "`topic` ... connect when given no endpoint; 0: a free one)",
+    )
+
+
+def local_endpoint() -> str:
+    """The local run's endpoint: 127.0.0.1 at $DERL_LOCAL_PORT, else 7447 (`derl run`'s)."""
+    text = os.environ.get(PORT_ENV) or str(DEFAULT_PORT)
+    try:
+        port = port_number(text)
+    except argparse.ArgumentTypeError as error:
+        fail(f"{PORT_ENV}={text}: {error}")
+    return f"tcp/127.0.0.1:{port}"
+
+
+def watch_options(args: argparse.Namespace) -> ZenohOptions:
+    """How a watching tool joins the bus: as its flags say, else connected to the local run's
+    endpoint (`local_endpoint`), where `derl run` listens."""
+    options = options_from(args)
+    if options.listen or options.connect or options.config_file:
+        return options
+    return options.model_copy(update={"connect": (local_endpoint(),)})
+
+
+def publish_options(args: argparse.Namespace) -> ZenohOptions:
+    """How a tool that publishes a run (`derl replay`) joins the bus: as its flags say, else on
+    the local run's endpoint, connected to it when something listens there (a live run), else
+    listening on it, so that watchers given no endpoint hear it."""
+    options = watch_options(args)
+    local = local_endpoint()
+    if options.connect != (local,) or listening(local) or options.mode != "peer":
+        return options
+    return options.model_copy(update={"connect": (), "listen": (local,)})
+
+
+def listening(endpoint: str) -> bool | None:
+    """Whether something accepts TCP connections at a ``tcp/HOST:PORT`` endpoint (None: not such
+    an endpoint)."""
+    match = re.fullmatch(r"tcp/\[?([^\]/]+?)\]?:(\d+)", endpoint)
+    if match is None:
+        return None
+    try:
+        with socket.create_connection((match[1], int(match[2])), timeout=PROBE_S):
+            return True
+    except OSError:
+        return False
+
+
+def how_joined(options: ZenohOptions) -> str:
+    """How a tool joined the bus, in words, for a message saying it heard nothing: its mode,
+    the endpoints it connected to (those where nothing listens marked) or listened on."""
+    parts = [options.mode]
+    for endpoint in options.connect:
+        quiet = listening(endpoint) is False
+        parts.append(f"connected to {endpoint}{', where nothing listens' if quiet else ''}")
+    parts += [f"listening on {endpoint}" for endpoint in options.listen]
+    if options.config_file:
+        parts.append(f"config {options.config_file}")
+    return ", ".join(parts)
+
+
 def options_from(args: argparse.Namespace, mode: str | None = None) -> ZenohOptions:
     return ZenohOptions(
         mode=mode or args.mode,
@@ -78,6 +172,7 @@ def fail_on_bus(error: zenoh.ZError) -> NoReturn:
 
 def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
+    add_set_argument(parser)
     parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
     parser.add_argument(
         "--seed",
@@ -87,23 +182,88 @@ def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_set_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--set",
+        action="append",
+        type=setting,
+        default=[],
+        metavar="KEY=VALUE",
+        help="change one setting of the profile, e.g. --set ppo.lr=1e-4 --set total=200: a "
+        "dotted key, a YAML value, checked like the profile file (repeatable)",
+    )
+
+
+class Setting(NamedTuple):
+    """One ``--set KEY=VALUE``: the dotted key, the value read as YAML, and the text given."""
+
+    key: str
+    value: object
+    text: str
+
+
+def setting(text: str) -> Setting:
+    """An argparse type: ``KEY=VALUE``, the value read as YAML."""
+    key, equals, value = text.partition("=")
+    key = key.strip()
+    if not equals or not key:
+        raise argparse.ArgumentTypeError(f"{text!r} is not KEY=VALUE (e.g. ppo.lr=1e-4)")
+    if key == PROFILE_KEY:
+        raise argparse.ArgumentTypeError("the profile is chosen with --profile")
+    try:
+        return Setting(key, yaml.safe_load(value), text)
+    except yaml.YAMLError as error:
+        raise argparse.ArgumentTypeError(
+            f"{text}: the value is not YAML ({getattr(error, 'problem', error)})"
+        ) from None
+
+
+def set_arguments(changes: list[Setting]) -> list[str]:
+    """The command-line arguments that make `changes` again (a node's, or to resume)."""
+    return [part for change in changes for part in ("--set", change.text)]
+
+
+def set_suffix(changes: list[Setting]) -> str:
+    """What a default directory name adds for `changes` (`-total=200-ppo.lr=1e-4`), so a run
+    with other settings does not resume one without them; a hash where it would be long."""
+    if not changes:
+        return ""
+    text = re.sub(r"[^A-Za-z0-9_.=+-]", "_", "-".join(change.text for change in changes))
+    if len(text) > SUFFIX_CHARS:
+        text = text[: SUFFIX_CHARS - 9] + "-" + hashlib.sha1(text.encode()).hexdigest()[:8]
+    return f"-{text}"
+
+
+def _described(args: argparse.Namespace, kind: str) -> str:
+    """What a profile error names: the profile and the --set changes made to it."""
+    changes = shlex.join(set_arguments(args.set))
+    return f"{kind} {args.profile}" + (f" with {changes}" if changes else "")
+
+
+def _changes(args: argparse.Namespace) -> list[tuple[str, object]]:
+    return [(change.key, change.value) for change in args.set]
+
+
 def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
-    """The run's profile from --profile/--env, or exit with the reason it is not valid."""
+    """The run's profile from --profile/--set/--env/--seed, or exit with the reason it is not
+    valid."""
     from derl.evolution import EvolutionConfig, load_profile
 
     return _profile_or_exit(
-        f"profile {args.profile}",
+        _described(args, "profile"),
         EvolutionConfig,
-        lambda: load_profile(args.profile, world=args.env, seed=args.seed),
+        lambda: load_profile(args.profile, _changes(args), world=args.env, seed=args.seed),
     )
 
 
 def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
-    """The study's profile from --profile, or exit with the reason it is not valid."""
+    """The study's profile from --profile/--set, or exit with the reason it is not valid."""
     from derl.analysis.study import StudyConfig, load_study_profile
 
     return _profile_or_exit(
-        f"study profile {args.profile}", StudyConfig, lambda: load_study_profile(args.profile)
+        _described(args, "study profile"),
+        StudyConfig,
+        lambda: load_study_profile(args.profile, _changes(args)),
     )
 
 

@@ -92,7 +92,7 @@ def _thresholds(text: str) -> dict[str, float]:
 
 def _runs_or_study(paths: list[Path]) -> list[RunLog]:
     """The runs of `paths`, or a study's runs with its results (`derl study`)."""
-    from derl.nodes.coordinator.study import SETUP_FILE, study_logs
+    from derl.nodes.coordinator.study_files import SETUP_FILE, study_logs
 
     studies = [path for path in paths if (path / SETUP_FILE).is_file()]
     if not studies:
@@ -121,15 +121,17 @@ def _report(args: argparse.Namespace) -> int:
             **{name: value for name, value in given.items() if value is not None},
         )
     except ValueError as error:
-        raise SystemExit(f"derl: {error}") from None
+        fail(str(error))
     start = time.monotonic()
     runs = _runs_or_study(args.runs)
     try:
         files = write_report(runs, args.out, config)
     except ValueError as error:
-        raise SystemExit(f"derl: {error}") from None
+        fail(str(error))
     for note in files.notes:
         console.print(f"note: {note}", highlight=False)
+    for line in files.headline:
+        console.print(line, highlight=False)
     console.print(
         f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
         f"{len(files.tables)} tables) in "

@@ -1,13 +1,15 @@
 """`derl run`: a whole run on this host: coordinator, K trainers and an evaluator, on loopback.
 
-Each node is its own process (its log in RUN_DIR/logs/), connected through the coordinator's
-loopback endpoint (port 7447 unless --port says otherwise: a monitor connects there, across
-restarts) with multicast off. The nodes are supervised like `derl launch`'s ``restart:
-on-failure`` (`nodes.launch.supervisor`): a trainer or evaluator that dies is started again, and a
-coordinator that dies is started again alone, resumes from its journal and hears the trainers'
-reports again (they re-send until acknowledged). It ends when the coordinator finishes the run;
-meanwhile it shows bodies born, best fitness, steps/s and time left. Ctrl-C stops every node;
-running it again on the same run directory resumes the run from its journal.
+The nodes are those of the local launch graph (`nodes.launch.local`: `launch/local.yaml`) with
+this run's numbers. Each node is its own process (its log in RUN_DIR/logs/), connected through the
+coordinator's loopback endpoint (port 7447 unless --port or $DERL_LOCAL_PORT says otherwise: a
+bare `derl monitor` connects there, across restarts) with multicast off. They are supervised as
+`derl launch` does (`nodes.launch.supervisor`): a trainer or evaluator that dies is started
+again, and a coordinator that dies is started again alone, resumes from its journal and hears the
+trainers' reports again (they re-send until acknowledged); a coordinator that refuses to start
+stops the run at once. It ends when the coordinator finishes the run; meanwhile it shows bodies
+born, best fitness, steps/s and time left. Ctrl-C stops every node; running it again on the same
+run directory resumes the run from its journal.
 """
 
 from __future__ import annotations
@@ -22,82 +24,81 @@ from pathlib import Path
 
 from derl.messages import RunStatus
 from derl.nodes.cli.options import (
-    IN_USE,
+    add_port_argument,
     add_profile_arguments,
     at_least_one,
     fail,
+    local_endpoint,
     profile_from,
     run_directory,
+    set_arguments,
+    set_suffix,
 )
-from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.errors import IN_USE
+from derl.nodes.launch.commands import NodeCommand, build_commands
+from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.runtime.rundir import lock_run_dir
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 console = Console()
 
-DEFAULT_PORT = 7447  # Zenoh's own default: `derl monitor --connect tcp/127.0.0.1:7447`
-MAX_RESTARTS = 10  # of each node, after 1, 2, 4 ... 30 s
+MAX_RESTARTS = 10  # of a node beside the graph's (the TensorBoard watcher)
 
 
 def register(commands: argparse._SubParsersAction) -> None:
     run = commands.add_parser("run", help="run evolution on this host (all nodes, supervised)")
     add_profile_arguments(run)
     run.add_argument("--workers", type=at_least_one, default=2, help="trainer processes (2)")
-    run.add_argument("--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>]")
     run.add_argument(
-        "--port",
-        type=port_number,
-        default=DEFAULT_PORT,
-        help=f"the coordinator's port on 127.0.0.1, where monitors connect (default "
-        f"{DEFAULT_PORT}; 0: a free one)",
+        "--tensorboard",
+        type=Path,
+        metavar="LOGDIR",
+        help="also write the run's curves to TensorBoard event files in LOGDIR/<run> "
+        "(`derl tensorboard`; pip install 'derl[tensorboard]')",
     )
+    run.add_argument(
+        "--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>][-<KEY=VALUE>...]"
+    )
+    add_port_argument(run, "the coordinator's port on 127.0.0.1")
     run.set_defaults(handler=_run)
-
-
-def port_number(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"{port} is not a port number (0-65535)")
-    return port
 
 
 def _run(args: argparse.Namespace) -> int:
     config = profile_from(args)
     replicate = "" if args.seed is None else f"-s{args.seed}"
-    run_dir = run_directory(
-        args.run_dir or Path("runs") / f"{config.name}-{config.world}{replicate}"
-    )
-    try:
-        with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
-            pass
-    except RunDirLocked as error:
-        fail(str(error), IN_USE)
+    default = f"{config.name}-{config.world}{replicate}{set_suffix(args.set)}"
+    run_dir = run_directory(args.run_dir or Path("runs") / default)
+    with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
+        pass
     port = listenable(args.port)
     run = local_run_id(run_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
-    env = ("--env", args.env) if args.env else ()
-    seed = ("--seed", str(args.seed)) if args.seed is not None else ()
-    coordinator = ("--profile", args.profile, *env, *seed, "--run-dir", str(run_dir))
     workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
-    supervisor = Supervisor(local_nodes(run, endpoint, coordinator, workers), run_dir / "logs")
+    settings = [change.text for change in args.set]
+    graph = local_launch(run, endpoint, workers, run_dir=run_dir, profile=args.profile,
+                         env=args.env, seed=args.seed, settings=settings)  # fmt: skip
+    nodes = build_commands(graph)
+    board = ("--tensorboard", str(args.tensorboard)) if args.tensorboard else ()
+    if args.tensorboard:
+        nodes.append(tensorboard_node(run, endpoint, args.tensorboard))
+    supervisor = Supervisor(nodes, run_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
         f"run [bold]{run}[/] ({config.name}, {config.world}): {config.total} bodies, "
-        f"{args.workers} trainers; coordinator on {endpoint} "
-        f"(derl monitor --connect {endpoint} --run {run}); logs in {supervisor.log_dir}",
+        f"{args.workers} trainers; coordinator on {endpoint} ({watch_command(endpoint, run)}); "
+        f"logs in {supervisor.log_dir}",
         highlight=False,
     )
     code, status = supervise(supervisor, run, endpoint, config.total)
     if code != 0:
-        again = shlex.join(["derl", "run", "--profile", args.profile, *env, *seed, "--run-dir",
-                            str(run_dir)])  # fmt: skip
+        env = ("--env", args.env) if args.env else ()
+        seed = ("--seed", str(args.seed)) if args.seed is not None else ()
+        again = shlex.join(["derl", "run", "--profile", args.profile, *set_arguments(args.set),
+                            *env, *seed, "--run-dir", str(run_dir), *board])  # fmt: skip
         console.print(f"stopped; `{again}` resumes the run", highlight=False, soft_wrap=True)
         return code
     best = "-"
@@ -109,6 +110,13 @@ def _run(args: argparse.Namespace) -> int:
         rate = f", {status.steps_per_s:,.0f} env steps/s on average"
     console.print(f"done: {born} bodies, best {best}{rate}; results in {run_dir}")
     return 0
+
+
+def watch_command(endpoint: str, run: str) -> str:
+    """The monitor's command line for the run at `endpoint`: bare on the local run's endpoint."""
+    if endpoint == local_endpoint():
+        return "derl monitor"
+    return f"derl monitor --connect {endpoint} --run {run}"
 
 
 def listenable(port: int) -> int:
@@ -131,21 +139,17 @@ def local_run_id(run_dir: Path) -> str:
     return journal_run(run_dir) or re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
 
 
-def local_nodes(
-    run: str, endpoint: str, coordinator: tuple[str, ...], workers: dict[str, int]
-) -> list[NodeCommand]:
-    """A coordinator (`coordinator`: its own arguments) listening on `endpoint` and `workers`
-    (role -> count) connected to it, each restarted when it fails."""
-    nodes = [("coordinator", "coordinator",
-              ("coordinator", "--run", run, *coordinator, "--listen", endpoint))]  # fmt: skip
-    for role, count in workers.items():
-        for k in range(count):
-            name = f"{role}-{k}"
-            nodes.append((role, name, (role, "--run", run, "--connect", endpoint, "--name", name)))
-    return [
-        NodeCommand(host="local", name=name, role=role, args=line, max_restarts=MAX_RESTARTS)
-        for role, name, line in nodes
-    ]
+def tensorboard_node(run: str, endpoint: str, logdir: Path) -> NodeCommand:
+    """`derl tensorboard` of the run, restarted when it fails; exit if the extra is missing."""
+    from derl.nodes.tools.tensorboard import NoTensorBoard, require_extra
+
+    try:
+        require_extra()
+    except NoTensorBoard as error:
+        fail(f"--tensorboard: {error}")
+    line = ("tensorboard", "--run", run, "--connect", endpoint, "--logdir", str(logdir))
+    return NodeCommand(host="local", name="tensorboard", role="tensorboard", args=line,
+                       max_restarts=MAX_RESTARTS)  # fmt: skip
 
 
 def supervise(

@@ -17,17 +17,19 @@ import argparse
 import signal
 from pathlib import Path
 
-from derl.nodes.cli.options import IN_USE, at_least_one, fail, run_directory, study_profile_from
-from derl.nodes.cli.run import (
-    DEFAULT_PORT,
-    listenable,
-    local_nodes,
-    local_run_id,
-    port_number,
-    supervise,
+from derl.nodes.cli.options import (
+    add_port_argument,
+    add_set_argument,
+    at_least_one,
+    fail,
+    run_directory,
+    study_profile_from,
 )
+from derl.nodes.cli.run import listenable, local_run_id, supervise, watch_command
+from derl.nodes.launch.commands import build_commands
+from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
-from derl.nodes.runtime.rundir import RunDirLocked, lock_run_dir
+from derl.nodes.runtime.rundir import lock_run_dir
 from rich.console import Console
 
 console = Console()
@@ -45,19 +47,15 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     study.add_argument("--study-dir", type=Path, required=True, help="journal and results")
     study.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
+    add_set_argument(study)
     study.add_argument("--workers", type=at_least_one, default=2, help="evaluator processes (2)")
-    study.add_argument(
-        "--port",
-        type=port_number,
-        default=DEFAULT_PORT,
-        help=f"the coordinator's port on 127.0.0.1 (default {DEFAULT_PORT}; 0: a free one)",
-    )
+    add_port_argument(study, "the coordinator's port on 127.0.0.1")
     study.add_argument("--plan-only", action="store_true", help="write the plan, start nothing")
     study.set_defaults(handler=_study)
 
 
 def _study(args: argparse.Namespace) -> int:
-    from derl.nodes.coordinator.study import SETUP_FILE, prepare_study, read_plan
+    from derl.nodes.coordinator.study_files import SETUP_FILE, prepare_study, read_plan
 
     config = study_profile_from(args)
     if not (args.study_dir / SETUP_FILE).exists():  # checked before DIR is made
@@ -67,11 +65,8 @@ def _study(args: argparse.Namespace) -> int:
             if not path.exists():
                 fail(f"no run directory or log at {path}")
     study_dir = run_directory(args.study_dir)
-    try:
-        with lock_run_dir(study_dir):
-            setup = prepare_study(study_dir, args.runs, config)
-    except RunDirLocked as error:
-        fail(str(error), IN_USE)
+    with lock_run_dir(study_dir):
+        setup = prepare_study(study_dir, args.runs, config)
     worlds = sorted({job.task for job in read_plan(study_dir).jobs})
     console.print(
         f"study {study_dir}: {len(setup.runs)} runs ({', '.join(worlds)}), "
@@ -83,12 +78,12 @@ def _study(args: argparse.Namespace) -> int:
     port = listenable(args.port)
     run = local_run_id(study_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
-    nodes = local_nodes(run, endpoint, ("--study", str(study_dir)), {"evaluator": args.workers})
-    supervisor = Supervisor(nodes, study_dir / "logs")
+    graph = local_launch(run, endpoint, {"evaluator": args.workers}, study=study_dir)
+    supervisor = Supervisor(build_commands(graph), study_dir / "logs")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
     console.print(
-        f"coordinator on {endpoint} (derl monitor --connect {endpoint} --run {run}); "
+        f"coordinator on {endpoint} ({watch_command(endpoint, run)}); "
         f"{args.workers} evaluators; logs in {supervisor.log_dir}",
         highlight=False,
     )

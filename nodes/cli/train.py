@@ -66,6 +66,15 @@ def _train(args: argparse.Namespace) -> int:
         config = ppo_config(args.task, args.steps, args.seed, num_envs=args.envs)
     except ValidationError as error:
         fail(f"cannot train with these settings: {problems(error, FLAGS)}")
+    trained = config.iterations * config.batch_size
+    if trained != args.steps:  # PPO updates after whole rollouts, as the released code does
+        console.print(
+            f"training {trained:,} env steps: --steps {args.steps} rounded down to whole "
+            f"rollouts ({config.iterations} of {config.batch_size:,} = {config.num_envs} copies "
+            f"x {config.rollout_steps} steps)",
+            highlight=False,
+            soft_wrap=True,
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / GENOME).write_text(genome.model_dump_json(indent=2) + "\n")
     columns = (
@@ -78,9 +87,7 @@ def _train(args: argparse.Namespace) -> int:
         TimeRemainingColumn(),
     )
     with Progress(*columns, console=console) as bar:
-        job = bar.add_task(
-            f"{args.task}", total=config.iterations * config.batch_size, ret="-", sps=0
-        )
+        job = bar.add_task(f"{args.task}", total=trained, ret="-", sps=0)
 
         def show(progress) -> None:  # derl.rl.Progress
             ret = "-" if progress.recent_return is None else f"{progress.recent_return:.1f}"

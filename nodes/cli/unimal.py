@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from derl.nodes.cli.options import fail
 from rich.console import Console
 from rich.progress import track
 from rich.table import Table
@@ -53,9 +54,9 @@ def load_genome(path: Path):  # -> Genome
     try:
         return Genome.model_validate_json(path.read_text())
     except ValidationError as error:
-        raise SystemExit(f"derl: {path} is not a valid genome: {problems(error)}") from None
+        fail(f"{path} is not a valid genome: {problems(error)}")
     except OSError as error:
-        raise SystemExit(f"derl: cannot read {path}: {error.strerror}") from None
+        fail(f"cannot read {path}: {error.strerror}")
 
 
 def _sample(args: argparse.Namespace) -> int:
@@ -65,7 +66,7 @@ def _sample(args: argparse.Namespace) -> int:
     from derl.unimal.sampling import iter_population
 
     if args.n < 1:
-        raise SystemExit("derl: --n must be at least 1")
+        fail("--n must be at least 1")
     args.out.mkdir(parents=True, exist_ok=True)
     population = iter_population(np.random.default_rng(args.seed))
     table = Table("file", "limbs", "DoF", title=f"{args.n} bodies in {args.out}")
@@ -101,7 +102,7 @@ def _render(args: argparse.Namespace) -> int:
     if args.path.is_dir():  # a trained body's folder also holds its task and settings: not bodies
         files = sorted(f for f in args.path.rglob("*.json") if f.name not in TASK_FILES)
         if not files:
-            raise SystemExit(f"derl: no genome JSON files in {args.path}")
+            fail(f"no genome JSON files in {args.path}")
         image = render_grid([load_genome(f) for f in files], width, height)
     else:
         image = render_body(load_genome(args.path), width, height)

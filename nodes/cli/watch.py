@@ -1,10 +1,14 @@
-"""`derl monitor|foxglove|topic|record|replay|export|log`: the watch-and-replay tools' commands.
+"""`derl monitor|foxglove|tensorboard|topic|record|replay|export|log`: the watch-and-replay tools.
 
 Only argument parsing and printing; the work is done by `nodes.tools.monitor`,
-`nodes.tools.foxglove`, `nodes.tools.topic`, `nodes.tools.recorder` and `nodes.tools.logs`. Every
-command that joins the bus takes the nodes' connection flags (`--connect`, `--mode client`,
-`--zenoh-config`; multicast stays off), stops cleanly on SIGINT/SIGTERM, and reports bad input (a
-damaged log, no run on the bus, an existing output file) in one line on stderr with exit status 1.
+`nodes.tools.foxglove`, `nodes.tools.tensorboard`, `nodes.tools.topic`, `nodes.tools.recorder` and
+`nodes.tools.logs`. Every command that joins the bus takes the nodes' connection flags
+(`--connect`, `--mode client`, `--zenoh-config`; multicast stays off); given none, it connects to
+the local run's endpoint, where `derl run` listens (127.0.0.1 at $DERL_LOCAL_PORT, else 7447),
+and a replay listens there when no run does. Each stops cleanly on SIGINT/SIGTERM, and reports
+bad input (a damaged log, several runs and no --run, an existing output file, a missing extra)
+in one line on stderr with exit status 1, and so does a watcher that heard nothing, naming how
+it joined the bus.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import math
 import os
 import signal
 import sys
@@ -23,7 +28,14 @@ from typing import TYPE_CHECKING
 
 from derl.messages import InvalidKey
 from derl.messages.keys import ARITY
-from derl.nodes.cli.options import add_bus_arguments, options_from
+from derl.nodes.cli.options import (
+    add_bus_arguments,
+    at_least_one,
+    how_joined,
+    publish_options,
+    watch_options,
+)
+from derl.nodes.runtime.bus import ZenohOptions
 
 if TYPE_CHECKING:
     from foxglove.websocket import WebSocketServer
@@ -37,7 +49,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--once",
         nargs="?",
         const=3.0,
-        type=float,
+        type=_seconds,
         metavar="S",
         help="listen S seconds (default 3), print one snapshot and exit (1 if nothing of the "
         "run was heard)",
@@ -57,23 +69,35 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_bus_arguments(live, run_required=False)
     live.set_defaults(handler=_clearly(_foxglove))
 
+    board = commands.add_parser(
+        "tensorboard",
+        help="write a run's curves live to TensorBoard event files",
+        description="Write the run's scalars (per birth: fitness, cost of work, generation, "
+        "steps to the learning criterion; the run's births, best fitness, failures, evaluations "
+        "and steps/s) into LOGDIR/<run> until the run is done or Ctrl-C; view them with "
+        "`tensorboard --logdir LOGDIR`. Needs the extra: pip install 'derl[tensorboard]'.",
+    )
+    board.add_argument("--logdir", type=Path, required=True, help="TensorBoard's log directory")
+    add_bus_arguments(board, run_required=False)
+    board.set_defaults(handler=_clearly(_tensorboard))
+
     topic = commands.add_parser("topic", help="list, echo or time live keys (like ros2 topic)")
     verbs = topic.add_subparsers(dest="topic_verb", required=True, metavar="VERB")
     key_help = "key expression: derl/... as is, else relative to the run (fitness = fitness/**)"
     listing = verbs.add_parser("list", help="keys heard, with message type, count and rate")
     listing.add_argument("key", nargs="?", help=f"{key_help}; default all keys")
-    listing.add_argument("--duration", type=float, default=3.0, help="seconds to listen (3)")
+    listing.add_argument("--duration", type=_seconds, default=3.0, help="seconds to listen (3)")
     listing.set_defaults(handler=_clearly(_topic_list))
     echo = verbs.add_parser("echo", help="print each message as one JSON line")
     echo.add_argument("key", help=key_help)
-    echo.add_argument("--count", type=int, help="stop after N messages")
-    echo.add_argument("--duration", type=float, help="stop after S seconds")
+    echo.add_argument("--count", type=at_least_one, help="stop after N messages")
+    echo.add_argument("--duration", type=_seconds, help="stop after S seconds")
     echo.add_argument("--raw", action="store_true", help="every sample, undecoded, valid or not")
     echo.set_defaults(handler=_clearly(_echo))
     rate = verbs.add_parser("hz", help="rate of samples and min/max/std of their intervals")
     rate.add_argument("key", help=key_help)
-    rate.add_argument("--duration", type=float, default=10.0, help="seconds to measure (10)")
-    rate.add_argument("--window", type=int, default=1000, help="intervals kept (1000)")
+    rate.add_argument("--duration", type=_seconds, default=10.0, help="seconds to measure (10)")
+    rate.add_argument("--window", type=at_least_one, default=1000, help="intervals kept (1000)")
     rate.set_defaults(handler=_clearly(_hz))
     for verb in (listing, echo, rate):
         add_bus_arguments(verb, run_required=False)
@@ -86,7 +110,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     record.add_argument("out", type=Path, metavar="OUT.mcap", help="new file")
     record.add_argument("keys", nargs="*", metavar="KEY", help=f"{key_help}; default derl/**")
-    record.add_argument("--duration", type=float, help="stop after S seconds (else on Ctrl-C)")
+    record.add_argument("--duration", type=_seconds, help="stop after S seconds (else on Ctrl-C)")
     add_bus_arguments(record, run_required=False)
     record.set_defaults(handler=_clearly(_record))
 
@@ -110,12 +134,24 @@ def register(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--start-offset", type=_non_negative, default=0.0, metavar="S")
     replay.add_argument("--as-run", metavar="NEW", help="publish under this run id instead")
     replay.add_argument("--force", action="store_true", help="even into a run that is live")
+    replay.add_argument(
+        "--skip-damaged",
+        action="store_true",
+        help="replay what can be read of a damaged log (else refused, exit status 1)",
+    )
     add_bus_arguments(replay, run_required=False)
     replay.set_defaults(handler=_clearly(_replay))
 
-    export = commands.add_parser("export", help="a json+jsonschema copy of a log, for Foxglove")
+    export = commands.add_parser(
+        "export",
+        help="a log for Foxglove (json+jsonschema) or TensorBoard (event files)",
+        description="Write a copy of a log that Foxglove opens (--json: json + jsonschema "
+        "channels), or its run's scalars as TensorBoard event files in LOGDIR/<run> "
+        "(--tensorboard: the tags `derl tensorboard` writes live), or both.",
+    )
     export.add_argument("log", type=Path, metavar="LOG", help="an MCAP file or a run directory")
-    export.add_argument("--json", type=Path, required=True, metavar="OUT.mcap", dest="out")
+    export.add_argument("--json", type=Path, metavar="OUT.mcap", dest="out")
+    export.add_argument("--tensorboard", type=Path, metavar="LOGDIR")
     export.set_defaults(handler=_clearly(_export))
 
     logs = commands.add_parser("log", help="inspect or repair MCAP logs")
@@ -131,9 +167,27 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _non_negative(text: str) -> float:
-    value = float(text)
+    value = _number(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"{text} is negative")
+    return value
+
+
+def _seconds(text: str) -> float:
+    """An argparse type: a duration in seconds, > 0."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 seconds, not {text}")
+    return value
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if math.isnan(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number")
     return value
 
 
@@ -148,17 +202,25 @@ def _kinds(text: str) -> frozenset[str]:
 
 
 def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]:
-    """`handler`, with expected failures reported in one line instead of a traceback."""
+    """`handler`, with expected failures reported in one line instead of a traceback; when
+    nothing was heard, the line says how the tool joined the bus."""
 
     @functools.wraps(handler)
     def run(args: argparse.Namespace) -> int:
         from derl.nodes.tools.logs import LogError
         from derl.nodes.tools.recorder import ReplayRefused
-        from derl.nodes.tools.topic import RunNotFound
+        from derl.nodes.tools.tensorboard import NoTensorBoard
+        from derl.nodes.tools.topic import NothingHeard, RunNotFound
 
         try:
             return handler(args)
-        except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError) as error:
+        except NothingHeard as error:
+            print(f"derl {args.command}: {error} ({how_joined(_joined(args))}); is the run on "
+                  "another endpoint? --connect EP (or --mode client, --zenoh-config FILE)",
+                  file=sys.stderr)  # fmt: skip
+            return 1
+        except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError,
+                NoTensorBoard) as error:  # fmt: skip
             print(f"derl {args.command}: {error}", file=sys.stderr)
             return 1
         except BrokenPipeError:  # the reader of our output went away (`| head`)
@@ -166,6 +228,11 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
             return 1
 
     return run
+
+
+def _joined(args: argparse.Namespace) -> ZenohOptions:
+    """How the command joins the bus: a replay publishes, every other tool watches."""
+    return publish_options(args) if args.command == "replay" else watch_options(args)
 
 
 def _stop_on_signals() -> threading.Event:
@@ -177,12 +244,11 @@ def _stop_on_signals() -> threading.Event:
 
 def _monitor(args: argparse.Namespace) -> int:
     from derl.nodes.tools.monitor import monitor
+    from derl.nodes.tools.topic import NothingHeard
 
-    view = monitor(options_from(args), args.run, args.once, _stop_on_signals())
+    view = monitor(watch_options(args), args.run, args.once, _stop_on_signals())
     if args.once is not None and not view.heard:  # a script must tell "no run" from a quiet one
-        print(f"derl monitor: heard nothing of run {view.run} in {args.once:g} s: is it running? "
-              "check --connect/--mode", file=sys.stderr)  # fmt: skip
-        return 1
+        raise NothingHeard(f"heard nothing of run {view.run} in {args.once:g} s")
     return 0
 
 
@@ -193,7 +259,7 @@ def _foxglove(args: argparse.Namespace) -> int:
         print(f"serving run {run} on ws://{args.host}:{server.port} (Ctrl-C stops)", flush=True)
 
     try:
-        serve(options_from(args), args.run, args.host, args.port, _stop_on_signals(), started)
+        serve(watch_options(args), args.run, args.host, args.port, _stop_on_signals(), started)
     except CannotServe as error:
         print(f"derl foxglove: {error}", file=sys.stderr)
         return 1
@@ -201,25 +267,31 @@ def _foxglove(args: argparse.Namespace) -> int:
 
 
 def _topic_list(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.topic import topic_list
+    from derl.nodes.tools.topic import NothingHeard, topic_list
 
     key = args.key or ("**" if args.run else "derl/**")
-    topic_list(options_from(args), key, args.run, args.duration, _stop_on_signals())
+    if not topic_list(watch_options(args), key, args.run, args.duration, _stop_on_signals()):
+        raise NothingHeard(f"nothing heard on {key} in {args.duration:g} s")
     return 0
 
 
 def _echo(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.topic import echo
+    from derl.nodes.tools.topic import NothingHeard, echo
 
     stop = _stop_on_signals()
-    echo(options_from(args), args.key, args.run, args.count, args.duration, args.raw, stop)
+    if not echo(watch_options(args), args.key, args.run, args.count, args.duration, args.raw,
+                stop):  # fmt: skip
+        within = f"in {args.duration:g} s" if args.duration else "before it was stopped"
+        raise NothingHeard(f"nothing heard on {args.key} {within}")
     return 0
 
 
 def _hz(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.topic import hz
+    from derl.nodes.tools.topic import NothingHeard, hz
 
-    hz(options_from(args), args.key, args.run, args.duration, args.window, _stop_on_signals())
+    stop = _stop_on_signals()
+    if not hz(watch_options(args), args.key, args.run, args.duration, args.window, stop):
+        raise NothingHeard(f"nothing heard on {args.key} in {args.duration:g} s")
     return 0
 
 
@@ -229,7 +301,7 @@ def _record(args: argparse.Namespace) -> int:
     if args.out.exists():
         raise FileExistsError(f"{args.out} exists; choose another name")
     keys = args.keys or (["**"] if args.run else ["derl/**"])
-    done = record(options_from(args), args.out, keys, args.run, args.duration, _stop_on_signals())
+    done = record(watch_options(args), args.out, keys, args.run, args.duration, _stop_on_signals())
     rejected = ", ".join(f"{why} {n}" for why, n in done.rejected.items()) or "none"
     print(
         f"recorded {done.messages} messages in {done.seconds:.1f} s into {args.out}; "
@@ -242,7 +314,7 @@ def _replay(args: argparse.Namespace) -> int:
     from derl.nodes.tools.recorder import replay
 
     done = replay(
-        options_from(args),
+        publish_options(args),
         args.log,
         _stop_on_signals(),
         rate=args.rate,
@@ -252,6 +324,7 @@ def _replay(args: argparse.Namespace) -> int:
         as_run=args.as_run,
         only_run=args.run,
         force=args.force,
+        skip_damaged=args.skip_damaged,
     )
     speed = done.messages / done.seconds if done.seconds else 0.0
     print(
@@ -262,10 +335,29 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.logs import export_json
+    from derl.nodes.tools.logs import LogError, export_json
+    from derl.nodes.tools.tensorboard import export
 
-    written = export_json(args.log, args.out)
-    print(f"exported {written} messages to {args.out} (json + jsonschema)")
+    if args.out is None and args.tensorboard is None:
+        raise LogError("say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both")
+    if args.out is not None:
+        written = export_json(args.log, args.out)
+        print(f"exported {written} messages to {args.out} (json + jsonschema)")
+    if args.tensorboard is not None:
+        directory = export(args.log, args.tensorboard)
+        print(f"exported the run's scalars to {directory} (tensorboard --logdir "
+              f"{args.tensorboard})")  # fmt: skip
+    return 0
+
+
+def _tensorboard(args: argparse.Namespace) -> int:
+    from derl.nodes.tools.tensorboard import watch
+
+    def started(run: str, directory: Path) -> None:
+        print(f"writing run {run}'s scalars to {directory} (tensorboard --logdir {args.logdir}; "
+              "Ctrl-C stops)", flush=True)  # fmt: skip
+
+    watch(watch_options(args), args.run, args.logdir, _stop_on_signals(), started)
     return 0
 
 

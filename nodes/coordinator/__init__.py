@@ -1,1 +1,2 @@
-"""The coordinator node: its state (a fold over the journal) and its loop."""
+"""The coordinator node: one loop (`node`) over a ledger (`ledger`: journal, state, replies), with
+a policy (`policy`) deciding what messages mean: a run's (`evolution`) or a study's (`study`)."""

@@ -30,7 +30,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 
-from derl.messages import MessageBase
+from derl.messages import Ack, MessageBase
 
 log = logging.getLogger("derl.coordinator")
 
@@ -128,7 +128,10 @@ class Outbox:
         if failed is None:
             self._publishable([(msg, data)])
         else:  # its trainer sends the report again, and the file is written again
-            log.error("%s not acknowledged: its checkpoint was not written: %s", msg, failed)
+            what = f"Ack of {msg.child} (job {msg.job} of {msg.node})" if isinstance(
+                msg, Ack) else msg.type  # fmt: skip
+            log.error("the %s is held back: its checkpoint was not written (%s); the trainer "
+                      "sends its report again", what, " ".join(str(failed).split()))  # fmt: skip
             self._count(-1)
 
     def _publishable(self, replies: list[tuple[MessageBase, bytes]]) -> None:

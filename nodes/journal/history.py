@@ -26,7 +26,14 @@ from derl.messages import (
     Tournament,
     TrainJob,
 )
-from derl.nodes.journal.segments import JournalDamaged, read_segment, replay, segments
+from derl.nodes.errors import DerlError
+from derl.nodes.journal.segments import (
+    JournalDamaged,
+    is_mcap,
+    read_segment,
+    replay,
+    segments,
+)
 from derl.nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
 if TYPE_CHECKING:
@@ -126,15 +133,18 @@ def journal_run(run_dir: Path) -> str | None:
 
 def load_history(path: Path) -> RunHistory:
     """The history of a run directory's journal, or of one MCAP file (a segment, a recording);
-    SystemExit with the reason when there is none."""
-    if path.is_dir():
+    `DerlError` with the reason when there is none."""
+    if path.is_dir():  # read as every tool reads: past a damaged part, with a warning
         if not segments(path):
-            raise SystemExit(f"derl: {path} holds no journal (journal/segment-NNNN.mcap)")
-        messages = replay(path)
+            raise DerlError(f"{path} holds no journal (journal/segment-NNNN.mcap)")
+        messages = (msg for segment in segments(path) for msg in read_segment(segment))
     elif path.is_file():
+        if not is_mcap(path):
+            raise DerlError(f"{path} is not an MCAP log (a run directory, a journal "
+                            "segment or a `derl record` file)")  # fmt: skip
         messages = read_segment(path)
     else:
-        raise SystemExit(f"derl: no run directory or log at {path}")
+        raise DerlError(f"no run directory or log at {path}")
     history = RunHistory()
     for msg in messages:
         history.apply(msg)
@@ -169,7 +179,7 @@ def run_log(path: Path) -> RunLog:
             )
         )
     if not bodies:
-        raise SystemExit(f"derl: no body was born in {path}")
+        raise DerlError(f"no body was born in {path}")
     first = next(iter(history.first_job.values()))
     evaluations = tuple(
         Evaluation(

@@ -11,9 +11,12 @@ loses at most the message being written. A writer that handles messages in group
 coordinator) appends a group with ``flush=False``, flushes it once and has it synced (fsync)
 before it publishes anything of the group: a crash, even a power loss, loses at most a group
 nobody saw. Reading goes record by record without the summary, so a segment cut at any byte gives
-back every message written before the cut. A new `Journal` first cuts the torn tail of the
-previous segment (the normal trace of a crash) back to its last whole record; damage anywhere
-else is `JournalDamaged`, never skipped. A closed segment can be compacted into zstd chunks.
+back every message written before the cut (`nodes.journal.reader`). A crash can only leave a torn
+tail: a bad record with nothing whole after it, at the end of the segment being written. A new
+`Journal` first cuts that tail of the previous segment back to its last whole record; damage
+anywhere else, a bad record with a whole chunk (its CRC right) or a footer after it included, is
+`JournalDamaged` for the coordinator, never skipped; the tools skip it with a warning and read on
+from the next whole chunk. A closed segment can be compacted into zstd chunks.
 """
 
 from __future__ import annotations
@@ -40,11 +43,11 @@ from derl.messages import (
     encode,
     kind_of,
 )
-from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Footer, McapRecord, Message, Schema
-from mcap.stream_reader import StreamReader
+from derl.nodes.journal.reader import Damage, JournalDamaged, records
+from derl.nodes.runtime.rundir import sync_folder
+from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +64,7 @@ class JournalWriter:
         self._writer = Writer(self._file, compression=CompressionType.NONE)
         self._writer.start(profile="", library=LIBRARY)
         self._writer.flush()
+        sync_folder(self.path.parent)  # else a power loss can lose the file, synced or not
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._sequence = 0
@@ -117,21 +121,7 @@ class JournalWriter:
             os.close(fd)
 
     def _channel(self, msg: MessageBase) -> int:
-        channel = self._channels.get((msg.type, msg.run))
-        if channel is None:
-            if msg.type not in self._schemas:
-                schema = json.dumps(type(msg).model_json_schema()).encode()
-                self._schemas[msg.type] = self._writer.register_schema(
-                    msg.type, SchemaEncoding.JSONSchema, schema
-                )
-            channel = self._writer.register_channel(
-                KeySpace(msg.run).family(kind_of(msg)),
-                MessageEncoding.MessagePack,
-                self._schemas[msg.type],
-                {"schema_version": str(SCHEMA_VERSION)},
-            )
-            self._channels[(msg.type, msg.run)] = channel
-        return channel
+        return channel_of(self._writer, self._schemas, self._channels, msg)
 
     def close(self) -> None:
         """Write the summary and footer and sync the file; closing twice is harmless."""
@@ -152,6 +142,29 @@ class JournalWriter:
         self.close()
 
 
+def channel_of(
+    writer: Writer,
+    schemas: dict[str, int],
+    channels: dict[tuple[str, str], int],
+    msg: MessageBase,
+) -> int:
+    """The channel of `msg`'s type and run in `writer` (`schemas` by type, `channels` by type and
+    run: what it registered so far), registered with its schema if new."""
+    channel = channels.get((msg.type, msg.run))
+    if channel is None:
+        if msg.type not in schemas:
+            schema = json.dumps(type(msg).model_json_schema()).encode()
+            schemas[msg.type] = writer.register_schema(msg.type, SchemaEncoding.JSONSchema, schema)
+        channel = writer.register_channel(
+            _topic(msg),
+            MessageEncoding.MessagePack,
+            schemas[msg.type],
+            {"schema_version": str(SCHEMA_VERSION)},
+        )
+        channels[(msg.type, msg.run)] = channel
+    return channel
+
+
 def segments(run_dir: Path) -> list[Path]:
     """The journal segments of a run directory, oldest first."""
     return [path for _, path in _numbered(run_dir)]
@@ -165,40 +178,31 @@ def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
     return sorted((int(m[1]), p) for m, p in matches if m)
 
 
-class JournalDamaged(RuntimeError):
-    """A journal segment is damaged where a crash cannot have damaged it."""
-
-    def __init__(self, path: Path, end: int, size: int, reason: object) -> None:
-        super().__init__(
-            f"journal segment {path} is damaged at byte {end} of {size} ({reason!r}); the run "
-            f"cannot be resumed from it as it is. `derl log repair {path} REPAIRED.mcap` writes "
-            "what can be read of it; move the damaged file away and put the repaired one in its "
-            "place to resume without what was lost"
-        )
-        self.path, self.end, self.size, self.reason = path, end, size, reason
-
-
 def replay(run_dir: Path) -> Iterator[MessageBase]:
     """Every message of every segment, in the order written; JournalDamaged for a segment
     that is cut or corrupt anywhere but at the tail of the last one."""
     paths = segments(run_dir)
     for k, path in enumerate(paths):
         last = k == len(paths) - 1
-        yield from (logged.message for logged in read_logged(path, strict=not last))
+        mode: Damage = "tail" if last else "raise"
+        yield from (logged.message for logged in read_logged(path, mode))
 
 
 def cut_torn_tail(path: Path) -> int:
     """Cut a segment's torn tail (a record a crash left half written) back to its last whole
-    record; the number of bytes cut (0 when the tail is whole)."""
+    record; the number of bytes cut (0 when the tail is whole). JournalDamaged, cutting nothing,
+    if whole records follow the bad one: that is damage, not a torn tail."""
     try:
-        last = deque(records(path, strict=True), maxlen=1)
+        last = deque(records(path, "raise"), maxlen=1)
     except JournalDamaged as damage:
+        if not damage.torn_tail:
+            raise
         with path.open("r+b") as f:
             f.truncate(damage.end)
             f.flush()
             os.fsync(f.fileno())
-        log.warning("%s: torn tail recovered: %d bytes after byte %d cut (%r)", path,
-                    damage.size - damage.end, damage.end, damage.reason)  # fmt: skip
+        log.warning("%s: torn tail recovered: %d bytes after byte %d cut (%s)", path,
+                    damage.size - damage.end, damage.end, damage.why)  # fmt: skip
         return damage.size - damage.end
     if not (last and isinstance(last[0], Footer)):
         log.info("%s has no footer (its writer died between messages): every record whole", path)
@@ -214,56 +218,45 @@ class Logged(NamedTuple):
     message: MessageBase
 
 
+def is_mcap(path: Path) -> bool:
+    """Whether the file starts with MCAP's magic bytes (else it is no log at all, not a
+    damaged one)."""
+    with Path(path).open("rb") as f:
+        return f.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC
+
+
 def read_segment(path: Path) -> Iterator[MessageBase]:
     """The messages of one segment in file order; what does not decode is logged and skipped."""
     return (logged.message for logged in read_logged(path))
 
 
-def read_logged(path: Path, strict: bool = False) -> Iterator[Logged]:
-    """The messages of one MCAP file in file order, with their topics and times (`strict`: a cut
-    or corrupt file raises JournalDamaged after its last whole message)."""
+def read_logged(path: Path, damage: Damage = "skip") -> Iterator[Logged]:
+    """The messages of one MCAP file in file order, with their topics and times; what a cut or
+    corrupt file does is `damage`'s (see `records`). A message whose channel was lost with a
+    damaged part is read all the same, on the topic the journal gives its type."""
     channels: dict[int, Channel] = {}
-    for record in records(path, strict):
+    for record in records(path, damage):
         if isinstance(record, Channel):
             channels[record.id] = record
         elif isinstance(record, Message):
             channel = channels.get(record.channel_id)
-            if channel is None or channel.message_encoding != MessageEncoding.MessagePack:
-                log.warning(
-                    "%s: message %d on an unknown or non-msgpack channel skipped",
-                    path,
-                    record.sequence,
-                )
+            if channel is not None and channel.message_encoding != MessageEncoding.MessagePack:
+                log.warning("%s: message %d on a non-msgpack channel skipped", path,
+                            record.sequence)  # fmt: skip
                 continue
             try:
                 message = decode(record.data)
             except DecodeError as exc:
-                log.warning(
-                    "%s: message %d on %s skipped: %s", path, record.sequence, channel.topic, exc
-                )
+                topic = "an unknown channel" if channel is None else channel.topic
+                log.warning("%s: message %d on %s skipped: %s", path, record.sequence, topic, exc)
                 continue
-            yield Logged(channel.topic, record.log_time, record.publish_time, message)
+            topic = _topic(message) if channel is None else channel.topic
+            yield Logged(topic, record.log_time, record.publish_time, message)
 
 
-def records(path: Path, strict: bool = False) -> Iterator[McapRecord]:
-    """The records of an MCAP file in order, up to the first one that is cut or corrupt (then
-    JournalDamaged if `strict`)."""
-    size = path.stat().st_size
-    with path.open("rb") as f:
-        end = 0  # where the last complete record ends
-        try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                end = f.tell()
-                yield record
-        except Exception as exc:  # a cut or corrupt tail: EndOfFile, CRC, struct, zstd errors...
-            if isinstance(exc, EndOfFile) and end == size:
-                log.debug(
-                    "%s has no footer (still open, or its writer died between messages)", path
-                )
-            elif strict:
-                raise JournalDamaged(path, end, size, exc) from None
-            else:
-                log.warning("%s: broken tail skipped (bytes %d to %d): %r", path, end, size, exc)
+def _topic(msg: MessageBase) -> str:
+    """The channel topic the journal gives `msg`."""
+    return KeySpace(msg.run).family(kind_of(msg))
 
 
 class Journal(JournalWriter):
@@ -272,7 +265,10 @@ class Journal(JournalWriter):
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = Path(run_dir)
         folder = self.run_dir / "journal"
-        folder.mkdir(parents=True, exist_ok=True)
+        if not folder.is_dir():  # a new run: its folder and the journal's, on the disk
+            folder.mkdir(parents=True)
+            sync_folder(self.run_dir.resolve().parent)
+            sync_folder(self.run_dir)
         numbered = _numbered(self.run_dir)
         if numbered:
             cut_torn_tail(numbered[-1][1])
@@ -289,8 +285,9 @@ class Journal(JournalWriter):
         return replay(self.run_dir)
 
 
-def compact(segment: Path) -> bool:
-    """Rewrite a closed (or crashed) segment with 1 MiB zstd chunks and a summary.
+def compact(segment: Path, out: Path | None = None) -> bool:
+    """Rewrite a closed (or crashed) segment with 1 MiB zstd chunks and a summary, in place or
+    into a new file `out`.
 
     Returns False, leaving the file as it is, when the `zstandard` package is missing. Never call
     it on the segment being written.
@@ -298,9 +295,11 @@ def compact(segment: Path) -> bool:
     if importlib.util.find_spec("zstandard") is None:
         return False
     segment = Path(segment)
-    tmp = segment.with_name(segment.name + ".tmp")
+    target = segment if out is None else Path(out)
+    tmp = target.with_name(target.name + ".tmp")
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
+    derived: tuple[dict[str, int], dict[tuple[str, str], int]] = ({}, {})  # for lost channels
     with tmp.open("wb") as f:
         writer = Writer(f, compression=CompressionType.ZSTD)
         writer.start(profile="", library=LIBRARY)
@@ -316,9 +315,15 @@ def compact(segment: Path) -> bool:
                     schemas.get(record.schema_id, 0),
                     record.metadata,
                 )
-            elif isinstance(record, Message) and record.channel_id in channels:
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:  # its channel was lost with a damaged part
+                    try:
+                        channel = channel_of(writer, *derived, decode(record.data))
+                    except DecodeError:
+                        continue
                 writer.add_message(
-                    channels[record.channel_id],
+                    channel,
                     log_time=record.log_time,
                     data=record.data,
                     publish_time=record.publish_time,
@@ -327,5 +332,5 @@ def compact(segment: Path) -> bool:
         writer.finish()
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, segment)
+    os.replace(tmp, target)
     return True

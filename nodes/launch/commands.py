@@ -7,10 +7,10 @@ host named ``local`` or after this machine, else every host without ``ssh``) and
 ``ssh`` host, one ``ssh -tt HOST 'cd WORKDIR && exec derl launch FILE --host NAME'`` that starts
 that host's nodes there (so the launch file must be at the same path under WORKDIR).
 
-Endpoints: in a peer mesh every process listens on its host's ``listen`` endpoint (process k of
-the host on port + k, or on port 0 when the port is 0) and connects to the seed, except the
-process that is the seed; gossip completes the mesh. In a router topology the router host runs
-``derl router`` on the router endpoint and every other node is a Zenoh client of it.
+Endpoints: in a peer mesh every process listens where its host says (`HostSpec.mesh_endpoints`)
+and connects to the seed, except the process that is the seed; gossip completes the mesh. In a
+router topology the router host runs ``derl router`` on the router endpoint and every other node
+is a Zenoh client of it.
 """
 
 from __future__ import annotations
@@ -23,13 +23,11 @@ from pathlib import Path
 
 from derl.nodes.launch.model import (
     ROLES,
-    WILDCARD_HOSTS,
     HostSpec,
     LaunchFile,
     NodeSpec,
     RouterTopology,
-    split_endpoint,
-    with_port,
+    is_seed,
 )
 
 SSH = ("ssh", "-tt", "-o", "BatchMode=yes")  # a tty: the remote node gets SIGHUP when ssh ends
@@ -85,14 +83,15 @@ def build_commands(launch: LaunchFile, hosts: list[str] | None = None) -> list[N
 
 def _host_commands(launch: LaunchFile, host: HostSpec) -> list[NodeCommand]:
     commands = []
-    process = 0  # index of the process on this host (listen port offset)
+    process = 0  # index of the process on this host
+    listens = host.mesh_endpoints()
     for spec in host.nodes:
         for k in range(spec.count):
             name = f"{host.name}-{spec.role}-{k}"
             args = [
                 spec.role,
                 *_role_args(launch, spec, name),
-                *_bus_args(launch, host, process, name),
+                *_bus_args(launch, host, process, name, listens[process]),
             ]
             commands.append(
                 NodeCommand(
@@ -137,14 +136,17 @@ def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
     if spec.role == "coordinator":
         env = ["--env", launch.env] if launch.env else []
         seed = ["--seed", str(launch.seed)] if launch.seed is not None else []
-        return ["--run", launch.run, "--profile", launch.profile, *env, *seed, "--run-dir",
-                str(launch.run_dir)]  # fmt: skip
+        settings = [part for text in launch.settings for part in ("--set", text)]
+        return ["--run", launch.run, "--profile", launch.profile, *settings, *env, *seed,
+                "--run-dir", str(launch.run_dir)]  # fmt: skip
     if spec.role == "router":
         return []
     return ["--run", launch.run, "--name", name, "--threads", str(spec.threads)]
 
 
-def _bus_args(launch: LaunchFile, host: HostSpec, process: int, name: str) -> list[str]:
+def _bus_args(
+    launch: LaunchFile, host: HostSpec, process: int, name: str, listen: str
+) -> list[str]:
     config = host.zenoh_config or launch.zenoh_config
     if launch.certs is not None:
         config = launch.certs / name / NODE_CONFIG  # its own identity (`derl certs`)
@@ -154,10 +156,7 @@ def _bus_args(launch: LaunchFile, host: HostSpec, process: int, name: str) -> li
         if host.name == topology.host and process == _router_index(host):
             return ["--listen", host.listen or topology.endpoint, *args]
         return ["--mode", "client", "--connect", topology.endpoint, *args]
-    listen = host.listen or "tcp/127.0.0.1:0"
-    _, _, port = split_endpoint(listen)
-    listen = with_port(listen, port + process if port else 0)
-    connect = [] if _is_seed(listen, host, topology.seed) else ["--connect", topology.seed]
+    connect = [] if is_seed(listen, host, topology.seed) else ["--connect", topology.seed]
     return ["--listen", listen, *connect, *args]
 
 
@@ -168,19 +167,6 @@ def _router_index(host: HostSpec) -> int:
             return index
         index += spec.count
     return -1
-
-
-def _is_seed(listen: str, host: HostSpec, seed: str) -> bool:
-    """Whether the process listening on `listen` is the mesh's seed (it connects to nobody)."""
-    if listen == seed:
-        return True
-    proto, listen_host, port = split_endpoint(listen)
-    seed_proto, seed_host, seed_port = split_endpoint(seed)
-    return (
-        (proto, port) == (seed_proto, seed_port)
-        and listen_host in WILDCARD_HOSTS
-        and host.address == seed_host
-    )
 
 
 def plan(

@@ -31,6 +31,7 @@ from typing import Annotated, Literal
 
 import yaml
 from derl.messages.types import Id
+from derl.nodes.runtime.bus import LOOPBACK_ANY_PORT
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 ROLES = ("router", "coordinator", "trainer", "evaluator")  # also the start order on a host
@@ -67,6 +68,20 @@ def with_port(endpoint: str, port: int) -> str:
     return f"{proto}/{host}:{port}"
 
 
+def is_seed(listen: str, host: HostSpec, seed: str) -> bool:
+    """Whether the process of `host` listening on `listen` is the mesh's seed (it connects to
+    nobody)."""
+    if listen == seed:
+        return True
+    proto, listen_host, port = split_endpoint(listen)
+    seed_proto, seed_host, seed_port = split_endpoint(seed)
+    return (
+        (proto, port) == (seed_proto, seed_port)
+        and listen_host in WILDCARD_HOSTS
+        and host.address == seed_host
+    )
+
+
 # --- the file ------------------------------------------------------------------------------
 
 
@@ -86,6 +101,11 @@ class NodeSpec(_Strict):
         "on-failure", description="when a process that ended is started again"
     )
     max_restarts: int = Field(3, ge=0, description="restarts of each process, at most")
+    listen: Endpoint | None = Field(
+        None,
+        description="where these processes listen in a peer mesh, process k on port + k (port "
+        "0: a free one each); default: the host's `listen`",
+    )
 
 
 class PeerMesh(_Strict):
@@ -119,6 +139,21 @@ class HostSpec(_Strict):
     def local_address(self) -> bool:
         return self.address in LOCAL_ADDRESSES
 
+    def mesh_endpoints(self) -> list[str]:
+        """Where each of this host's processes listens in a peer mesh, in order: process k of a
+        node entry on the entry's `listen` port + k, else process k of the host on the host's
+        `listen` port + k, else a free loopback port (port 0 stays 0: a free port each)."""
+        endpoints = []
+        for spec in self.nodes:
+            for k in range(spec.count):
+                if spec.listen:
+                    base, offset = spec.listen, k
+                else:
+                    base, offset = self.listen or LOOPBACK_ANY_PORT[0], len(endpoints)
+                _, _, port = split_endpoint(base)
+                endpoints.append(with_port(base, port + offset if port else 0))
+        return endpoints
+
     @property
     def remote(self) -> str | None:
         """The ssh target when this host's nodes are started over ssh, else None."""
@@ -143,6 +178,9 @@ class LaunchFile(_Strict):
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
     env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
     seed: int | None = Field(None, ge=0, description="evolution seed (overrides profile)")
+    settings: list[Annotated[str, Field(pattern=r"^[^=\s]+=")]] = Field(
+        [], description="profile values changed, each `KEY=VALUE` as `--set` takes it"
+    )
     topology: Annotated[
         PeerMesh | RouterTopology, Field(discriminator="kind", description="how the nodes connect")
     ]
@@ -180,6 +218,9 @@ class LaunchFile(_Strict):
             )
         routers = [(h.name, n.count) for h in self.hosts for n in h.nodes if n.role == "router"]
         if isinstance(self.topology, RouterTopology):
+            if any(n.listen for h in self.hosts for n in h.nodes):
+                raise ValueError("a node's `listen` is for a peer mesh: in a router topology "
+                                 "every node is a client of the router")  # fmt: skip
             if self.topology.host not in names:
                 raise ValueError(f"router host {self.topology.host!r} is not among the hosts")
             if routers != [(self.topology.host, 1)]:
@@ -191,14 +232,14 @@ class LaunchFile(_Strict):
             if routers:
                 raise ValueError("`role: router` nodes need `topology: {kind: router, ...}`")
             for host in self.hosts:
-                if host.nodes and host.listen is None and not host.local_address:
+                unreachable = [n for n in host.nodes if (n.listen or host.listen) is None]
+                if unreachable and not host.local_address:
                     raise ValueError(
                         f"host {host.name!r}: in a peer mesh every host needs a `listen` "
                         "endpoint the other hosts can reach (peers without one do not mesh)"
                     )
-            from derl.nodes.launch.commands import build_commands  # (it imports this module)
-
-            if not any("--connect" not in c.args for c in build_commands(self)):
+            seed = self.topology.seed
+            if not any(is_seed(at, h, seed) for h in self.hosts for at in h.mesh_endpoints()):
                 raise ValueError(
                     f"no node listens on the seed {self.topology.seed}: give the seed's host "
                     f"`listen: {self.topology.seed}` (its first node is the seed)"

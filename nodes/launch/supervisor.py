@@ -1,10 +1,14 @@
 """`Supervisor`: starts the node processes of a launch, restarts them by their policy, stops them.
 
-Used by `derl launch` and `derl run`. Restarts back off 1, 2, 4 ... 30 s. A coordinator that exits
-0 has finished the run: everything stops; any other exit is a failure, restarted by its policy
-(the coordinator alone: it resumes from its journal while the workers go on). Everything stops on
-Ctrl-C, SIGTERM or SIGHUP (an ssh session that ends). Local processes run with this Python
-(``python -m derl.nodes.cli``, the same as ``derl``).
+Used by `derl launch`, `derl run` and `derl study`. Restarts back off 1, 2, 4 ... 30 s. A
+coordinator that exits 0 has finished the run: everything stops. A node that exits with a `FINAL`
+status (it refused to start: another run's directory, a damaged journal, a port in use ...) is not
+restarted, since no restart would change that; when it is the coordinator (or an ssh host's
+launcher) everything stops at once and `run` raises a `DerlError` with that status and the
+node's own reason (its last ``derl: ...`` line). Any other exit is a failure, restarted by its
+policy (the coordinator alone: it resumes from its journal while the workers go on). Everything
+stops on Ctrl-C, SIGTERM or SIGHUP (an ssh session that ends). Local processes run with this
+Python (``python -m derl.nodes.cli``, the same as ``derl``).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from derl.nodes.errors import FINAL, DerlError
 from derl.nodes.launch.commands import NodeCommand
 from derl.nodes.runtime.processes import child_setup, spawn_derl, stop_all
 
@@ -24,6 +29,8 @@ log = logging.getLogger("derl.launch")
 
 RESTART_DELAY_S = 1.0
 MAX_RESTART_DELAY_S = 30.0
+REASON_PREFIX = "derl: "  # how a node's last words start (`derl.nodes.cli.main`)
+STOPS_ALL = ("coordinator", "ssh")  # roles whose refusal stops the whole launch
 
 
 @dataclass
@@ -62,7 +69,8 @@ class Supervisor:
     def run(self, poll_s: float = 0.25, tick: Callable[[], None] | None = None) -> int:
         """Start everything, supervise until the run is over or `stop` is set, calling `tick`
         after every round (to show progress); the exit code: 0 when the run finished (or every
-        node ended cleanly), 1 when a node failed for good, 130 when stopped."""
+        node ended cleanly), 1 when a node failed for good, 130 when stopped; a `DerlError`
+        when the coordinator refused to start."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         code = None
         try:
@@ -94,6 +102,15 @@ class Supervisor:
                 log.info("the coordinator finished the run: stopping this host's nodes")
                 slot.finished = True
                 return 0
+            if code in FINAL:
+                slot.finished = True
+                reason = self._reason(command)
+                if command.role in STOPS_ALL:
+                    who = "the coordinator" if command.role == "coordinator" else command.name
+                    raise DerlError(f"{who} refused: {reason}", code)
+                log.error("%s refused (exit status %d, not restarted): %s", command.name, code,
+                          reason)  # fmt: skip
+                continue
             wanted = command.restart == "always" or (command.restart == "on-failure" and code != 0)
             if wanted and slot.restarts < command.max_restarts:
                 slot.restarts += 1
@@ -112,6 +129,18 @@ class Supervisor:
         if all(slot.finished for slot in self.slots):
             return 0 if all(slot.returncode == 0 for slot in self.slots) else 1
         return None
+
+    def _reason(self, command: NodeCommand) -> str:
+        """What a node that ended said last (its `derl: ...` line), else where to look."""
+        log_file = self.log_dir / f"{command.name}.log"
+        try:
+            with log_file.open("rb") as out:
+                out.seek(max(0, out.seek(0, 2) - 65536))
+                lines = out.read().decode(errors="replace").splitlines()
+        except OSError:
+            lines = []
+        said = [line for line in lines if line.startswith(REASON_PREFIX)]
+        return said[-1].removeprefix(REASON_PREFIX) if said else f"see {log_file}"
 
     def shutdown(self) -> None:
         """SIGTERM every node still running (SIGKILL after 10 s); no restarts after this."""

@@ -4,7 +4,9 @@ A born agent's policy comes inside its FitnessReport. `save` hands it to a write
 returns a future that completes once the file is whole on the disk (the coordinator acknowledges
 a report only then). A body born as a repeat of an earlier one (the same body, so the same
 training) gets the earlier one's file as its own, a hard link made after the batch's files are in
-place (`link`), so `checkpoints/<agent>.pt` holds every born agent's policy.
+place (`link`), so `checkpoints/<agent>.pt` holds every born agent's policy. A link whose source's
+file is not there (a crash lost it before the source's report was acknowledged) waits until that
+file is written from the re-sent report.
 
 Group commit, as the journal's: the writer thread takes every checkpoint waiting as one batch and
 sends it to a writer process (`checkpoint_writer`: temporary files, one `syncfs`, renames, one
@@ -42,6 +44,8 @@ class CheckpointFiles:
         self._lock = threading.Lock()
         self._closed = False
         self._process = WriterProcess(self.folder)
+        self._unlinked: dict[str, list[tuple[str, Future[None]]]] = {}  # source -> links waiting
+        # for its file (the writer thread's)
         self._writer = threading.Thread(target=self._run, name="checkpoints", daemon=True)
         self._writer.start()
 
@@ -95,20 +99,34 @@ class CheckpointFiles:
                 for _, _, future in batch:
                     if not future.done():
                         future.set_exception(error)
+        for source, links in self._unlinked.items():
+            for _, future in links:
+                future.set_exception(FileNotFoundError(f"{self.path(source)} was never written"))
         self._process.close()
 
     def _write(self, batch: list[Item]) -> None:
-        """One batch, each agent once (its report re-sent while the file was written)."""
+        """One batch, each agent once (its report re-sent while the file was written), with the
+        links that waited for a file the batch writes."""
         items: checkpoint_writer.Batch = {}
         waiting: dict[str, list[Future[None]]] = {}
         for agent, what, future in batch:
             if future.set_running_or_notify_cancel():
                 items.setdefault(agent, what)
                 waiting.setdefault(agent, []).append(future)
+        for source in [agent for agent, what in items.items() if isinstance(what, bytes)]:
+            for agent, future in self._unlinked.pop(source, []):
+                items.setdefault(agent, source)
+                waiting.setdefault(agent, []).append(future)
         if not waiting:
             return
         failures = self._process.write(items)
         for agent, futures in waiting.items():
+            source = items[agent]
+            if isinstance(source, str) and not self.path(source).exists():
+                # its source's file is not there yet (a crash lost it, and the source's trainer
+                # sends its report again): linked when that file is written
+                self._unlinked.setdefault(source, []).extend((agent, f) for f in futures)
+                continue
             for future in futures:
                 if failures[agent] is None:
                     future.set_result(None)

@@ -19,10 +19,12 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+from derl.nodes.errors import InUse
+
 LOCK_FILE = ".lock"
 
 
-class RunDirLocked(RuntimeError):
+class RunDirLocked(InUse):
     """Another process holds the run directory's lock."""
 
 
@@ -72,8 +74,14 @@ def write_atomic(path: Path, data: str | bytes) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    folder = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    sync_folder(path.parent)
+
+
+def sync_folder(folder: Path) -> None:
+    """Put `folder`'s entries (the files and folders created, renamed or removed in it) on the
+    disk: an fsync of a file does not, and a power loss can lose a file whose data was synced."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
     try:
-        os.fsync(folder)
+        os.fsync(fd)
     finally:
-        os.close(folder)
+        os.close(fd)

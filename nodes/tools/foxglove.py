@@ -4,10 +4,11 @@ A bridge between the bus and the `foxglove-sdk` WebSocket server. It taps the ru
 status and progress keys through rings (`nodes.tools.topic.Tap`: a bridge that falls behind loses
 the oldest samples, it never slows the run) and first asks the coordinator for the births so far
 (the Zenoh query `derl monitor` makes), so a bridge started late is complete. Each key family is
-one Foxglove channel with encoding ``json`` and the message type's JSON schema (the one
-`derl export` writes, `nodes.tools.logs.json_schema`), so Foxglove's plots and tables read its
-fields: ``/derl/births`` (Birth, each birth once), ``/derl/births/failed`` (ChildFailed),
-``/derl/status`` (RunStatus) and ``/derl/progress`` (TrainProgress). Topics do not name the run
+one Foxglove channel with encoding ``json`` and the message type's JSON schema in the form the
+viewers' parser reads (`nodes.tools.viewer_schema`; the one `derl export` writes), so the plots
+and tables of Foxglove and Lichtblick read its fields: ``/derl/births`` (Birth, each birth
+once), ``/derl/births/failed`` (ChildFailed), ``/derl/status`` (RunStatus) and
+``/derl/progress`` (TrainProgress). Topics do not name the run
 (the server's name does), so one layout, docs/foxglove-layout.json, fits every run.
 
 Foxglove keeps no history for a client that connects late, and the protocol has no latched
@@ -29,7 +30,8 @@ import zenoh
 from derl.messages import Birth, ChildFailed, KeySpace, MessageBase, RunStatus, TrainProgress
 from derl.nodes.runtime.bus import ZenohOptions, open_session
 from derl.nodes.tools.logs import base64_text, json_form, json_schema
-from derl.nodes.tools.topic import Checker, Tap, choose_run
+from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
+from derl.nodes.tools.viewer_schema import viewer_schema
 from foxglove.websocket import WebSocketServer
 from pydantic import BaseModel
 
@@ -92,7 +94,7 @@ class Bridge:
             for kind, topic in TOPICS.items()
         }
         self._summary = foxglove.Channel(
-            SUMMARY_TOPIC, schema=RunSummary.model_json_schema(), context=context
+            SUMMARY_TOPIC, schema=viewer_schema(RunSummary), context=context
         )
         self._lock = threading.Lock()
         self._births: dict[int, Birth] = {}
@@ -173,9 +175,7 @@ def serve(
 
         keys = KeySpace(bridge.run)
         taps = [Tap(session, keys.all(kind), on_sample) for kind in KINDS]
-        for reply in session.get(keys.all("births"), timeout=2.0):  # births before we came
-            if reply.ok is not None:
-                on_sample(reply.ok, time.monotonic())
+        ask(session, keys.all("births"), on_sample)  # births before we came
         try:
             server = foxglove.start_server(
                 name=f"derl {bridge.run}", host=host, port=port, context=context

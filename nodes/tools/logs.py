@@ -16,7 +16,6 @@ import importlib.util
 import json
 import logging
 import math
-import shutil
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -25,18 +24,13 @@ from pathlib import Path
 from typing import Literal
 
 from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from derl.nodes.journal.segments import (
-    JournalDamaged,
-    Logged,
-    compact,
-    read_logged,
-    records,
-    segments,
-)
+from derl.nodes.journal.reader import JournalDamaged, records
+from derl.nodes.journal.segments import Logged, compact, is_mcap, read_logged, segments
+from derl.nodes.tools.viewer_schema import viewer_schema
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from mcap.writer import CompressionType, Writer
 
 log = logging.getLogger("derl.mcap")
 
@@ -57,9 +51,8 @@ def log_files(path: Path) -> list[Path]:
         return files
     if not path.is_file():
         raise LogError(f"{path}: no such file")
-    with path.open("rb") as f:
-        if f.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
-            raise LogError(f"{path} is not an MCAP file")
+    if not is_mcap(path):
+        raise LogError(f"{path} is not an MCAP file")
     return [path]
 
 
@@ -101,19 +94,9 @@ def base64_text(data: bytes) -> str:
 
 
 def json_schema(message_type: str) -> dict[str, object]:
-    """The model's JSON schema, with bytes fields as base64 strings (Foxglove's convention)."""
-
-    def fix(node: object) -> object:
-        if isinstance(node, dict):
-            if node.get("format") == "binary":
-                node = {k: v for k, v in node.items() if k not in ("format", "maxLength")}
-                node["contentEncoding"] = "base64"
-            return {key: fix(value) for key, value in node.items()}
-        if isinstance(node, list):
-            return [fix(item) for item in node]
-        return node
-
-    return fix(MESSAGE_TYPES[message_type].model_json_schema())  # type: ignore[return-value]
+    """The message type's JSON schema in the form Foxglove and Lichtblick read
+    (`nodes.tools.viewer_schema`: references inlined, bytes as base64 strings)."""
+    return viewer_schema(MESSAGE_TYPES[message_type])
 
 
 def export_json(source: Path, out: Path) -> int:
@@ -215,30 +198,43 @@ def _file_info(path: Path) -> FileInfo:
     schemas: dict[int, str] = {}
     channels: dict[int, ChannelInfo] = {}
     footer = False
-    damage: JournalDamaged | None = None  # what ends the file before its last byte
-    try:
-        for record in records(path, strict=True):
-            _count(record, result, schemas, channels)
-            footer = footer or isinstance(record, Footer)
-    except JournalDamaged as error:
-        damage = error
+    damages: list[JournalDamaged] = []  # what is cut or corrupt, in file order
+    before: int | None = None  # messages before the first damage
+    for record in records(path, "skip", damages):
+        if damages and before is None:
+            before = result.messages
+        _count(record, result, schemas, channels)
+        footer = footer or isinstance(record, Footer)
+    before = result.messages if before is None else before
     result.channels = list(channels.values())
     summary_count, summary_error = _summary(path, result)
     n = result.messages
-    if footer and summary_count in (None, n):
+    journal = path.parent.name == "journal"
+    inside = next((d for d in damages if not d.torn_tail), None)  # damage with records after it
+    of = "" if summary_count is None else f" of {summary_count}"
+    if inside is not None:
+        result.integrity = "corrupt"
+        result.detail = (
+            f"damaged at byte {inside.end} of {inside.size} ({type(inside.reason).__name__}), "
+            f"and whole records follow from byte {inside.resumes}: damage, not the torn tail a "
+            f"crash leaves at the end{'; the coordinator will not resume from it' * journal}; "
+            f"{before} messages before the damage, {n}{of} readable in all"
+        )
+    elif footer and summary_count in (None, n):
         result.integrity = "clean"
         result.detail = "complete" if result.indexed else "complete, no index"
     elif footer or summary_count is not None:
         result.integrity = "corrupt"
         result.detail = f"{n} of {summary_count} messages readable (CRC or record)"
     elif _resumed_after(path):  # a coordinator died while writing it and its run resumed
-        if damage is None:  # (a torn tail is cut when the run resumes)
+        if not damages:  # (a torn tail is cut when the run resumes)
             result.integrity = "recovered"
             result.detail = (
                 f"no footer: its writer died between messages (a crash) and the run went on in "
                 f"the next segment; every record whole, {n} messages"
             )
         else:
+            damage = damages[0]
             result.integrity = "corrupt"
             result.detail = (
                 f"damaged at byte {damage.end} of {damage.size} ({type(damage.reason).__name__}), "
@@ -248,9 +244,9 @@ def _file_info(path: Path) -> FileInfo:
     else:
         result.integrity = "truncated"
         torn = ""
-        if damage is not None:
-            resumes = "; resuming the run cuts it" if path.parent.name == "journal" else ""
-            torn = f", then a torn tail of {damage.size - damage.end} bytes{resumes}"
+        if damages:
+            resumes = "; resuming the run cuts it" if journal else ""
+            torn = f", then a torn tail of {damages[0].size - damages[0].end} bytes{resumes}"
         result.detail = (
             f"no footer ({summary_error}): the writer died or is still writing; {n} messages "
             f"recovered{torn}"
@@ -347,8 +343,6 @@ def repair(source: Path, out: Path) -> FileInfo:
     out = Path(out)
     if out.exists():
         raise LogError(f"{out} exists; choose another name")
-    shutil.copyfile(file, out)
-    if not compact(out):
-        out.unlink()
+    if not compact(file, out):
         raise LogError("repair needs the zstandard package (pip install zstandard)")
     return _file_info(out)

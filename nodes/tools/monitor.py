@@ -42,7 +42,7 @@ from derl.messages import (
 )
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.tools.topic import Checker, Tap, choose_run
+from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
 from rich.console import Console, Group
 from rich.live import Live
 from rich.panel import Panel
@@ -277,14 +277,12 @@ def monitor(
         keys = KeySpace(view.run)
         tap = Tap(session, keys.everything(), on_sample)
 
-        def ask() -> None:
-            """The births the coordinator remembers: those before we came, and any that went
-            by unheard (journaled just before a coordinator crash and never published)."""
-            for reply in session.get(keys.all("births"), timeout=2.0):
-                if reply.ok is not None:
-                    on_sample(reply.ok, time.monotonic())
+        def ask_births() -> None:
+            """Those before we came, and any that went by unheard (journaled just before a
+            coordinator crash and never published)."""
+            ask(session, keys.all("births"), on_sample)
 
-        ask()
+        ask_births()
         gap = 0  # what asking cannot fill (a late monitor of a run beyond the births remembered)
         Bus(session, view.run).watch_alive(
             lambda role, node, up: inbox.append((time.monotonic(), (role, node, up)))
@@ -302,7 +300,7 @@ def monitor(
             if view.status is not None:
                 missing = view.status.born + view.status.failed - view.settled
                 if missing > gap:  # one went by unheard: its answer comes with the next update
-                    ask()
+                    ask_births()
                 gap = missing
             return view.render(time.monotonic())
 

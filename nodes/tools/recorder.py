@@ -8,7 +8,9 @@ readable file). Log time is the receive time; publish time is the sender's Zenoh
 has one. Malformed payloads are logged and counted but not kept: a recording holds only messages
 that decode, like a journal, so every reader (replay, export, `report`) can use it.
 
-Replaying reads a log with the tolerant reader and publishes each message on its own key
+Replaying refuses a damaged log (one `derl log info` calls corrupt: damage a crash cannot leave)
+unless told to skip the damage; a torn tail is no damage. It reads the log with the tolerant reader
+(which skips a damaged part and reads on) and publishes each message on its own key
 (`KeySpace.key_for`) with the original gaps divided by the rate, BLOCK like the control plane: a
 subscriber that cannot keep up slows the replay, never loses messages; monitors read through rings
 and are never slowed. A replay must not pose as a live run: jobs and acks published under a run that
@@ -29,7 +31,7 @@ import zenoh
 from derl.messages import MessageBase, kind_of
 from derl.nodes.journal.segments import JournalWriter
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.tools.logs import log_files, read_log
+from derl.nodes.tools.logs import LogError, info, read_log
 from derl.nodes.tools.topic import Checker, Tap, live_runs, resolve
 
 log = logging.getLogger("derl.recorder")
@@ -112,11 +114,19 @@ def replay(
     as_run: str | None = None,
     only_run: str | None = None,
     force: bool = False,
+    skip_damaged: bool = False,
 ) -> Replayed:
     """Publish the messages of `source` with their original timing divided by `rate` (0: at
     once), skipping the first `start_offset` seconds; only `kinds` (key kinds) if given, only
-    `only_run` if given, under run `as_run` if given; again and again with `loop`."""
-    log_files(source)  # a bad log fails before joining the bus
+    `only_run` if given, under run `as_run` if given; again and again with `loop`. A damaged
+    log (`derl log info` says corrupt) is refused unless `skip_damaged`: then what can be read
+    of it is replayed."""
+    for file in info(source):  # a bad log fails before joining the bus
+        if file.integrity == "corrupt" and not skip_damaged:
+            raise LogError(
+                f"{file.path}: {file.detail}. `derl log repair {file.path} OUT.mcap` "
+                "writes a clean copy of what can be read; --skip-damaged replays that as it is"
+            )
     published = passes = 0
     with open_session(options) as session:
         live = set() if force else set(live_runs(session))

@@ -1,5 +1,6 @@
-"""The protocol and configuration references (docs/protocol.md, docs/configuration.md), written
-from the code: the models' JSON schemas, the key space, who publishes what and how.
+"""The references written from the code: the protocol and the configuration (docs/protocol.md,
+docs/configuration.md: the models' JSON schemas, the key space, who publishes what and how) and
+the modules (docs/modules.md: every package and module with its job, from their docstrings).
 
 `DOCUMENTS` maps a document's name to the function that writes it; `derl schema --markdown NAME`
 prints one, and tests/test_reference.py checks that the committed files are current.
@@ -24,6 +25,7 @@ from derl.messages.types import ID_PATTERN
 from derl.nodes.launch.model import HostSpec, LaunchFile, NodeSpec, PeerMesh, RouterTopology
 from derl.nodes.runtime.bus import congestion_control
 from derl.nodes.tools.logs import base64_text, json_form
+from derl.nodes.tools.module_tree import FOLDERS, module_tree
 from pydantic import BaseModel
 from pydantic_core import to_jsonable_python
 
@@ -156,8 +158,12 @@ def configuration() -> str:
             "Profiles",
             derl.evolution.config,
             EvolutionConfig,
-            "`derl run --profile NAME|FILE.yaml` (and a launch file's `profile`) choose one; an "
-            "unknown key is an error that names the valid ones. The built-in profiles:",
+            "`derl run --profile NAME|FILE.yaml` (and `derl coordinator`, and a launch file's "
+            "`profile`) choose one; `--set KEY=VALUE` changes one setting of it (repeatable, e.g. "
+            "`--set ppo.lr=1e-4 --set total=200`): a dotted key, the value read as YAML, checked "
+            "with the rest, as in a file. An unknown key is an error that names the valid ones. "
+            "`derl launch` takes no `--set`: its file names the profile, so a profile file holds "
+            "the changes. The built-in profiles:",
             _profile_values(lambda p: p),
             links,
         ),
@@ -175,9 +181,9 @@ def configuration() -> str:
             "Study profiles",
             derl.analysis.study,
             StudyConfig,
-            "`derl study --profile NAME|FILE.yaml` chooses one (an unknown key is an error that "
-            f"names the valid ones); its `ppo` is a [PPOHyperparameters]({HYPER_ANCHOR}). The "
-            "built-in study profiles:",
+            "`derl study --profile NAME|FILE.yaml` chooses one and `--set KEY=VALUE` changes one "
+            "setting of it, as for a run (an unknown key is an error that names the valid ones); "
+            f"its `ppo` is a [PPOHyperparameters]({HYPER_ANCHOR}). The built-in study profiles:",
             dict(STUDY_PROFILES),
             links,
         ),
@@ -314,6 +320,25 @@ def _number(value: float) -> str:
     return f"{value:,}" if isinstance(value, int) else repr(value)
 
 
+# --- the modules -----------------------------------------------------------------------------
+
+
+def modules() -> str:
+    """docs/modules.md: every package folder and module, with its docstring's first sentence."""
+    folders = ", ".join(f"`{f}/` is `{p}`" for p, f in FOLDERS.items() if p != f)
+    lines = _header("The modules", "modules")
+    lines += [
+        f"derl installs one package, `derl`; in the repository {folders}. Every package and "
+        "module with its job (the first sentence of its docstring); how they fit together is "
+        "in [architecture.md](architecture.md).",
+        "",
+        "| file | its job |",
+        "| --- | --- |",
+    ]
+    lines += [f"| `{entry.path}` | {_cell(entry.job)} |" for entry in module_tree()]
+    return "\n".join(lines) + "\n"
+
+
 # --- text ------------------------------------------------------------------------------------
 
 
@@ -335,5 +360,6 @@ def _cell(text: str) -> str:
 DOCUMENTS: Final[dict[str, Callable[[], str]]] = {
     "protocol": protocol,
     "configuration": configuration,
+    "modules": modules,
 }
 """Document name (docs/NAME.md) -> the function that writes it."""

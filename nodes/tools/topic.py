@@ -35,6 +35,8 @@ RING = 256
 """Samples a watcher may fall behind by before the oldest are dropped."""
 DISCOVERY_S = 2.0
 """How long to look for runs: the coordinator publishes its status every second."""
+ASK_S = 2.0
+"""How long to wait for the answers to a query (`ask`)."""
 
 
 class Tap:
@@ -121,8 +123,26 @@ def live_runs(session: zenoh.Session, seconds: float = DISCOVERY_S) -> dict[str,
     return found
 
 
+def ask(
+    session: zenoh.Session,
+    key_expr: str,
+    on_sample: Callable[[zenoh.Sample, float], None],
+    timeout: float = ASK_S,
+) -> None:
+    """Hand `on_sample(sample, arrival)` what the run's queryables hold on `key_expr`: the
+    coordinator answers ``births/*`` with the births it remembers (those before a watcher came,
+    and any that went by unheard)."""
+    for reply in session.get(key_expr, timeout=timeout):
+        if reply.ok is not None:
+            on_sample(reply.ok, time.monotonic())
+
+
 class RunNotFound(LookupError):
-    """No run, or several, on the bus and no --run given; the text lists what was seen."""
+    """Several runs on the bus and no --run given; the text lists them."""
+
+
+class NothingHeard(LookupError):
+    """Nothing was heard of what a tool listened for; the text says what that was."""
 
 
 def choose_run(session: zenoh.Session, run: str | None) -> str:
@@ -133,10 +153,7 @@ def choose_run(session: zenoh.Session, run: str | None) -> str:
     if len(runs) == 1:
         return next(iter(runs))
     if not runs:
-        raise RunNotFound(
-            f"no run on the bus within {DISCOVERY_S:.0f} s (no derl/*/status, no live node): "
-            "check --connect/--mode, or give --run"
-        )
+        raise NothingHeard(f"no run heard in {DISCOVERY_S:g} s (no derl/*/status, no live node)")
     lines = [
         f"  {name}: " + (f"{s.born}/{s.target} born" if s else "nodes alive, no status yet")
         for name, s in sorted(runs.items())
@@ -174,7 +191,8 @@ def resolve(session: zenoh.Session, key: str, run: str | None) -> str:
 def topic_list(
     options: ZenohOptions, key: str, run: str | None, duration: float, stop: threading.Event
 ) -> int:
-    """Print the keys heard on `key` within `duration`, with message type and count."""
+    """Print the keys heard on `key` within `duration`, with message type and count; the
+    number of keys."""
     seen: dict[str, Counter[str]] = {}
     with open_session(options) as session:
         checker = Checker(session)
@@ -187,8 +205,6 @@ def topic_list(
         tap = Tap(session, resolve(session, key, run), on_sample)
         stop.wait(duration)
     tap.join()
-    if not seen:
-        print(f"nothing heard on {key} in {duration:g} s")
     width = max((len(name) for name in seen), default=0)
     for name, types in sorted(seen.items()):
         for kind, count in types.most_common():
@@ -255,20 +271,26 @@ def hz(
     duration: float,
     window: int,
     stop: threading.Event,
-) -> str:
-    """Print, every second, the rate of samples on `key` (like `ros2 topic hz`); the last line."""
+) -> int:
+    """Print, every second, the rate of samples on `key` (like `ros2 topic hz`); the number of
+    samples heard."""
     arrivals: deque[float] = deque(maxlen=window + 1)
-    line = "no messages"
+    heard = 0
+
+    def arrived(_: zenoh.Sample, at: float) -> None:
+        nonlocal heard
+        heard += 1
+        arrivals.append(at)
+
     with open_session(options) as session:
-        tap = Tap(session, resolve(session, key, run), lambda _, at: arrivals.append(at))
+        tap = Tap(session, resolve(session, key, run), arrived)
         end = time.monotonic() + duration
         while not stop.wait(min(1.0, max(0.0, end - time.monotonic()))):
-            line = rate_line(tuple(arrivals))
-            print(line, flush=True)
+            print(rate_line(tuple(arrivals)), flush=True)
             if time.monotonic() >= end:
                 break
     tap.join()
-    return line
+    return heard
 
 
 def rate_line(arrivals: tuple[float, ...]) -> str:

@@ -1,0 +1,303 @@
+"""A run's policy: the aging tournament evolution as jobs, births and failures.
+
+A ready trainer gets the first waiting child (an initial body, or one whose job was lost or
+failed: on another trainer than the one it failed on, while there is one), else, once the initial
+bodies are born, the child of a new tournament (`derl.evolution` holds the rule; the `Tournament`
+is journaled). Before a child is assigned its body is looked up (`Evolution.repeat`: its first
+draft, ~0.1 ms, and breeding only if that is a born body): a body born already is not trained
+again, the child is born at once as its repeat (Birth `repeat_of`, with its result, and its
+checkpoint file linked) and the trainer gets the next child. A child whose first draft is that of
+a child in training is held back until that one is born (`CoordinatorState.hold`), then looked up
+again: it is then most likely its repeat.
+
+The first valid report for a child is its birth, whoever trained it (another job for it is
+cancelled): valid when the job was issued to the sender for that child, the body fits the job,
+the fitness is within what the world allows and the env steps within the job's budget; its
+checkpoint is written, and the Ack goes out once it is on disk. A report that can never be taken
+is rejected. A child whose training failed `max_attempts` times is given up (ChildFailed). Once
+evolution is over the best bodies are evaluated (`evaluations`), and the run's results are
+written (`run_files`).
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future
+from pathlib import Path
+
+from derl.messages import (
+    Birth,
+    Cancel,
+    ChildFailed,
+    EvalJob,
+    EvalResult,
+    FitnessReport,
+    JobFailed,
+    Member,
+    PopulationSnapshot,
+    TrainJob,
+)
+from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_evaluation
+from derl.nodes.coordinator.ledger import Ledger
+from derl.nodes.coordinator.policy import Progress
+from derl.nodes.coordinator.run_files import (
+    read_initial_population,
+    run_config,
+    save_initial_population,
+    write_results,
+)
+from derl.nodes.coordinator.state import CoordinatorState, Job, tournament_message
+from derl.nodes.errors import Refused
+from pydantic import ValidationError
+
+from derl.evolution import EvolutionConfig
+from derl.unimal import Genome
+from derl.unimal.space import DENSITIES
+
+log = logging.getLogger("derl.coordinator")
+
+
+class EvolutionPolicy:
+    """The policy of an evolution run of `config` in `run_dir` (see the module)."""
+
+    def __init__(self, run: str, run_dir: Path, config: EvolutionConfig) -> None:
+        self.run, self.run_dir = run, run_dir
+        self.config = run_config(run_dir, config)
+        check_jobs(run, self.config)
+        self.state = CoordinatorState.start(self.config, read_initial_population(run_dir))
+        save_initial_population(run_dir, [child.genome for child in self.state.evolution.initial])
+        # the same for every job of the run: built once (each builds the world's task)
+        self.training_ppo = self.config.training_ppo()
+        self.fitness_bound = self.config.fitness_bound()
+
+    @property
+    def born(self) -> int:
+        return len(self.state.evolution.born)
+
+    def start(self, ledger: Ledger) -> None:
+        """Redo what the journal's replay leaves: holds behind children in training, and the
+        checkpoint links of repeats a crash may have lost."""
+        self.ledger = ledger
+        self.logged_born = self.born
+        for child in self.state.by_child:  # children in training hold later equal ones
+            self.state.training(child)
+        for birth in self.state.births:
+            if birth.repeat_of is not None and not ledger.checkpoints.path(birth.child).exists():
+                ledger.checkpoints.link(birth.child, birth.repeat_of).add_done_callback(
+                    _log_failed_link
+                )
+
+    # --- jobs --------------------------------------------------------------------------------
+
+    def next_job(self, node: str, role: str, trainers: int) -> TrainJob | EvalJob | None:
+        if role == "trainer":
+            return self._training(node, trainers)
+        return evaluation_job(self.state, self.run, node, self.config.lease_s)
+
+    def _training(self, node: str, trainers: int) -> TrainJob | None:
+        """The next child to train for `node`; children whose body is born already are born as
+        repeats on the way, without training."""
+        state, evolution = self.state, self.state.evolution
+        while True:
+            child = state.next_child_for(node, trainers)
+            if child is None and not state.waiting and state.wants_tournament():
+                decided = evolution.tournament()
+                self.ledger.commit(tournament_message(self.run, decided))
+                child = decided.name
+            if child is None:
+                return None
+            if not self._born_as_repeat(child) and not state.hold(child):
+                break
+        state.training(child)
+        genome, mutation_seed = evolution.to_train(child)
+        job = TrainJob(
+            run=self.run,
+            job=state.next_job_id(child),
+            child=child,
+            node=node,
+            genome=genome,
+            task=self.config.world,
+            ppo=self.training_ppo,
+            parent=evolution.parents[child],
+            mutation_seed=mutation_seed,
+            lease_s=self.config.lease_s,
+        )
+        log.debug("%s -> %s (%s)", child, node, job.job)
+        return job
+
+    def _born_as_repeat(self, child: str) -> bool:
+        """If `child`'s body is born already (a repeat: training is deterministic within a
+        run), it is born now with that body's result and checkpoint, and True."""
+        state = self.state
+        repeat = state.evolution.repeat(child)
+        if repeat is None:
+            return False
+        earlier, genome, mutation = repeat
+        first = state.born[earlier]
+        parent = state.evolution.parents[child]
+        birth = first.model_copy(
+            update={
+                "child": child,
+                "parent": parent,
+                "birth": len(state.births),
+                "generation": state.generation(parent),
+                "mutation": mutation.op,
+                "mutation_detail": mutation.detail,
+                "genome": genome,
+                "repeat_of": earlier,
+            }
+        )
+        self.ledger.checkpoints.link(child, earlier).add_done_callback(_log_failed_link)
+        self.ledger.commit(birth)
+        log.debug("born %s as a repeat of %s", child, earlier)
+        return True
+
+    # --- results -----------------------------------------------------------------------------
+
+    def on_fitness(self, report: FitnessReport) -> None:
+        state, ledger = self.state, self.ledger
+        order = state.orders.get(report.job)
+        if report.child in state.born:
+            log.info("%s already born: repeated report acknowledged", report.child)
+            saved = None  # a crash (or a failed write) may have lost its checkpoint file
+            born_from = state.born[report.child].job
+            if born_from == report.job and not ledger.checkpoints.path(report.child).exists():
+                saved = ledger.checkpoints.save(report.child, report.checkpoint)
+            ledger.ack(report, report.child, after=saved)
+        elif report.child in state.failed:
+            ledger.reject(report, report.child, "the child was given up")
+        elif (
+            order is None
+            or not isinstance(order, TrainJob)
+            or order.node != report.node
+            or order.child != report.child
+        ):
+            ledger.never_issued(report, report.child)
+        elif wrong := self._wrong_report(report, order):
+            ledger.reject(report, report.child, wrong)
+        else:
+            self._birth(report, order)
+
+    def _birth(self, report: FitnessReport, order: TrainJob) -> None:
+        """The first valid report for a child: its birth (and the end of any other job for it)."""
+        state, ledger = self.state, self.ledger
+        saved = ledger.checkpoints.save(report.child, report.checkpoint)
+        ledger.commit(report.model_copy(update={"checkpoint": b""}), publish=False)
+        birth = Birth(
+            run=self.run,
+            child=report.child,
+            parent=order.parent,
+            job=report.job,
+            node=report.node,
+            birth=len(state.births),
+            generation=state.generation(order.parent),
+            fitness=report.fitness,
+            cost_of_work=report.cost_of_work,
+            energy=report.energy,
+            mass=report.mass,
+            mutation=report.mutation,
+            mutation_detail=report.mutation_detail,
+            genome=report.genome,
+        )
+        other = state.by_child.get(report.child)
+        ledger.commit(birth)
+        log.debug("born %s fitness %.2f", report.child, report.fitness)
+        ledger.ack(report, report.child, after=saved)
+        if other is not None and other != report.job:
+            node = state.jobs[other].node
+            ledger.commit(Cancel(run=self.run, job=other, node=node,
+                                 reason=f"{report.child} was born from {report.job}"))  # fmt: skip
+
+    def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
+        """Why `report` cannot be accepted for `order` ("" if it can).
+
+        A child bred by its trainer is taken as reported (breeding is deterministic and trainers
+        are trusted like their fitness; with TLS only the node's own certificate can publish on
+        its keys)."""
+        if order.mutation_seed is None:
+            if report.mutation is not None or report.genome != order.genome:
+                return "not the body of its job"
+        elif report.mutation is None:
+            return "a tournament child without its mutation"
+        bound = self.fitness_bound
+        if not abs(report.fitness) <= bound:
+            return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
+        if report.env_steps > order.steps:
+            return f"{report.env_steps} env steps trained, the job allowed {order.steps}"
+        return ""
+
+    def on_evaluation(self, result: EvalResult) -> None:
+        on_evaluation(self.ledger, result)
+
+    def on_failure(self, failure: JobFailed, job: Job) -> None:
+        """An evaluation given up is logged; a child given up after `max_attempts` failed
+        trainings is a ChildFailed."""
+        state, attempts = self.state, self.config.max_attempts
+        log_given_up(state, job, attempts)
+        if job.evaluation is None and state.failed_trainings(job.subject) >= attempts:
+            log.error("%s given up after %d failed trainings", job.subject, attempts)
+            self.ledger.commit(
+                ChildFailed(
+                    run=self.run,
+                    child=job.subject,
+                    parent=state.evolution.parents.get(job.subject),
+                    attempts=state.failed_trainings(job.subject),
+                    error=failure.error,
+                )
+            )
+
+    # --- what the run looks like -------------------------------------------------------------
+
+    def progress(self) -> Progress:
+        best = self.state.evolution.best()
+        return Progress(
+            born=self.born,
+            target=self.config.total,
+            best_fitness=None if best is None else best.fitness,
+            best_agent=None if best is None else best.agent,
+        )
+
+    def snapshot(self) -> PopulationSnapshot:
+        members = tuple(
+            Member(agent=m.agent, fitness=m.fitness, parent=m.parent, birth=m.birth)
+            for m in self.state.evolution.population
+        )
+        return PopulationSnapshot(run=self.run, birth_counter=self.born, members=members)
+
+    def log_progress(self) -> None:
+        """One line for the births since the last call (a line per birth would be a thousand a
+        second on a large cluster)."""
+        new = self.state.evolution.born[self.logged_born :]
+        if not new:
+            return
+        fittest = max(new, key=lambda m: m.fitness)
+        also = f" (the fittest of {len(new)} new)" if len(new) > 1 else ""
+        log.info("born %d/%d: %s fitness %.2f%s", self.born, self.config.total, fittest.agent,
+                 fittest.fitness, also)  # fmt: skip
+        self.logged_born = self.born
+
+    def finish(self) -> None:
+        write_results(self.run_dir, self.run, self.config, self.state, self.ledger.checkpoints)
+        log.info("run %s finished: %d born, results in %s", self.run, self.born, self.run_dir)
+
+
+def _log_failed_link(done: Future[None]) -> None:
+    if done.exception() is not None:
+        log.error("a repeat's checkpoint could not be linked: %s", done.exception())
+
+
+def check_jobs(run: str, config: EvolutionConfig) -> None:
+    """`Refused` with the reason if a job of this configuration would not be a valid message,
+    so every value a job carries is checked before anything starts (with a bare head for its
+    body: the configuration is checked, not a body)."""
+    head = Genome(head_density=DENSITIES[0], limb_density=DENSITIES[0])
+    try:
+        ids = {"run": run, "job": "check", "node": "check", "genome": head}
+        TrainJob(**ids, child="check", task=config.world, ppo=config.training_ppo(),
+                 lease_s=config.lease_s)  # fmt: skip
+        for task in config.eval_tasks:
+            for seed in range(config.eval_seeds):
+                EvalJob(**ids, agent="check", task=task, ppo=config.evaluation_ppo(task, seed),
+                        lease_s=config.lease_s)  # fmt: skip
+    except (ValueError, ValidationError) as error:
+        raise Refused(f"run {run!r} cannot start: {error}") from None

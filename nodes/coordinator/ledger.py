@@ -1,0 +1,125 @@
+"""The coordinator's ledger: its state, the journal that rebuilds it, and every message committed.
+
+Opening a ledger replays the run directory's journal into the state (only what the state knows:
+`CoordinatorState.known`; `Refused` if the journal is damaged or another run's), then opens a new
+journal segment and the checkpoint files. From then on everything the coordinator accepts or says
+is committed here: appended to the journal, applied to the state (the same handlers that rebuilt
+it) and, if it is to be published, kept as a reply of the current group. `flush` writes the group
+into the journal file and hands its replies to the `Outbox`, which releases them once the file is
+on the disk (an Ack also waits for its report's checkpoint file); the node loop publishes what was
+released. Acknowledging, rejecting and counting rejections are here too: each is a committed
+message.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future
+from pathlib import Path
+
+from derl.messages import (
+    Ack,
+    EvalResult,
+    FitnessReport,
+    MessageBase,
+    Reject,
+    Rejection,
+    encode,
+)
+from derl.nodes.coordinator.outbox import Outbox, Reply
+from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.errors import Refused
+from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segments
+from derl.nodes.runtime.checkpoints import CheckpointFiles
+
+log = logging.getLogger("derl.coordinator")
+
+
+class Ledger:
+    """`state` rebuilt from `run_dir`'s journal, and the way every later change is made."""
+
+    def __init__(self, run: str, run_dir: Path, state: CoordinatorState) -> None:
+        self.run, self.state = run, state
+        self.replayed = 0
+        if segments(run_dir):
+            try:
+                for msg in replay(run_dir):
+                    if state.known(msg):  # what it decides live is known
+                        state.apply(msg)
+                        self.replayed += 1
+            except JournalDamaged as damage:
+                raise Refused(str(damage)) from None
+        if state.run not in (None, run):  # its own messages would not change the state
+            raise Refused(f"{run_dir} holds the journal of run {state.run!r}, not {run!r}: "
+                          f"resume it with --run {state.run}")  # fmt: skip
+        self.journal = Journal(run_dir)
+        self.checkpoints = CheckpointFiles(run_dir)
+        self.replies: list[Reply] = []  # the group's: published once it is on disk
+        self.outbox = Outbox(self.journal.sync)
+        self.rejected = 0  # messages refused, counted for `RunStatus`
+
+    def commit(
+        self, msg: MessageBase, publish: bool = True, after: Future[None] | None = None
+    ) -> None:
+        """Journal and apply; what the coordinator says is published once the group is on disk
+        (and `after` is done, and not if it failed)."""
+        data = encode(msg)
+        self.journal.write(msg, data=data, flush=False)
+        self.state.apply(msg)
+        if publish:
+            self.replies.append((msg, data, after))
+
+    def send(self, msg: MessageBase) -> None:
+        """Publish a message that is not journaled (status, a job order sent again) in order
+        after the group before it."""
+        self.replies.append((msg, encode(msg), None))
+
+    def flush(self) -> None:
+        """The group's messages into the journal file; its replies are released once the file
+        is on the disk (`Outbox`)."""
+        if not self.replies and not self.journal.pending:
+            return
+        self.journal.flush()
+        self.outbox.send(self.replies)
+        self.replies = []
+
+    def ack(
+        self, msg: FitnessReport | EvalResult, subject: str, after: Future[None] | None = None
+    ) -> None:
+        ack = Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node)
+        self.commit(ack, after=after)
+
+    def reject(self, msg: FitnessReport | EvalResult, subject: str, reason: str) -> None:
+        """Refuse a result for good: journaled, counted, and the sender told to drop it."""
+        self.rejected += 1
+        what = "fitness" if isinstance(msg, FitnessReport) else "evaluation"
+        log.warning("rejected %s of %s from %s: %s", what, subject, msg.node, reason)
+        reject = Reject(
+            run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node, reason=reason
+        )
+        self.commit(reject)
+
+    def never_issued(self, msg: FitnessReport | EvalResult, subject: str, also: str = "") -> None:
+        """Reject a result of a job its sender was never given for `subject`."""
+        self.reject(msg, subject, f"job {msg.job} was never issued to {msg.node} for "
+                    f"{subject}{also}")  # fmt: skip
+
+    def rejection(self, why: str, key: str, msg: MessageBase) -> None:
+        """Journal (unpublished) and count a message refused before any handler took it."""
+        self.rejected += 1
+        self.commit(
+            Rejection(
+                run=self.run,
+                reason=why,
+                key=key[:1000],
+                sender=getattr(msg, "node", None),
+                of=msg.type,
+                job=getattr(msg, "job", None),
+            ),
+            publish=False,
+        )
+
+    def close(self) -> None:
+        """Close the checkpoint files and the journal (the outbox is closed before)."""
+        self.checkpoints.close()
+        self.journal.close()

@@ -1,0 +1,90 @@
+"""Crash consistency, checked on a small real run recorded under strace (`bench/crash.py`): the
+run directory rebuilt as a process kill or a power cut at each point of the run's writes would
+leave it (torn journal writes included), and the coordinator started on it. Every state is
+checked for what a start must find; a sample of them, and every state where the run's last
+birth is journaled but its checkpoint is not in place, are run to the end in this process, and one
+with a real `derl coordinator` and trainers over Zenoh. `python bench/crash.py` runs every state to
+the end."""
+
+from __future__ import annotations
+
+import random
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from derl.messages import Birth
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+import crash
+
+pytestmark = pytest.mark.slow
+
+
+def _strace_works() -> bool:
+    if shutil.which("strace") is None:
+        return False
+    done = subprocess.run(["strace", "-f", "-qq", "-o", "/dev/null", "true"], capture_output=True)
+    return done.returncode == 0
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> crash.Recorded:
+    if not _strace_works():
+        pytest.skip("recording needs a working strace (apt-get install strace; ptrace allowed)")
+    return crash.record_and_cut(tmp_path_factory.mktemp("crash"))
+
+
+def test_every_crash_state_holds_what_the_trainers_were_told(recorded: crash.Recorded) -> None:
+    """A start accepts every state (a torn tail is cut, nothing is refused), and its journal
+    holds every job a trainer had received and every birth it had acknowledged, with the
+    checkpoint file that trainer sent. (Before the journal synced its folder when it created a
+    segment, a power cut could lose the whole segment, and with it the jobs it had published.)"""
+    kinds = recorded.tried
+    assert min(kinds[k] for k in ("kill", "power", "kill-torn", "power-torn", "power-zeros")) > 50
+    assert recorded.refused == []
+    broken = {(c.index, c.kind, c.torn_at): crash.holds_at_start(recorded, c)
+              for c in recorded.distinct}  # fmt: skip
+    assert {cut: problems for cut, problems in broken.items() if problems} == {}
+
+
+def _last_checkpoint_missing(recorded: crash.Recorded, cut: crash.Cut) -> bool:
+    """Whether every birth is journaled in `cut` and a born child's checkpoint is not in place."""
+    births = {m.child for m in crash.journaled(recorded, cut) if isinstance(m, Birth)}
+    files = {name.removeprefix("checkpoints/").removesuffix(".pt") for name in cut.state}
+    return len(births) == crash.config().total and not births <= files
+
+
+def test_sampled_crash_states_run_to_the_end(recorded: crash.Recorded) -> None:
+    """Started on the state, the coordinator runs the run to its end with the trainers as they
+    were: no acknowledged birth lost, none born twice, every body born with its checkpoint, the
+    best ones' folders whole. The sample: every state where the last birth is journaled and its
+    checkpoint is not in place, and 10 others drawn at random."""
+    ends = [cut for cut in recorded.distinct if _last_checkpoint_missing(recorded, cut)]
+    assert ends, "no state between the last birth and its checkpoint"
+    others = random.Random(1).sample(recorded.distinct, 10)
+    failures = [crash.check_cut(recorded, cut) for cut in [*ends, *others]]
+    assert [f for f in failures if f] == []
+
+
+def test_a_real_coordinator_resumes_a_crash_at_the_end_and_mid_run(
+    recorded: crash.Recorded,
+) -> None:
+    """A real `derl coordinator` and the trainers over real Zenoh run the run to its end from a
+    kill just after the last birth was journaled, before its checkpoint was in place (the results
+    were written at the first 'done' and missed the checkpoint its trainer sent again: the best
+    body had none), and from a power cut after some births were acknowledged while a trainer
+    waited for its Ack."""
+    end = next(c for c in recorded.distinct if c.kind == "kill" and
+               _last_checkpoint_missing(recorded, c))  # fmt: skip
+    total = crash.config().total
+    mid = max(  # a power cut halfway, a trainer waiting for its Ack if there is one
+        (c for c in recorded.distinct if c.kind == "power" and 0 < len(c.knowledge.acked) < total),
+        key=lambda c: (any(not answered for _, _, answered in c.knowledge.holding),
+                       -abs(len(c.knowledge.acked) - total / 2)),
+    )  # fmt: skip
+    assert crash.check_cut(recorded, end, real=True) is None
+    assert crash.check_cut(recorded, mid, real=True) is None

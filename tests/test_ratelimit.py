@@ -1,0 +1,44 @@
+"""Repeated warnings rate-limited: the first few of a kind per interval, then one count, written
+when the interval ends (by its timer) or before the next warning of the kind."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from derl.nodes.runtime.ratelimit import RepeatedWarnings
+
+
+class Kept(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(f"{record.levelname} {record.getMessage()}")
+
+
+def test_a_flood_is_cut_to_a_burst_and_a_count_per_interval() -> None:
+    kept = Kept()
+    kept.addFilter(RepeatedWarnings(burst=2, interval_s=0.3))
+    log = logging.getLogger("test.ratelimit")
+    log.addHandler(kept)
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    try:
+        for k in range(50):
+            log.warning("rejected %d", k)
+            log.info("born %d", k)  # below WARNING: never limited
+        log.error("another kind")
+        time.sleep(0.6)  # the timer writes the count once the interval is over
+        assert kept.lines[:4] == ["WARNING rejected 0", "INFO born 0", "WARNING rejected 1",
+                                  "INFO born 1"]  # fmt: skip
+        assert sum(line.startswith("INFO born") for line in kept.lines) == 50
+        assert "ERROR another kind" in kept.lines
+        assert kept.lines[-1] == (
+            "WARNING ... and 48 more like it in 0.3 s, not shown (the last: rejected 49)"
+        )
+        log.warning("rejected %d", 50)  # a new interval
+        assert kept.lines[-1] == "WARNING rejected 50"
+    finally:
+        log.removeHandler(kept)
