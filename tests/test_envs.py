@@ -382,27 +382,86 @@ def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
         np.testing.assert_array_equal(observed[i], expected[0])
 
 
-def test_new_terrain_after_every_episode_that_saw_it(quadruped: Genome) -> None:
+def test_new_terrain_for_every_episode(quadruped: Genome) -> None:
+    """A copy that ends gets a fresh terrain, in its model (where the physics reads it) and in
+    its heightmap; the others keep theirs."""
     env = _env(quadruped, "vt", n=3)
     env.reset(0)
     stack = env.task.terrains
     before = stack.heights.copy()
     assert not np.array_equal(before[0], before[1])
-    env.qpos[0, env.root] = stack.first_obstacle[0]  # copy 0 walks up to its obstacles...
-    env.batch.forward()
-    env.step(np.zeros((3, env.action_dim), np.float32))
-    env.qpos[:2, env.root + 2] = 0.0  # ...then copies 0 and 1 fall
+    env.qpos[:2, env.root + 2] = 0.0  # copies 0 and 1 fall
     env.batch.forward()
     result = env.step(np.zeros((3, env.action_dim), np.float32))
     assert result.terminated[:2].all() and not result.terminated[2]
     after = stack.heights
-    assert not np.array_equal(before[0], after[0])  # it had seen its terrain: a new one
-    np.testing.assert_array_equal(before[1], after[1])  # it saw only the flat start: kept
+    for i in range(2):
+        assert not np.array_equal(before[i], after[i])
     np.testing.assert_array_equal(before[2], after[2])  # still running
-    model_heights = stack.models[0].hfield_data.reshape(after[0].shape)
-    np.testing.assert_allclose(model_heights * SMALL_VT.max_height, after[0], atol=1e-6)
+    for i in range(3):  # the heightfield's data are heights / max_height
+        model_heights = stack.models[i].hfield_data * SMALL_VT.max_height
+        np.testing.assert_allclose(model_heights, stack.padded[i].ravel(), atol=1e-6)
     spawn_view = stack.heightmap(np.array([env.task.spawn] * 3), np.zeros(3))
     assert not spawn_view.any()  # from the spawn point no obstacle is in sight
+
+
+def test_first_obstacles_are_uniform_over_the_episodes_started(quadruped: Genome) -> None:
+    """The first obstacle lies 5, 7 or 9 m ahead of the spawn (a first flat of 2, 4 or 6 m),
+    equally often over the episodes the copies start, even when episodes are short (early
+    training): no terrain is kept for an episode that did not reach its obstacles, which
+    favoured the farthest first obstacles (96% of the episodes in a rollout of random actions)."""
+    corridor = TerrainConfig.variable(size_x=50.0, size_y=10.0)  # any first obstacle fits
+    env = UnimalEnv(
+        quadruped, make_task("vt", terrain=corridor), EnvConfig(num_envs=8, episode_steps=10)
+    )
+    env.reset(0)
+    stack = env.task.terrains
+    starts = [stack.first_obstacle.copy()]
+    rng = np.random.default_rng(0)
+    for _ in range(250):
+        result = env.step(rng.uniform(-1, 1, (env.num_envs, env.action_dim)).astype(np.float32))
+        starts.append(stack.first_obstacle[result.terminated | result.truncated])
+    ahead = np.concatenate(starts) - env.task.spawn[0]
+    counts = np.array([np.count_nonzero(np.isclose(ahead, d)) for d in (5.0, 7.0, 9.0)])
+    assert counts.sum() == len(ahead) > 200
+    expected = len(ahead) / 3
+    assert ((counts - expected) ** 2 / expected).sum() < 9.21  # chi-square, 2 dof, p = 0.01
+
+
+def test_terrain_is_written_ahead_of_the_body(quadruped: Genome) -> None:
+    """A VT copy's terrain is written as its body comes near: after a reset, the start and the
+    stretch ahead of it; a body carried along +x sees (heightmap, ground) what it would see were
+    the whole terrain written at the reset."""
+    corridor = TerrainConfig.variable(size_x=60.0, size_y=10.0)
+    config = EnvConfig(num_envs=2, fall_ratio=0.0)
+    env = UnimalEnv(quadruped, make_task("vt", terrain=corridor), config)
+    env.reset(0)
+    stack = env.task.terrains
+    rows, cols = stack.padded.shape[1:]
+    area = stack.written[:, 0] * (stack.written[:, 2] - stack.written[:, 1])
+    assert (area < rows * cols / 4).all()  # the start and what lies around it
+    seen, heads, yaws, grounds = [], [], [], []
+    for k in range(32):
+        env.qpos[:, env.root] = env.task.spawn[0] + 1.5 * k
+        env.qpos[:, env.root + 2] = 3.0
+        env.batch.forward()
+        result = env.step(np.zeros((2, env.action_dim), np.float32))
+        seen.append(result.obs["heightmap"])
+        heads.append(env.head_pos[:, :2].copy())
+        yaws.append(env.yaw)
+        grounds.append(env.task.arena.ground(env.head_pos[:, :2]))
+    assert (stack.written[:, 0] > cols * 3 / 4).all()  # written as the bodies went
+    for i, heights in enumerate(stack.heights):
+        terrain = Terrain(heights, corridor.resolution, corridor.max_height)
+        xy = np.array([head[i] for head in heads])
+        yaw = np.array([y[i] for y in yaws])
+        np.testing.assert_allclose(
+            [obs[i] for obs in seen], sample(terrain, xy, yaw, env.task.arena.grid), atol=1e-5
+        )
+        vertex = np.rint((xy - [terrain.x_min, terrain.y_min]) / terrain.resolution).astype(int)
+        np.testing.assert_allclose(
+            [g[i] for g in grounds], heights[vertex[:, 1], vertex[:, 0]], atol=1e-6
+        )
 
 
 def test_reset_is_deterministic(quadruped: Genome) -> None:
@@ -515,3 +574,58 @@ def test_task_modules_do_not_import_the_environment() -> None:
             for alias in node.names
         }
         assert "derl.envs.batched" not in imported, module
+
+
+def _box_run(genome: Genome, sleep: bool, nudge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """MVT boxes of 16 copies whose bodies do nothing: untouched for 100 steps, pushed along +x
+    by 30 N for 10 steps (``nudge``: moved that far along +x first), left for 90, then the
+    bodies dropped onto them for 100; the boxes' positions (steps, copies, 3) and whether they
+    were asleep after steps 100, 102, 110 and 202 (4, copies)."""
+    task = make_task("mvt", terrain=SMALL_MVT)
+    env = UnimalEnv(genome, task, EnvConfig(num_envs=16, sleep=sleep, fall_ratio=0.0))
+    env.reset(3)
+    (obj,) = task.props
+    box = env.model.body("box").id
+    push = env.batch.bind("xfrc_applied")[:, box, 0]
+    zero = np.zeros((env.num_envs, env.action_dim), np.float32)
+    positions, asleep = [], []
+    for t in range(300):
+        if t == 100:
+            obj.qpos[:, 0] += nudge
+            push[:] = 30.0
+        if t == 110:
+            push[:] = 0.0
+        if t == 200:
+            env.qpos[:, env.root : env.root + 2] = obj.position[:, :2]
+            env.qpos[:, env.root + 2] = obj.position[:, 2] + 0.6
+            env.qvel[:] = 0.0
+            env.batch.forward()
+        result = env.step(zero)
+        assert not (result.terminated | result.truncated).any()
+        positions.append(obj.position.copy())
+        if t in (99, 101, 109, 201):
+            data = [env.batch.get_data(i) for i in range(env.num_envs)]
+            asleep.append([d.tree_asleep[env.model.body_treeid[box]] >= 0 for d in data])
+    return np.array(positions), np.array(asleep)
+
+
+def test_sleeping_boxes_move_as_awake_ones(quadruped: Genome) -> None:
+    """MuJoCo's sleeping freezes MVT's box once it rests (its ~40 contacts with the heightfield
+    skipped) until a push or a body wakes it. Untouched, a sleeping box stays within 0.5 mm of
+    the box simulated throughout; pushed or hit, it moves as that box does, up to the spread that
+    a 0.1 mm shift of the box gives (sliding on the heightfield's triangles magnifies any
+    difference: 0.1 mm becomes tens of cm), and nothing stays asleep."""
+    slept, asleep = _box_run(quadruped, sleep=True)
+    awake, never = _box_run(quadruped, sleep=False)
+    nudged, _ = _box_run(quadruped, sleep=False, nudge=1e-4)
+    assert not never.any()
+    assert asleep[0].mean() >= 0.5  # at rest, most boxes sleep...
+    assert not asleep[1:].any()  # ...and wake when pushed or hit
+    np.testing.assert_allclose(slept[:100], awake[:100], atol=5e-4)
+    moved = np.linalg.norm(awake[199, :, :2] - awake[99, :, :2], axis=1)
+    moved_slept = np.linalg.norm(slept[199, :, :2] - slept[99, :, :2], axis=1)
+    assert moved.mean() > 1.0 and abs(moved_slept.mean() - moved.mean()) < 0.15 * moved.mean()
+    for start, end in ((100, 200), (200, 300)):  # pushed, hit
+        apart = np.abs(slept[start:end] - awake[start:end]).max(axis=(0, 2))
+        spread = np.abs(nudged[start:end] - awake[start:end]).max(axis=(0, 2))
+        assert np.median(apart) < 2 * np.median(spread)

@@ -298,7 +298,7 @@ def test_box_lies_on_the_slope_below_the_goal(quadruped: Genome) -> None:
     np.testing.assert_allclose(box[:, 1], 0.0)
     np.testing.assert_allclose(box[:, 0], -10.0)
     lift = box[:, 2] - box[:, 0] * np.tan(SLOPE)
-    np.testing.assert_allclose(lift, 0.2 / np.cos(SLOPE) + 0.01)
+    np.testing.assert_allclose(lift, 0.2 / np.cos(SLOPE))  # resting on the slope
     np.testing.assert_allclose(obj.goal[:, :2], [[10.0, 0.0]] * 2)
     np.testing.assert_allclose(obj.goal[:, 2], obj.goal[:, 0] * np.tan(SLOPE) + 0.11)
     assert env.task.rewards[0].weights.margin == 0.5
@@ -341,7 +341,7 @@ def test_ball_is_a_rolling_sphere_placed_like_the_box(quadruped: Genome) -> None
     np.testing.assert_allclose(ahead, np.round(ahead))
     assert ((ahead >= 15) & (ahead <= 21)).all()
     assert (np.abs(y) <= 4.8).all() and np.abs(y).max() > 4.0
-    np.testing.assert_allclose(ball.position[:, 2], 0.21)
+    np.testing.assert_allclose(ball.position[:, 2], 0.2)  # resting on the floor
     goal = ball.goal
     np.testing.assert_allclose(goal[:, 0], 15.0 - 6.5)
     assert (np.abs(goal[:, 1]) <= 4.5).all()

@@ -11,12 +11,16 @@ from scipy.signal import sawtooth
 from derl.envs.heightmap import HeightmapGrid, HeightStack, rough_columns, sample
 from derl.envs.terrain import (
     Segment,
+    Span,
     Terrain,
     TerrainConfig,
     _rubble,
     _rubble_strips,
     generate_terrain,
+    plan_terrain,
+    render,
 )
+from derl.envs.terrain_stack import TerrainStack, add_hfield
 
 SEEDS = range(25)
 
@@ -121,7 +125,9 @@ def test_rubble_strips_are_clipped_triangle_waves(n: int) -> None:
     seen: set[tuple[int, int, float]] = set()
     for seed in range(8):
         block = np.zeros((1001, n), np.float32)
-        height = _rubble(block, config, np.random.default_rng(seed))
+        span = Span("rubble", 0, n, *_rubble(n, 1001, config, np.random.default_rng(seed)))
+        render([span], block, (0, 1001), (0, n))
+        height = span.top
         rows, wave, clip = _rubble_strips(1001, config, np.random.default_rng(seed))
         assert set(rows.tolist()) <= set(range(10, 20))
         assert rows[:-1].sum() < 1001 <= rows.sum()  # the last strip is cut by the edge
@@ -214,24 +220,9 @@ def test_config_rejects_unknown_keys_and_impossible_heights() -> None:
 # --- MuJoCo agreement ---------------------------------------------------------------------------
 
 
-def _hfield_model(terrain: Terrain) -> tuple[mujoco.MjModel, mujoco.MjData]:
-    field = terrain.hfield()
-    xml = f"""
-    <mujoco>
-      <asset>
-        <hfield name="terrain" nrow="{field.nrow}" ncol="{field.ncol}"
-                size="{" ".join(map(str, field.size))}"/>
-      </asset>
-      <worldbody><geom type="hfield" hfield="terrain"/></worldbody>
-    </mujoco>"""
-    model = mujoco.MjModel.from_xml_string(xml)
+def _ray_heights(model: mujoco.MjModel, points: np.ndarray) -> np.ndarray:
     data = mujoco.MjData(model)
-    terrain.write_to(model)
     mujoco.mj_forward(model, data)
-    return model, data
-
-
-def _ray_heights(model: mujoco.MjModel, data: mujoco.MjData, points: np.ndarray) -> np.ndarray:
     geomid = np.zeros(1, dtype=np.int32)
     down = np.array([0.0, 0.0, -1.0])
     start = 10.0
@@ -242,21 +233,27 @@ def _ray_heights(model: mujoco.MjModel, data: mujoco.MjData, points: np.ndarray)
     return start - np.asarray(dist)
 
 
-def test_height_at_matches_mujoco_rays_also_after_in_place_rewrite() -> None:
+def test_terrains_drawn_in_place_are_what_mujoco_sees() -> None:
+    """A terrain drawn straight into a model's padded heightfield (no recompile), again and
+    again: MuJoCo's surface is `Terrain.height_at` of the stack's heights, the same draws as
+    `generate_terrain`'s, and continues at its edge heights beyond the edges."""
     config = TerrainConfig(size_x=20.0, size_y=10.0, start_flat=4.0)
+    spec = mujoco.MjSpec()
+    add_hfield(spec, config, HeightmapGrid())
+    model = spec.compile()
+    stack = TerrainStack(config, model, 1, HeightmapGrid())
     rng = np.random.default_rng(3)
-    first = generate_terrain(config, np.random.default_rng(0))
-    model, data = _hfield_model(first)
-    for terrain in (first, generate_terrain(config, np.random.default_rng(1))):
-        terrain.write_to(model)  # no recompile
+    for seed in (1, 2):  # rubble, hills
+        stack.renew(np.array([0]), np.random.default_rng(seed))
+        terrain = Terrain(stack.heights[0], config.resolution, config.max_height)
+        drawn = generate_terrain(config, np.random.default_rng(seed))
+        np.testing.assert_allclose(terrain.heights, drawn.heights, atol=1e-6)
         assert terrain.heights.max() > 0.2
-        points = rng.uniform((-9.9, -4.9), (9.9, 4.9), size=(400, 2))
-        hits = _ray_heights(model, data, points)
+        rough = rough_columns(terrain.heights, stack.margin)  # heads that need a lookup
+        assert rough.any() and not (rough & ~stack.rough[0]).any()
+        points = rng.uniform((-12.0, -7.0), (12.0, 7.0), size=(400, 2))  # beyond the edges too
+        hits = _ray_heights(stack.models[0], points)
         np.testing.assert_allclose(hits, terrain.height_at(points[:, 0], points[:, 1]), atol=2e-3)
-    with pytest.raises(ValueError):
-        generate_terrain(TerrainConfig(size_x=20.0, size_y=12.0, start_flat=4.0), rng).write_to(
-            model
-        )
 
 
 def test_height_at_interpolates_on_mujoco_triangles() -> None:
@@ -405,3 +402,45 @@ def test_heightmap_skips_exactly_the_heads_that_see_one_height() -> None:
     rough = stack.rough[which, column]
     assert rough.any() and not rough.all()
     assert heightmaps[rough].any() and not heightmaps[~rough].any()
+
+
+def test_top_is_the_highest_vertex_of_the_square() -> None:
+    """`HeightStack.top`: the highest vertex within k cells of each point's nearest vertex (the
+    square cut at the terrain's edges), where a box of half side k cells comes to rest."""
+    rng = np.random.default_rng(0)
+    layout = Terrain(rng.uniform(0, 1, (41, 61)).astype(np.float32))
+    for grid in (None, HeightmapGrid()):  # unpadded and padded
+        stack = HeightStack(layout, 2, grid)
+        other = rng.uniform(0, 1, layout.heights.shape).astype(np.float32)
+        stack.write(0, layout.heights)
+        stack.write(1, other)
+        xy = rng.uniform((-3.2, -2.2), (3.2, 2.2), (50, 2))  # beyond the edges too
+        which = rng.integers(0, 2, 50)
+        tops = stack.top(xy, 0.2, which)
+        for (x, y), terrain, top in zip(xy, which, tops, strict=True):
+            heights = (layout.heights, other)[terrain]
+            c = int(np.clip(np.rint((x - layout.x_min) / 0.1), 0, 60))
+            r = int(np.clip(np.rint((y - layout.y_min) / 0.1), 0, 40))
+            square = heights[max(r - 2, 0) : r + 3, max(c - 2, 0) : c + 3]
+            assert top == pytest.approx(square.max())
+
+
+def test_a_plan_renders_the_same_in_pieces_and_framed() -> None:
+    """`render` of any rectangles of a framed array, in any order, gives the terrain that
+    `generate_terrain` draws, its frame repeating the edges."""
+    config = TerrainConfig(size_x=40.0, size_y=6.0, start_flat=4.0, obstacles=("rubble", "hills"))
+    rng = np.random.default_rng(5)
+    margin = 7
+    for seed in (0, 2, 3):  # each with rubble
+        spans = plan_terrain(config, np.random.default_rng(seed))
+        terrain = generate_terrain(config, np.random.default_rng(seed))
+        assert "rubble" in {s.kind for s in spans}
+        nrow, ncol = terrain.nrow + 2 * margin, terrain.ncol + 2 * margin
+        out = np.full((nrow, ncol), -1.0, np.float32)
+        row_cuts = np.unique(np.r_[0, rng.integers(1, nrow, 4), nrow])
+        col_cuts = np.unique(np.r_[0, rng.integers(1, ncol, 6), ncol])
+        blocks = list(itertools.product(itertools.pairwise(row_cuts), itertools.pairwise(col_cuts)))
+        for k in rng.permutation(len(blocks)):
+            render(spans, out, *blocks[k], margin=margin)
+        framed = np.pad(terrain.heights, margin, mode="edge")
+        np.testing.assert_array_equal(out, framed)

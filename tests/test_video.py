@@ -21,9 +21,9 @@ SPEED = 0.08
 """m per control step the body is carried along +x in the follow test (4 m/s)."""
 
 
-def _env(genome: Genome, task: str) -> UnimalEnv:
-    env = UnimalEnv(genome, make_task(task), EnvConfig(num_envs=1, episode_steps=1000), seed=3)
-    env.reset(3)
+def _env(genome: Genome, task: str, seed: int = 3) -> UnimalEnv:
+    env = UnimalEnv(genome, make_task(task), EnvConfig(num_envs=1, episode_steps=1000), seed=seed)
+    env.reset(seed)
     return env
 
 
@@ -92,7 +92,7 @@ def test_the_camera_follows_the_body_over_an_episode(quadruped: Genome, task: st
 
 
 def test_mvt_shows_the_box_and_its_goal_then_the_goal_from_the_box(quadruped: Genome) -> None:
-    env = _env(quadruped, "mvt")
+    env = _env(quadruped, "mvt", seed=0)  # seed 3's first terrain hides the box behind a hill
     recorder = FrameRecorder(env)  # full size: the goal is 30 m or more away
     model = recorder.set.model
     box = model.geom("box").id

@@ -1,6 +1,6 @@
 """Arenas: the ground of a task. `Floor` is a plane, level or tilted; `Heightfield` gives every
-copy its own terrain, drawn anew after episodes that saw it (VT's corridor by default, or the
-obstacle boxes and the escape bowl defined here)."""
+copy its own terrain, drawn anew for every episode (VT's corridor by default, or the obstacle
+boxes and the escape bowl defined here)."""
 
 from __future__ import annotations
 
@@ -13,12 +13,16 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from scipy import ndimage
 
 from derl.envs.heightmap import HeightmapGrid
+from derl.envs.rewards import CONTROL_DT
 from derl.envs.task import Arena
 from derl.envs.terrain import Segment, Terrain, TerrainConfig
 from derl.envs.terrain_stack import TerrainStack, add_hfield
-from derl.envs.view import EnvView
+from derl.envs.view import MAX_SPEED, EnvView
+from derl.unimal.space import HEAD_RADIUS, LIMB_LENGTHS, LIMB_RADIUS, MAX_LIMBS
 
-BODY_REACH = 2.0  # m: no limb tip is further than this from the head
+BODY_REACH = HEAD_RADIUS + MAX_LIMBS * max(LIMB_LENGTHS) + LIMB_RADIUS
+"""m: no point of a body is further than this from its head's centre (a chain of the longest
+limbs)."""
 
 
 class Floor(Arena):
@@ -53,40 +57,44 @@ class Floor(Arena):
 
 
 class Heightfield(Arena):
-    """A heightfield laid out like ``config``, one terrain per copy: ``draw(rng)`` makes one
-    (default: `generate_terrain`'s corridor). A copy's terrain is renewed after an episode whose
-    head came within the heightmap's reach plus a body's size of its first obstacle."""
+    """A heightfield laid out like ``config``, one terrain per copy, new for every episode:
+    ``draw(rng)`` makes one (default: `generate_terrain`'s corridor, drawn in place). ``grid``:
+    the heightmap the task observes (None: none). ``lazy``: a corridor is written only around
+    the points whose ground is read, as far as a heightmap reads or a body reaches in a step
+    (`TerrainStack.reach`); the environment reads the ground under every head at every step
+    (its fall test) and at every placement. For worlds where nothing but the body touches the
+    terrain; otherwise all of it is written at each reset."""
 
     def __init__(
         self,
         config: TerrainConfig,
-        grid: HeightmapGrid,
+        grid: HeightmapGrid | None = None,
         draw: Callable[[np.random.Generator], Terrain] | None = None,
+        lazy: bool = False,
     ) -> None:
         self.config, self.grid, self.draw = config, grid, draw
         self.half = (config.size_x / 2, config.size_y / 2)
+        # a heightmap reads this far from the head; a body touches this far within a step
+        reach = max(0.0 if grid is None else grid.reach, BODY_REACH + MAX_SPEED * CONTROL_DT)
+        self.ahead = reach if lazy else None
 
     def build(self, spec: mujoco.MjSpec) -> None:
-        add_hfield(spec, self.config)
+        add_hfield(spec, self.config, self.grid)
 
     def bind(self, env: EnvView) -> None:
-        self.terrains = TerrainStack(self.config, env.model, env.num_envs, self.grid, self.draw)
+        self.terrains = TerrainStack(
+            self.config, env.model, env.num_envs, self.grid, self.draw, self.ahead
+        )
         env.set_models(self.terrains.models)
 
-    def start(self) -> None:
-        self.terrains.forget()
-
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
-        self.terrains.renew(ids, env.rng, self.grid.reach + BODY_REACH)
-
-    def placed(self, env: EnvView, ids: np.ndarray) -> None:
-        self.terrains.track(env.head_pos[:, 0])
-
-    def update(self, env: EnvView) -> None:
-        self.terrains.track(env.head_pos[:, 0])
+        self.terrains.renew(ids, env.rng)
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)
+
+    def top(self, xy: np.ndarray, half: float, ids: np.ndarray | None = None) -> np.ndarray:
+        return self.terrains.top(xy, half, ids)
 
 
 # --- obstacle: boxes on a corridor --------------------------------------------------------------

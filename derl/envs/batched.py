@@ -25,19 +25,24 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from derl.envs.task import Arrays, Task
-from derl.envs.view import FreeJoint
+from derl.envs.view import MAX_SPEED, FreeJoint
 from derl.unimal import Genome, agent_spec
 from derl.unimal.geometry import layout
 from derl.unimal.mjcf import FLOOR_OFFSET, rest_height
 from derl.unimal.space import HEAD_RADIUS
 
 ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
-MAX_SPEED = 100.0
-"""m/s or rad/s: a copy with any velocity above it has blown up. MuJoCo itself only warns at
-1e10; below that a body can spin up in the air (Euler integration does not keep its angular
-momentum) and be flung tens of km in one step, a forward reward of millions. Trainings that do
-not blow up stay under 50 (the largest |qvel| over 150k steps of each of four bodies of a demo run:
-32-49), as in Gym's Hopper, whose healthy state is bounded by 100."""
+
+SLEEPERS = {
+    int(policy)
+    for policy in (
+        mujoco.mjtSleepPolicy.mjSLEEP_AUTO_ALLOWED,
+        mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED,
+        mujoco.mjtSleepPolicy.mjSLEEP_INIT,
+    )
+}
+"""Sleep policies of kinematic trees that may sleep (MuJoCo gives every tree that no actuator
+moves `mjSLEEP_AUTO_ALLOWED`)."""
 
 
 class EnvConfig(BaseModel):
@@ -52,6 +57,11 @@ class EnvConfig(BaseModel):
     reset_noise: float = Field(0.005, ge=0)
     spawn_clearance: float = Field(FLOOR_OFFSET, ge=0)
     fall_ratio: float = Field(0.5, ge=0, le=1)
+    sleep: bool = True
+    """MuJoCo's sleeping for the bodies allowed to sleep (those no actuator moves: MVT's box): a
+    body whose speed stays under ``sleep_tolerance`` for 10 physics steps freezes, its contacts
+    with the ground skipped, until the agent touches it or a reset moves it. False simulates it
+    throughout, as the released code did."""
 
 
 @dataclass(frozen=True)
@@ -80,6 +90,8 @@ class UnimalEnv:
         spec = agent_spec(genome, head_height=self.rest_height + self.config.spawn_clearance)
         task.build(spec)
         self.model = spec.compile()
+        if self.config.sleep and SLEEPERS.intersection(self.model.tree_sleep_policy.tolist()):
+            self.model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
         self.batch = mujoco.batch.Batch(
             self.model, self.config.num_envs, nthread=self.config.nthread, persistent=True
         )
@@ -186,12 +198,15 @@ class UnimalEnv:
         return np.concatenate([bottom[:, None], self.site_xpos[:, self.agent_sites]], axis=1)
 
     def free_joint(self, name: str) -> FreeJoint:
-        """Live (N, 7) qpos and (N, 6) qvel views of the free joint ``name``."""
+        """Live (N, 7) qpos, (N, 6) qvel and (N, 3, 3) orientation views of the free joint
+        ``name``."""
         joint = self.model.joint(name)
         if joint.type[0] != mujoco.mjtJoint.mjJNT_FREE:
             raise ValueError(f"joint {name!r} is not a free joint")
-        qpos, dof = int(joint.qposadr[0]), int(joint.dofadr[0])
-        return FreeJoint(self.qpos[:, qpos : qpos + 7], self.qvel[:, dof : dof + 6])
+        qpos, dof, body = int(joint.qposadr[0]), int(joint.dofadr[0]), int(joint.bodyid[0])
+        rot = self.xmat[:, body].reshape(-1, 3, 3)
+        rot.flags.writeable = False
+        return FreeJoint(self.qpos[:, qpos : qpos + 7], self.qvel[:, dof : dof + 6], rot)
 
     def mocap_pos(self, body: str) -> np.ndarray:
         """Live (N, 3) position of the mocap body ``body``."""

@@ -167,10 +167,8 @@ class FilmSet:
         new = terrains.generated != self.terrain_version
         if not new and np.all(np.abs(want - self.patch_at) < PATCH_SLACK):
             return
-        config, source = terrains.config, terrains.models[0]
-        shape = config.grid_shape
-        start = source.hfield_adr[terrains.hfield]
-        heights = source.hfield_data[start : start + shape[0] * shape[1]].reshape(shape)
+        config, shape = terrains.config, terrains.config.grid_shape
+        heights = terrains.hfield_heights(0)
         if new:  # every coarse vertex, and the running minimum around it
             window = 2 * COARSE_STEP + 3  # a coarse cell's vertices and the fine ones between
             low = ndimage.minimum_filter(heights, size=window, mode="nearest")

@@ -10,9 +10,10 @@ Lookup. The grid is anchored at the vertex nearest the head, and its offsets, ro
 `YAW_BINS` evenly spaced yaws and rounded to whole cells, are precomputed as offsets of flat
 indices (`offset_table`, once per `HeightStack`: about 20 ms). A lookup for N bodies is then: the
 yaw bin and the head's vertex of each body (N numbers), one (N, K) gather from the table, an add,
-one gather from the heights, and the ground under the head subtracted: no per-point arithmetic.
-Heads whose whole grid lies on one height (a flat start area) skip it: their heightmap is
-zeros. (Right after a physics step, reading 32 heads' grids takes 0.1-0.3 ms, mostly cache misses.)
+one gather from the heights, and the height under the head, the grid's own point (0, 0),
+subtracted: no per-point arithmetic. Heads whose whole grid lies on one height (a flat start
+area) skip it: their heightmap is zeros. (Right after a physics step, reading 32 heads' grids
+takes 0.1-0.3 ms, mostly cache misses.)
 
 Accuracy. The yaw is rounded to the nearest bin (0.125 degree at most), which moves the
 furthest point (5.7 m) by at most 1/8 of a cell, and the grid is anchored at the head's nearest
@@ -26,9 +27,12 @@ for only about a quarter of the points).
 Edges. Heights are stored padded on every side by `HeightStack.margin` cells that repeat the edge
 values, further than the grid reaches, so every point reads a vertex of its own terrain, and
 points outside the world read the nearest edge vertex (the world continues flat at its edge
-heights) instead of the original's -10 m gap: it keeps observations in the terrain's own range,
-and episodes end before bodies get there. A head outside the world counts as on its edge.
+heights; in an environment the heightfield is padded the same way, so the physics agrees) instead of
+the original's -10 m gap: it keeps observations in the terrain's own range, and episodes end
+before bodies get there. A head outside the world counts as on its edge.
 """
+
+from __future__ import annotations
 
 import math
 from functools import cached_property
@@ -66,7 +70,7 @@ class HeightmapGrid(BaseModel):
     resolution: float = Field(0.1, gt=0)
 
     @model_validator(mode="after")
-    def _whole_cells(self) -> "HeightmapGrid":
+    def _whole_cells(self) -> HeightmapGrid:
         for name in ("behind", "ahead", "side"):
             cells = getattr(self, name) / self.resolution
             if abs(cells - round(cells)) > 1e-6 or round(cells) == 1:
@@ -121,9 +125,17 @@ def offset_table(grid: HeightmapGrid, resolution: float, row_length: int) -> np.
     return d_row * np.int32(row_length) + d_col
 
 
+def padding(grid: HeightmapGrid | None, resolution: float) -> int:
+    """Edge-valued cells a terrain needs on every side so that each point of ``grid`` around a
+    head anywhere on the terrain reads a vertex of that terrain (0 without a heightmap)."""
+    return 0 if grid is None else math.ceil(grid.reach / resolution) + 1
+
+
 class HeightStack:
-    """M terrains laid out like ``layout`` (its shape, resolution and extent), stored padded by
-    `margin` edge-valued cells on every side, and the heightmap and ground lookups on them.
+    """M terrains laid out like ``layout`` (its shape, resolution and extent) and the heightmap
+    and ground lookups on them, all at once. The terrains are stacked in one float32 array of
+    heights in metres, `padded` (M, nrow + 2 m, ncol + 2 m), m = `margin` = `padding` (grid):
+    each terrain framed by m cells on every side that repeat its edges (`pad`).
 
     Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
     stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
@@ -133,41 +145,44 @@ class HeightStack:
     saves the cache misses of reading its part of the stack (`rough` tells which columns need it).
     """
 
-    def __init__(self, layout: Terrain, count: int, grid: HeightmapGrid) -> None:
+    def __init__(self, layout: Terrain, count: int, grid: HeightmapGrid | None) -> None:
         self.layout = layout
-        self.margin = math.ceil(grid.reach / layout.resolution) + 1  # beyond any rounded point
-        m = self.margin
-        self.padded = np.zeros((count, layout.nrow + 2 * m, layout.ncol + 2 * m), np.float32)
+        self.margin = m = padding(grid, layout.resolution)
+        nrow, ncol = layout.nrow, layout.ncol
+        self.padded = np.zeros((count, nrow + 2 * m, ncol + 2 * m), np.float32)
         if self.padded.size > np.iinfo(np.int32).max:
             raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
+        self.interior = self.padded[:, m : m + nrow, m : m + ncol]
+        """The terrains' own vertices: a view of `padded` (write `pad` (i) after a change)."""
         # (M, ncol) whether a head above the column reads more than one height (all zeros: no)
-        self.rough = np.zeros((count, layout.ncol), bool)
+        self.rough = np.zeros((count, ncol), bool)
         row_length = self.padded.shape[2]
         self._flat = self.padded.reshape(-1)
-        self._table = offset_table(grid, layout.resolution, row_length)
+        self._table = None if grid is None else offset_table(grid, layout.resolution, row_length)
+        self._head = 0 if grid is None else grid.offsets.tolist().index([0.0, 0.0])
         first = np.arange(count) * self.padded[0].size + m * row_length + m
         self._first = first.astype(np.int32)  # flat index of each terrain's vertex (0, 0)
         self._terrains = np.arange(count)
         self._strides = np.array([1, row_length], np.int32)  # flat index step per column, row
         self._origin = np.array([layout.x_min, layout.y_min])
-        self._last = np.array([layout.ncol - 1, layout.nrow - 1])
+        self._last = np.array([ncol - 1, nrow - 1])
 
     @property
     def heights(self) -> np.ndarray:
         """(M, nrow, ncol) the terrains without their padding (a read-only view: see `write`)."""
-        m = self.margin
-        view = self.padded[:, m:-m, m:-m]
+        view = self.interior.view()
         view.flags.writeable = False
         return view
 
     def write(self, i: int, heights: np.ndarray) -> None:
         """Terrain ``i`` becomes ``heights`` (nrow, ncol); its padding repeats its edges."""
         m, padded = self.margin, self.padded[i]
-        padded[m:-m, m:-m] = heights
-        padded[:m, m:-m] = heights[0]
-        padded[-m:, m:-m] = heights[-1]
+        nrow, ncol = self.layout.nrow, self.layout.ncol
+        padded[m : m + nrow, m : m + ncol] = heights
+        padded[:m, m : m + ncol] = heights[0]
+        padded[m + nrow :, m : m + ncol] = heights[-1]
         padded[:, :m] = padded[:, m : m + 1]
-        padded[:, -m:] = padded[:, -m - 1 : -m]
+        padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
         self.rough[i] = rough_columns(heights, m)
 
     def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
@@ -176,8 +191,18 @@ class HeightStack:
         return self._vertices(self._cells(xy), self._which(xy, which))
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        """(N,) height of the vertex nearest each point, as the heightmap reads it."""
-        return self._flat[self.vertices(xy, which)]
+        """(N,) height of the vertex nearest each point, as the heightmap reads it, in m."""
+        return self._flat[self.vertices(xy, which)].astype(np.float64)
+
+    def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
+        """(N,) the highest vertex within ``half`` (m, rounded to whole cells) along each axis
+        of the vertex nearest each point (the square clamped to the terrain), in m."""
+        k = round(half / self.layout.resolution)
+        cells = self._cells(xy)[:, :, None] + np.arange(-k, k + 1, dtype=np.int32)  # (N, 2, S)
+        np.minimum(np.maximum(cells, 0, out=cells), self._last[:, None], out=cells)
+        first = self._first[self._which(xy, which)][:, None, None]
+        square = first + cells[:, 1, :, None] * self._strides[1] + cells[:, 0, None, :]  # N, S, S
+        return self._flat[square].max(axis=(1, 2)).astype(np.float64)
 
     def heightmap(
         self, xy: np.ndarray, yaw: np.ndarray, which: np.ndarray | None = None
@@ -202,7 +227,7 @@ class HeightStack:
         index = self._table.take(bins, axis=0, mode="wrap")
         index += centre[:, None]
         heights = self._flat.take(index)
-        heights -= self._flat[centre][:, None]
+        heights -= heights[:, self._head, None]  # the head's own vertex: offset (0, 0)
         return heights
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:
@@ -224,11 +249,16 @@ def rough_columns(heights: np.ndarray, reach: int) -> np.ndarray:
     array) hold more than one height, for each column c; repeated edges add no new height."""
     level = (heights == heights[0]).all(axis=0)  # each column one height
     same = level[:-1] & level[1:] & (heights[0, :-1] == heights[0, 1:])  # columns c, c + 1
-    changes = np.concatenate(([0], np.cumsum(~same)))  # changes[c]: pairs before column c
-    ncol = heights.shape[1]
-    column = np.arange(ncol)
-    low, high = np.maximum(column - reach, 0), np.minimum(column + reach, ncol - 1)
-    return changes[high] > changes[low]
+    return spread(~same, reach)
+
+
+def spread(changes: np.ndarray, reach: int) -> np.ndarray:
+    """(ncol,) bool from (ncol - 1,) bool ``changes`` (columns c and c + 1 are not both level
+    at one height): whether a change lies within columns ``c - reach .. c + reach`` (clamped)."""
+    count = np.concatenate(([0], np.cumsum(changes)))  # count[c]: changes before column c
+    column = np.arange(len(count))
+    low, high = np.maximum(column - reach, 0), np.minimum(column + reach, len(count) - 1)
+    return count[high] > count[low]
 
 
 def sample(terrain: Terrain, xy: ArrayLike, yaw: ArrayLike, grid: HeightmapGrid) -> np.ndarray:

@@ -22,15 +22,6 @@ FACES = np.array(
 )  # a cube's face centres, in half sides
 
 
-def rotate(quat: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """(N, ..., 3) vectors of copy k's body frame turned into the world by its (N, 4) unit
-    quaternion (w, x, y, z)."""
-    middle = (1,) * (vectors.ndim - 2)
-    w, u = quat[:, 0].reshape(len(quat), *middle, 1), quat[:, 1:].reshape(len(quat), *middle, 3)
-    t = 2.0 * np.cross(u, vectors)
-    return vectors + w * t + np.cross(u, t)
-
-
 class GoalPoint(Part):
     """A goal on the ground: ``draw(rng, n)`` gives (n, 2) positions for n new episodes. After
     each step, ``gain`` is the decrease in head-goal distance (xy) and ``arrived`` whether the
@@ -156,6 +147,7 @@ class CarriedObject(Part):
         self.geom = dict(geom or {})
         self.faces = faces
         self.half = placement.box_size / 2
+        self._face_offsets = FACES.T * self.half  # (3, 6): columns are face centres, body frame
 
     def build(self, spec: mujoco.MjSpec) -> None:
         body = spec.worldbody.add_body(name="box", pos=[0, 0, self.half])
@@ -184,7 +176,7 @@ class CarriedObject(Part):
         joint = env.free_joint("box_root")
         self.qpos = joint.qpos
         self.position = joint.qpos[:, :3]
-        self.orientation = joint.qpos[:, 3:7]
+        self.rot = joint.rot
         self.velocity = joint.qvel
         self.marker = env.mocap_pos("goal")
         self.goal = np.zeros((env.num_envs, 3))
@@ -193,18 +185,19 @@ class CarriedObject(Part):
         arena = self.arena
         obj, goal = self.placement.draw(env.rng, len(ids), arena.half, self.spawn)
         self.qpos[ids, :2] = obj
-        self.qpos[ids, 2] = arena.ground(obj, ids) + self.half / arena.cos_slope + 0.01
+        self.qpos[ids, 2] = arena.top(obj, self.half, ids) + self.half / arena.cos_slope
         self.qpos[ids, 3:7] = arena.tilt
         self.goal[ids] = np.column_stack([goal, arena.ground(goal, ids) + GOAL_LIFT])
         self.marker[ids] = self.goal[ids]
 
     def angular_velocity(self) -> np.ndarray:
         """(N, 3) the object's angular velocity in the world frame."""
-        return rotate(self.orientation, self.velocity[:, 3:6])
+        return np.matmul(self.rot, self.velocity[:, 3:6, None])[:, :, 0]
 
     def reach_points(self) -> np.ndarray:
         """(N, K, 3) where the agent reaches the object: its face centres, or its centre."""
         if not self.faces:
             return self.position[:, None]
-        faces = rotate(self.orientation, np.broadcast_to(FACES * self.half, (len(self.qpos), 6, 3)))
-        return self.position[:, None] + faces
+        faces = np.matmul(self.rot, self._face_offsets).transpose(0, 2, 1)
+        faces += self.position[:, None]
+        return faces

@@ -58,15 +58,12 @@ class ObjectSeen(Observation):
 
     def __call__(self, env: EnvView, ids: np.ndarray) -> np.ndarray:
         obj, head = self.obj, env.head_pos
-        velocity = obj.velocity[:, :3] - env.head_vel
-        seen = np.concatenate(
-            [
-                env.to_head_frame(obj.position - head),
-                env.to_head_frame(velocity),
-                env.to_head_frame(obj.angular_velocity()),
-                env.to_head_frame(obj.goal - head),
-            ],
-            axis=1,
-            dtype=np.float32,
-        )
-        return seen[ids]
+        parts = np.empty((env.num_envs, 4, 3))  # the four world vectors, then one rotation
+        np.subtract(obj.position, head, out=parts[:, 0])
+        np.subtract(obj.velocity[:, :3], env.head_vel, out=parts[:, 1])
+        parts[:, 2] = obj.angular_velocity()
+        np.subtract(obj.goal, head, out=parts[:, 3])
+        seen = np.matmul(parts, env.head_rot).reshape(env.num_envs, self.size)  # R^T v, per row
+        if ids is not env.all:
+            seen = seen[ids]
+        return seen.astype(np.float32)

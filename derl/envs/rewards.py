@@ -112,7 +112,8 @@ class ReachObject(RewardTerm):
     def distance(self, env: EnvView) -> np.ndarray:
         points, targets = env.agent_points(), self.obj.reach_points()
         gaps = points[:, :, None] - targets[:, None]  # (N, P, K, 3)
-        return np.sqrt(np.square(gaps).sum(axis=3)).min(axis=(1, 2))
+        squares = np.add.reduce(np.square(gaps, out=gaps), axis=3).reshape(len(gaps), -1)
+        return np.sqrt(np.minimum.reduce(squares, axis=1))
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         self.dist[ids] = self.distance(env)[ids]
@@ -142,7 +143,8 @@ class PushObject(RewardTerm):
         self.dist = np.zeros(env.num_envs)
 
     def distance(self) -> np.ndarray:
-        return np.linalg.norm(self.obj.position[:, :2] - self.obj.goal[:, :2], axis=1)
+        gap = self.obj.position[:, :2] - self.obj.goal[:, :2]
+        return np.hypot(gap[:, 0], gap[:, 1])
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         self.dist[ids] = self.distance()[ids]

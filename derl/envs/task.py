@@ -63,6 +63,12 @@ class Arena(Part):
         """(len(xy),) ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
         raise NotImplementedError
 
+    def top(self, xy: np.ndarray, half: float, ids: np.ndarray | None = None) -> np.ndarray:
+        """(len(xy),) the highest ground under the square of half side ``half`` around point
+        ``xy[k]`` of copy ``ids[k]``, where an object of that footprint rests (on a plane: the
+        ground under its centre, the object tilted with the plane)."""
+        return self.ground(xy, ids)
+
 
 class RewardTerm(Part):
     """One weighted term of the reward (the reward is their sum), reported under `name`."""

@@ -20,14 +20,12 @@ can be written into ``model.hfield_data`` in place without recompiling.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Literal, NamedTuple, TypeVar
+from typing import Annotated, Literal, NamedTuple, TypeVar
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
-
-if TYPE_CHECKING:
-    import mujoco
 
 ObstacleKind = Literal["hills", "steps", "rubble"]
 SegmentKind = Literal["flat", "hills", "steps", "rubble", "boxes"]
@@ -246,23 +244,6 @@ class Terrain:
         data = self._normalized(np.empty(self.heights.size, np.float32))
         return HField((*self._extent, base), self.nrow, self.ncol, data)
 
-    def write_to(self, model: mujoco.MjModel, hfield_id: int = 0) -> None:
-        """Write this terrain into hfield ``hfield_id`` of a compiled model, in place.
-
-        The hfield must have this terrain's nrow, ncol and size[:3]. Physics and ``mj_ray`` see
-        the change at once; a renderer needs ``mujoco.mjr_uploadHField`` to show it.
-        """
-        shape = (int(model.hfield_nrow[hfield_id]), int(model.hfield_ncol[hfield_id]))
-        if shape != self.heights.shape or not np.allclose(
-            model.hfield_size[hfield_id, :3], self._extent
-        ):
-            raise ValueError(
-                f"hfield {hfield_id} is {shape} of size {model.hfield_size[hfield_id]}, "
-                f"terrain needs {self.heights.shape} of size {self._extent}"
-            )
-        adr = int(model.hfield_adr[hfield_id])
-        self._normalized(model.hfield_data[adr : adr + self.heights.size])
-
     @property
     def _extent(self) -> tuple[float, float, float]:
         """The hfield's size[:3]: (radius_x, radius_y, elevation_z)."""
@@ -274,14 +255,29 @@ class Terrain:
         return np.clip(out, 0.0, 1.0, out=out)
 
 
+class Span(NamedTuple):
+    """A stretch of a drawn corridor, before its heights are written (`render`): vertex columns
+    [c0, c1) of ``kind``, designed top ``top`` (m, as `Segment`), row r's heights along x
+    ``profiles[pick[r]]`` (float32, m; ``pick`` None: ``profiles[0]`` in every row)."""
+
+    kind: SegmentKind
+    c0: int
+    c1: int
+    top: float
+    pick: np.ndarray | None
+    profiles: np.ndarray
+
+
 def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain:
     """Draw a new world from ``config``; deterministic for a given generator state."""
-    heights = np.zeros(config.grid_shape, dtype=np.float32)
+    heights = np.empty(config.grid_shape, dtype=np.float32)
+    spans = plan_terrain(config, rng)
+    render(spans, heights, (0, heights.shape[0]), (0, heights.shape[1]))
     x_min, res = -config.size_x / 2, config.resolution
-    segments = []
-    for kind, c0, c1 in _layout(config, heights.shape[1] - 1, rng):
-        top = 0.0 if kind == "flat" else _BUILDERS[kind](heights[:, c0:c1], config, rng)
-        segments.append(Segment(kind, round(x_min + c0 * res, 9), round(x_min + c1 * res, 9), top))
+    segments = [
+        Segment(s.kind, round(x_min + s.c0 * res, 9), round(x_min + s.c1 * res, 9), s.top)
+        for s in spans
+    ]
     return Terrain(
         heights=heights,
         resolution=res,
@@ -291,13 +287,67 @@ def generate_terrain(config: TerrainConfig, rng: np.random.Generator) -> Terrain
     )
 
 
+def plan_terrain(config: TerrainConfig, rng: np.random.Generator) -> list[Span]:
+    """Every draw of a new world from ``config`` (those of `generate_terrain`), its heights not
+    yet written: a few hundred numbers, whatever the world's size."""
+    nrow, ncol = config.grid_shape
+    spans = []
+    for kind, c0, c1 in _layout(config, ncol - 1, rng):
+        if kind == "flat":
+            spans.append(Span(kind, c0, c1, 0.0, None, _level(c1 - c0)))
+        elif kind == "rubble":
+            spans.append(Span(kind, c0, c1, *_rubble(c1 - c0, nrow, config, rng)))
+        else:
+            top, profile = _BUILDERS[kind](c1 - c0, config, rng)
+            spans.append(Span(kind, c0, c1, top, None, profile[None]))
+    return spans
+
+
+def render(
+    spans: list[Span],
+    out: np.ndarray,
+    rows: tuple[int, int],
+    cols: tuple[int, int],
+    margin: int = 0,
+) -> None:
+    """Write rows [rows) and columns [cols) (indices of ``out``) of the world ``spans`` plans
+    into ``out``, a float32 array of its vertices framed by ``margin`` cells on every side that
+    repeat its edges, (nrow + 2 margin, ncol + 2 margin). Columns beyond the last span (the far
+    edge's) are flat."""
+    (r0, r1), (c0, c1) = rows, cols
+    block = out[r0:r1, c0:c1]
+    nrow, ncol = out.shape[0] - 2 * margin, out.shape[1] - 2 * margin
+    first, last = (min(max(c - margin, 0), ncol - 1) for c in (c0, c1 - 1))  # terrain columns
+    terrain_rows = None  # of the block's rows (the frame repeats the edge rows)
+    for span in spans:
+        if span.c1 <= first:
+            continue
+        if span.c0 > last:
+            break
+        # the block's columns of the span (the frame's left part repeats the first column)
+        lo = 0 if span.c0 == 0 else max(span.c0 + margin - c0, 0)
+        hi = min(span.c1 + margin - c0, c1 - c0)
+        along = c0 + lo - margin - span.c0  # the span's column at the block's column lo
+        if along >= 0:
+            profiles = span.profiles[:, along : along + hi - lo]
+        else:
+            profiles = span.profiles[:, np.maximum(np.arange(along, along + hi - lo), 0)]
+        if span.pick is None:
+            block[:, lo:hi] = profiles[0]
+            continue
+        if terrain_rows is None:
+            terrain_rows = np.clip(np.arange(r0, r1) - margin, 0, nrow - 1)
+        block[:, lo:hi] = profiles[span.pick[terrain_rows]]
+    block[:, max(spans[-1].c1 + margin - c0, 0) :] = 0.0
+
+
 def _cells(length: float, resolution: float) -> int:
     return round(length / resolution)
 
 
 def _pick(values: tuple[T, ...], rng: np.random.Generator) -> T:
-    """One of ``values``, uniformly."""
-    return values[rng.integers(len(values))]
+    """One of ``values``, uniformly (`Generator.random`: a fifth of `Generator.integers`' cost)."""
+    return values[int(rng.random() * len(values))]
 
 
 def _layout(
@@ -323,19 +373,58 @@ def _layout(
     return spans
 
 
-def _hills(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+def _hills(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """H sin over n columns from 0 to pi, both ends included (0 at both), constant across y."""
     height = _pick(config.hill_height, rng)
-    block[:] = height * np.sin(np.linspace(0.0, np.pi, block.shape[1]))
-    return height
+    return height, (height * _half_sine(n)).astype(np.float32)
 
 
-def _steps(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+def _steps(n: int, config: TerrainConfig, rng: np.random.Generator) -> tuple[float, np.ndarray]:
     """num_steps treads of n / num_steps columns each at 0, h, ..., top, top, ..., h, 0."""
-    tread = np.arange(config.num_steps)
-    levels = config.step_height * np.minimum(tread, config.num_steps - 1 - tread)
-    block[:] = np.repeat(levels, block.shape[1] // config.num_steps)
-    return config.steps_top
+    return config.steps_top, _stairs(n, config.num_steps, config.step_height)
+
+
+# The profiles below depend on a span's length and the configuration only: computed once each
+# (plans are drawn at every reset), and read-only.
+
+
+@functools.cache
+def _level(n: int) -> np.ndarray:
+    return _frozen(np.zeros((1, n), np.float32))
+
+
+@functools.cache
+def _half_sine(n: int) -> np.ndarray:
+    return _frozen(np.sin(np.linspace(0.0, np.pi, n)))
+
+
+@functools.cache
+def _stairs(n: int, num_steps: int, step_height: float) -> np.ndarray:
+    tread = np.arange(num_steps)
+    levels = step_height * np.minimum(tread, num_steps - 1 - tread)
+    return _frozen(np.repeat(levels, n // num_steps).astype(np.float32))
+
+
+@functools.cache
+def _clipped_waves(
+    n: int, half_periods: tuple[int, ...], clips: tuple[float, ...], peak: float
+) -> np.ndarray:
+    """(len(half_periods) * len(clips), n): each pair's profile, clips varying fastest."""
+    # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
+    phase = np.outer(half_periods, np.arange(n) / (n - 1)) % 2.0
+    waves = peak * (1.0 - np.abs(phase - 1.0))
+    profiles = np.minimum(waves[:, None, :], np.array(clips)[:, None]).reshape(-1, n)
+    return _frozen(profiles.astype(np.float32))
+
+
+@functools.cache
+def _strip_widths(widths: tuple[float, ...], resolution: float) -> np.ndarray:
+    return _frozen(np.array([_cells(w, resolution) for w in widths]))
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
 
 
 def _rubble_strips(
@@ -344,27 +433,26 @@ def _rubble_strips(
     """Rubble's draws for a block of ``nrow`` rows: each strip's rows, and the indices of its
     half-periods and clip height in the config's choices; strips are stacked from row 0 until
     they cover the block (the last one is cut)."""
-    widths = np.array([_cells(w, config.resolution) for w in config.rubble_strip_width])
-    rows = widths[rng.integers(len(widths), size=-(-nrow // widths.min()))]  # enough strips
+    widths = _strip_widths(config.rubble_strip_width, config.resolution)
+    draws = rng.random((3, -(-nrow // widths.min())))  # enough strips
+    rows = widths[(draws[0] * len(widths)).astype(np.intp)]
     count = int(np.searchsorted(np.cumsum(rows), nrow)) + 1
-    wave = rng.integers(len(config.rubble_half_periods), size=count)
-    clip = rng.integers(len(config.rubble_clip), size=count)
+    wave = (draws[1, :count] * len(config.rubble_half_periods)).astype(np.intp)
+    clip = (draws[2, :count] * len(config.rubble_clip)).astype(np.intp)
     return rows[:count], wave, clip
 
 
-def _rubble(block: np.ndarray, config: TerrainConfig, rng: np.random.Generator) -> float:
+def _rubble(
+    n: int, nrow: int, config: TerrainConfig, rng: np.random.Generator
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Strips along x, each min(triangle wave, clip) with the wave 0 -> peak -> 0 over two
-    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2)."""
-    nrow, n = block.shape
+    half-periods (``sawtooth(linspace(0, f pi, n), 0.5) + 1`` for peak 2): the top, each row's
+    profile, and the profiles (one per pair of half-periods and clip)."""
     rows, wave, clip = _rubble_strips(nrow, config, rng)
-    # Position in the wave, in half-periods modulo a period: linspace(0, f, n) % 2 for each f.
-    # Few distinct (f, clip) pairs: the profiles are computed once each and copied into strips.
-    phase = np.outer(config.rubble_half_periods, np.arange(n) / (n - 1)) % 2.0
-    waves = config.rubble_peak * (1.0 - np.abs(phase - 1.0))
-    clips = np.array(config.rubble_clip)
-    profiles = np.minimum(waves[:, None, :], clips[:, None]).astype(np.float32)
-    block[:] = np.repeat(profiles[wave, clip], rows, axis=0)[:nrow]
-    return float(clips[clip].max())
+    clips = config.rubble_clip
+    profiles = _clipped_waves(n, config.rubble_half_periods, clips, config.rubble_peak)
+    top = max(clips[k] for k in set(clip.tolist()))
+    return top, np.repeat(wave * len(clips) + clip, rows)[:nrow], profiles
 
 
-_BUILDERS = {"hills": _hills, "steps": _steps, "rubble": _rubble}
+_BUILDERS = {"hills": _hills, "steps": _steps}

@@ -15,13 +15,23 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import mujoco
 import numpy as np
 
+MAX_SPEED = 100.0
+"""m/s or rad/s: a copy with any velocity above it has blown up (the environment ends it).
+MuJoCo itself only warns at 1e10; below that a body can spin up in the air (Euler integration
+does not keep its angular momentum) and be flung tens of km in one step, a forward reward of
+millions. Trainings that do not blow up stay under 50 (the largest |qvel| over 150k steps of each
+of four bodies of a demo run: 32-49), as in Gym's Hopper, whose healthy state is bounded by 100."""
+
 
 class FreeJoint(NamedTuple):
     """A free body's state in every copy: live (N, 7) position + quaternion, (N, 6) velocity
-    (linear in the world frame, then angular in the body's own frame: MuJoCo's qvel)."""
+    (linear in the world frame, then angular in the body's own frame: MuJoCo's qvel), and its
+    (N, 3, 3) orientation, columns the body's axes in the world (derived from the state: current
+    after each step and each placement, read-only)."""
 
     qpos: np.ndarray
     qvel: np.ndarray
+    rot: np.ndarray
 
 
 @runtime_checkable

@@ -45,7 +45,7 @@ def vt(
     walk along +x from the middle of the flat start area, seeing the heightmap."""
     terrain = terrain or TerrainConfig.variable()
     w = weights or REWARD_WEIGHTS["vt"]
-    arena = Heightfield(terrain, grid or HeightmapGrid())
+    arena = Heightfield(terrain, grid or HeightmapGrid(), lazy=True)
     return Task(
         name="vt",
         gym_name="VT",
@@ -69,7 +69,6 @@ class BoxPlacement(ForwardPlacement):
 def mvt(
     terrain: TerrainConfig | None = None,
     weights: RewardWeights | None = None,
-    grid: HeightmapGrid | None = None,
     placement: BoxPlacement | None = None,
 ) -> Task:
     """MVT: VT's terrain on 60 m x 40 m, a box, and a goal further along +x than the box. The
@@ -77,7 +76,7 @@ def mvt(
     heightmap (its configuration lists one, but its manipulation environment never adds it)."""
     terrain = terrain or TerrainConfig.manipulation()
     w = weights or REWARD_WEIGHTS["mvt"]
-    arena = Heightfield(terrain, grid or HeightmapGrid())
+    arena = Heightfield(terrain)
     spawn = (-terrain.size_x / 2 + terrain.start_flat / 2, 0.0)
     box = CarriedObject(arena, spawn, placement or BoxPlacement())
     reach = ReachObject(box, w)
