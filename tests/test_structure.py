@@ -161,13 +161,13 @@ def test_the_architecture_names_every_package_folder_and_only_those() -> None:
 
 
 def test_the_docs_name_only_files_that_exist() -> None:
-    """Every file of the repository a document names exists (docs/fidelity.md names the
-    released code's files too: not checked)."""
+    """Every file of the repository a document (the README or a page of docs/) names exists
+    (docs/fidelity.md names the released code's files too: not checked)."""
     path = re.compile(r"\b(?:derl|messages|nodes|launch|bench|tests|examples|docs)/[\w./-]*"
                       r"\.(?:py|yaml|md|json5?|sbatch|toml)\b")  # fmt: skip
     missing = [
         f"{document.name}: {name}"
-        for document in sorted((ROOT / "docs").glob("*.md"))
+        for document in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
         if document.name != "fidelity.md"
         for name in sorted(set(path.findall(document.read_text())))
         if not (ROOT / name).exists()
