@@ -106,6 +106,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "an export of nothing": (["export", "other"], 1,
                              "say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both"),
     "no trained body": (["rollout", "."], 2, "holds no trained body"),
+    "a video size without x": (["rollout", ".", "--video-size", "320"], 2,
+                               "'320': give WIDTHxHEIGHT in pixels"),
     "unknown message type": (["schema", "Nope"], 2, "unknown message type 'Nope'; valid:"),
     "router's port in use": (["router", "--listen", "tcp/127.0.0.1:{port}"], 2,
                              "the port is in use"),

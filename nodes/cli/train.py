@@ -52,7 +52,29 @@ def register(commands: argparse._SubParsersAction) -> None:
         help=f"end an episode after N control steps of 20 ms (default {EPISODE_STEPS})",
     )
     rollout.add_argument("--video", type=Path, help="write a video (.mp4 or .gif) of episode 1")
+    rollout.add_argument(
+        "--video-size",
+        type=_frame_size,
+        default=(480, 360),
+        metavar="WxH",
+        help="the video's frame size in pixels (default 480x360)",
+    )
+    rollout.add_argument(
+        "--video-every",
+        type=at_least_one,
+        default=1,
+        metavar="N",
+        help="keep every Nth control step's frame (default 1: half speed; 2: real time)",
+    )
     rollout.set_defaults(handler=_rollout)
+
+
+def _frame_size(text: str) -> tuple[int, int]:
+    """'320x240' -> (320, 240)."""
+    width, _, height = text.lower().partition("x")
+    if not (width.isdigit() and height.isdigit() and 16 <= min(int(width), int(height))):
+        raise argparse.ArgumentTypeError(f"{text!r}: give WIDTHxHEIGHT in pixels, e.g. 320x240")
+    return int(width), int(height)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -134,7 +156,7 @@ def _rollout(args: argparse.Namespace) -> int:
         trained = Trained.load(args.dir)
     except NotTrained as error:
         fail(str(error), code=2)
-    film = (480, 360) if args.video else None
+    film = args.video_size if args.video else None
     for number, episode in enumerate(
         play(trained, args.episodes, args.seed, args.episode_steps, film), start=1
     ):
@@ -145,8 +167,9 @@ def _rollout(args: argparse.Namespace) -> int:
         )
         if number == 1 and args.video:
             try:
-                write_video(args.video, episode.frames)
+                write_video(args.video, episode.frames[:: args.video_every])
             except OSError as error:
                 fail(str(error))
-            console.print(f"wrote {args.video} ({len(episode.frames)} frames)")
+            frames = len(episode.frames[:: args.video_every])
+            console.print(f"wrote {args.video} ({frames} frames)")
     return 0
