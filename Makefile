@@ -6,7 +6,7 @@ PYTHON ?= $(shell for p in python3.11 python3.12 python3.13 python3; do \
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: install install-test run test lint
+.PHONY: install install-test run test lint clips
 
 $(BIN)/python:
 	@test -n "$(PYTHON)" || { echo "derl needs Python >= 3.11 (none found on PATH; set PYTHON=...)"; exit 1; }
@@ -27,6 +27,14 @@ run: install
 	$(BIN)/derl unimal render runs/smoke/best --out runs/smoke/best.png
 	$(BIN)/derl rollout runs/smoke/best/01-* --episodes 1 --episode-steps 150 \
 		--video runs/smoke/best.gif
+
+# The README's clips, filmed from the agents shipped in agents/ (each a `derl train` folder:
+# genome.json, checkpoint.pt, result.json): 250 control steps (5 s), every 2nd frame.
+clips: install
+	for agent in agents/*/; do \
+		$(BIN)/derl rollout $$agent --episodes 1 --episode-steps 250 --video-size 320x240 \
+			--video-every 2 --video docs/clips/$$(basename $$agent).gif || exit 1; \
+	done
 
 lint: install-test
 	$(BIN)/ruff check .
