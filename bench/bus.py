@@ -930,6 +930,11 @@ def main() -> None:
     parser.add_argument("--workers", default="100,1000,10000", help="simulated worker counts")
     parser.add_argument("--duration", type=float, default=8.0, help="seconds per measurement")
     parser.add_argument("--profile-births", type=int, default=200)
+    parser.add_argument(
+        "--in-flight",
+        default="1,1000,10000",
+        help="coordinator_profile's jobs in flight (comma-separated)",
+    )
     parser.add_argument("--train-steps", type=int, default=8 * 4096)
     parser.add_argument("--work", help="folder for the runs' files (default: a temp folder)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' files")
@@ -957,7 +962,7 @@ def main() -> None:
             out["recovery"] = bench_recovery(work)
         if only is None or "coordinator_profile" in only:
             out["coordinator_profile"] = bench_coordinator_profile(
-                work, [1, 1000, 10000], args.profile_births
+                work, [int(k) for k in args.in_flight.split(",")], args.profile_births
             )
         if only is None or "assignments" in only:
             out["assignments"] = [

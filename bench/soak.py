@@ -396,8 +396,9 @@ def main() -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     total = args.total
     if total is None:  # the trainers share the cores with every other node and the faults
+        # (a margin: a soak longer than asked is fine, a shorter one is not)
         body_s = calibrate(args.train_steps)
-        total = max(PROFILE["population"] + 2, int(args.minutes * 60 / body_s * 1.2))
+        total = max(PROFILE["population"] + 2, int(args.minutes * 60 / body_s * 1.5))
     work = Path(tempfile.mkdtemp(prefix="derl-soak-", dir=args.work))
     soak = Soak(work, args.minutes, tuple(args.fault_every), total, args.trainers, args.seed,
                 args.train_steps)  # fmt: skip
