@@ -369,16 +369,19 @@ def _free_port() -> int:
 
 
 def calibrate(train_steps: int) -> float:
-    """Seconds one training of the soak's profile takes here (a sampled body, in FT)."""
+    """Seconds one training of the soak's profile takes here (a sampled body, in FT; the second
+    of two: the first pays for the imports and the first compiles)."""
     import numpy as np
 
     from derl.lifetime import learn
     from derl.rl import PPOConfig
     from derl.unimal import sample_population
 
-    body = sample_population(1, np.random.default_rng(0))[0]
+    config = PPOConfig(total_steps=train_steps, num_envs=PROFILE["num_envs"])
+    first, second = sample_population(2, np.random.default_rng(0))
+    learn(first, "ft", config)
     start = time.monotonic()
-    learn(body, "ft", PPOConfig(total_steps=train_steps, num_envs=PROFILE["num_envs"]))
+    learn(second, "ft", config)
     return time.monotonic() - start
 
 
@@ -395,10 +398,11 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
     total = args.total
-    if total is None:  # the trainers share the cores with every other node and the faults
-        # (a margin: a soak longer than asked is fine, a shorter one is not)
+    if total is None:  # the trainers in parallel, with a margin (a soak longer than asked is
+        # fine, a shorter one is not; a body born already is born at once, untrained)
         body_s = calibrate(args.train_steps)
-        total = max(PROFILE["population"] + 2, int(args.minutes * 60 / body_s * 1.5))
+        bodies = args.minutes * 60 / body_s * args.trainers * 1.3
+        total = max(PROFILE["population"] + 2, int(bodies))
     work = Path(tempfile.mkdtemp(prefix="derl-soak-", dir=args.work))
     soak = Soak(work, args.minutes, tuple(args.fault_every), total, args.trainers, args.seed,
                 args.train_steps)  # fmt: skip
