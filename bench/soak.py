@@ -110,7 +110,8 @@ def put_garbage(bus: Bus) -> tuple[int, zenoh.LivelinessToken]:
 # --- the processes ---------------------------------------------------------------------------
 
 
-def _children() -> dict[int, list[int]]:
+def descendants(pid: int) -> list[int]:
+    """The processes started by `pid`, and by them, now."""
     children: dict[int, list[int]] = {}
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
@@ -119,7 +120,12 @@ def _children() -> dict[int, list[int]]:
             except (OSError, IndexError, ValueError):
                 continue
             children.setdefault(ppid, []).append(int(entry.name))
-    return children
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
 
 
 def label(pid: int) -> str | None:
@@ -141,14 +147,8 @@ def label(pid: int) -> str | None:
 
 def node_processes(root: int) -> dict[int, str]:
     """The node processes under `root` (the launch), by pid, with their labels."""
-    children, found, todo = _children(), {}, [root]
-    while todo:
-        pid = todo.pop()
-        name = label(pid)
-        if name is not None:
-            found[pid] = name
-        todo += children.get(pid, [])
-    return found
+    labels = {pid: label(pid) for pid in (root, *descendants(root))}
+    return {pid: name for pid, name in labels.items() if name is not None}
 
 
 def sample(pid: int) -> dict[str, float] | None:

@@ -38,6 +38,10 @@ from derl.nodes.runtime.processes import child_setup, stop_all
 from derl.rl import PPOConfig
 from derl.unimal import Genome
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from soak import descendants  # the soak's: the processes started by a process, and by them
+
 M = TypeVar("M", bound=MessageBase)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -336,21 +340,3 @@ class FullDisk:
         self.free()
         if self.kind == "tmpfs":
             subprocess.run(["umount", "-l", str(self.path)], capture_output=True)
-
-
-def descendants(pid: int) -> list[int]:
-    """The processes started by `pid`, and by them, now."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(entry.name))
-    found, todo = [], [pid]
-    while todo:
-        for child in children.get(todo.pop(), []):
-            found.append(child)
-            todo.append(child)
-    return found

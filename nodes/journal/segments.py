@@ -93,10 +93,14 @@ class JournalWriter:
             if self._closed:
                 raise ValueError(f"{self.path} is closed")
             now = time.time_ns()
-            self._append(msg, data, now, now if publish_time_ns is None else publish_time_ns)
-            if flush:
-                self._writer.flush()
-                self.pending = 0
+            self._add(msg, data, now, now if publish_time_ns is None else publish_time_ns, flush)
+
+    def _add(self, msg: MessageBase, data: bytes, logged: int, published: int, flush: bool) -> None:
+        """`write`'s work, the lock held."""
+        self._append(msg, data, logged, published)
+        if flush:
+            self._writer.flush()
+            self.pending = 0
 
     def _append(self, msg: MessageBase, data: bytes, log_time: int, publish_time: int) -> None:
         """Add `msg` to the chunk in progress (the lock held)."""
@@ -346,28 +350,17 @@ class Journal(JournalWriter):
         """Every message journaled in this run so far, this segment's included."""
         return replay(self.run_dir)
 
-    def write(
-        self,
-        msg: MessageBase,
-        publish_time_ns: int | None = None,
-        data: bytes | None = None,
-        flush: bool = True,
-    ) -> None:
-        data = encode(msg) if data is None else data
-        with self._lock:
-            if self._closed:
-                raise ValueError(f"{self.path} is closed")
-            now = time.time_ns()
-            published = now if publish_time_ns is None else publish_time_ns
-            self._unsynced.append((msg, data, published))
-            if self.failure is not None:
-                return
-            try:
-                self._append(msg, data, now, published)
-                if flush:
-                    self._flush()
-            except OSError as error:
-                self._fail(error)
+    def _add(self, msg: MessageBase, data: bytes, logged: int, published: int, flush: bool) -> None:
+        """As `JournalWriter._add`, kept until synced; nothing written after a failure."""
+        self._unsynced.append((msg, data, published))
+        if self.failure is not None:
+            return
+        try:
+            self._append(msg, data, logged, published)
+            if flush:
+                self._flush()
+        except OSError as error:
+            self._fail(error)
 
     def flush(self) -> None:
         with self._lock:
