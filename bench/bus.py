@@ -4,13 +4,11 @@
    bodies that never runs out, lease 1 h) on loopback, driven by `LoadGenerator`: a LOAD-TEST
    TOOL that simulates W workers over one Zenoh session. Nothing is bred or trained: each
    simulated worker sends WorkerReady (again while idle, as often as a real one), and
-   answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (an initial child
-   with its job's body, a tournament child with its first draft, `first_draft`: the child itself
-   whenever that body is valid, without the validity check's MuJoCo compile, which the generator,
-   sharing the cores with the coordinator, could not afford; env steps within the job's PPO
-   budget; a fitness within the world's bound). So children have bodies of their own, and a
-   child whose body is born already, or drafted like a child in training, takes the
-   coordinator's repeat path as in a run. Every Reject it gets is counted. For W = 100, 1,000,
+   answers each TrainJob with a tiny fake FitnessReport the coordinator accepts (the job's body,
+   which the coordinator bred; env steps within the job's PPO budget; a fitness within the
+   world's bound). So children have bodies of their own, and a child whose body is born
+   already, or bred like a child in training, takes the coordinator's repeat path as in a run.
+   Every Reject it gets is counted. For W = 100, 1,000,
    10,000 it measures, after the initial population is born, (a) `saturated`: answers at
    once, i.e. the most assignments/s the coordinator gives; (c) `half_capacity`: each simulated
    worker's cycle (ask, job, report, Ack: its round trips included) lasts W / R s with R = half
@@ -23,9 +21,9 @@
    creates one per birth, and on a file system where that takes a millisecond of CPU its
    checkpoint writer takes a core from the others at a thousand births a second.
 2. `coordinator_profile`: the coordinator's own code (no bus, no network) driven in this process
-   with K jobs in flight, each report carrying the child its trainer would have bred (so a child
-   whose body is born already is born as a repeat, without training, as in a run; their share
-   is printed): CPU ms of its loop's thread per assignment, decoding the report included (what
+   with K jobs in flight, each report carrying its job's body (a child whose body is born already
+   is born as a repeat, without training, as in a run; their share is printed): CPU ms of its
+   loop's thread per assignment, decoding the report and breeding the next child included (what
    bounds its rate; the checkpoint files are written by another thread) and the top functions
    (cProfile), to show where the time goes.
 3. `journal`: write and replay rates of the MCAP journal (`nodes.journal.segments`) for its real mix
@@ -90,9 +88,8 @@ from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.worker.node import ready_wait
 
 from derl.evolution import EvolutionConfig, load_profile
-from derl.evolution.population import breed, first_draft
+from derl.evolution.population import breed
 from derl.unimal import Genome, sample_population
-from derl.unimal.mutations import MutationFailed
 
 SCALE_PROFILE = {
     "profile": "paper",
@@ -189,11 +186,9 @@ class LoadGenerator:
         self.cancelled = 0
         self.cycle_s = 0.0
         self.jitter = random.Random(0)
-        # answers to send: (node, job, child, the job's genome, its mutation seed, its step
-        # budget); job "" asks for work
-        self.answers: queue.Queue[tuple[str, str, str, dict | None, int | None, int]] = (
-            queue.Queue()
-        )
+        # answers to send: (node, job, child, the job's genome, its step budget); job "" asks
+        # for work
+        self.answers: queue.Queue[tuple[str, str, str, dict | None, int]] = queue.Queue()
         # The generator shares the cores with the coordinator, so it does no more than a worker
         # must: each node's WorkerReady is encoded once, and a report is a template's fields
         # filled in and packed as `encode` packs it, not validated again
@@ -272,8 +267,7 @@ class LoadGenerator:
             # round trips (this job's, its last report's Ack) are taken out: so W workers offer
             # W / cycle_s assignments a second whatever the round trips take
             spent = (now - since if since is not None else 0.0) + self.ack_wait.get(node, 0.0)
-        answer = (node, job["job"], job["child"], job["genome"], job["mutation_seed"],
-                  job["ppo"]["total_steps"])  # fmt: skip
+        answer = (node, job["job"], job["child"], job["genome"], job["ppo"]["total_steps"])
         delay = self.cycle_s * self.jitter.uniform(0.5, 1.5) - spent if self.cycle_s > 0 else 0.0
         if delay <= 0:
             self.answers.put(answer)
@@ -293,22 +287,15 @@ class LoadGenerator:
     def _answer(self) -> None:
         while not self.stop.is_set():
             try:
-                node, job, child, genome, seed, budget = self.answers.get(timeout=0.1)
+                node, job, child, genome, budget = self.answers.get(timeout=0.1)
             except queue.Empty:
                 continue
             if not job:  # acknowledged: ask for the next job
                 self._ready(node, time.perf_counter())
                 continue
-            mutation = None
-            if seed is not None:
-                try:
-                    drafted, bred = first_draft(Genome.model_validate(genome), seed)
-                    genome, mutation = drafted.model_dump(), bred.op
-                except MutationFailed:  # (a drawn body no operator applies to): the parent's
-                    mutation = "gear"
+            fitness = self.jitter.uniform(0, 100)
             report = dict(self.report, child=child, job=job, node=node, genome=genome,
-                          mutation=mutation, fitness=self.jitter.uniform(0, 100),
-                          env_steps=min(2, budget))  # fmt: skip
+                          fitness=fitness, env_steps=min(2, budget))  # fmt: skip
             with self.lock:
                 self.unacked[job] = (node, time.perf_counter())
             self._put(self.keys.fitness(node, child), msgpack.packb(report, use_bin_type=True))
@@ -487,16 +474,9 @@ def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
 
 
 def _report(run: str, job: TrainJob, fitness: float) -> FitnessReport:
-    """A fake result for `job` with the body a trainer reports: a tournament child is bred
-    here, as its trainer would (so children whose body is born already take the coordinator's
-    repeat path, as in a run)."""
-    genome, mutation = job.genome, None
-    if job.mutation_seed is not None:
-        genome, bred = breed(job.genome, job.mutation_seed)
-        mutation = bred.op
+    """A fake result for `job`, with its body (bred by the coordinator)."""
     return FitnessReport(
-        run=run, child=job.child, job=job.job, node=job.node, genome=genome,
-        mutation=mutation, fitness=fitness,
+        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome, fitness=fitness,
         fitness_source="window", fitness_episodes=10,
         curve=Curve(env_steps=tuple(range(4096, 4096 * 101, 4096)),
                     returns=tuple(float(k) for k in range(100))),
@@ -531,15 +511,14 @@ class Driver:
 
     def run(self, births: int, profiler: cProfile.Profile | None = None) -> list[float]:
         """`births` more births; the CPU seconds of this thread each assignment took (decoding a
-        fitness report, handling it and the worker's next WorkerReady, each one a group of its
-        own: the most journal flushes; the checkpoint files are written by the coordinator's
-        other thread; breeding the reported child is the trainer's part, neither timed nor
-        profiled)."""
+        fitness report, handling it and the worker's next WorkerReady, breeding its child
+        included, each one a group of its own: the most journal flushes; the checkpoint files
+        are written by the coordinator's other thread)."""
         coordinator = self.coordinator
         times: list[float] = []
         target = coordinator.policy.born + births
         while coordinator.policy.born < target:
-            tournaments = coordinator.state.evolution.initial_born
+            tournaments = bool(coordinator.state.evolution.born) and not coordinator.state.waiting
             if not self.busy or (self.idle and tournaments and not self.retried):
                 self.retried = tournaments  # idle workers ask again once tournaments start
                 retry, self.idle = self.idle, []
@@ -567,7 +546,8 @@ class Driver:
 
 BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
     "tournament (drawing contestants)": ("evolution/population.py", "tournament"),
-    "repeat lookup (first drafts; a repeat's mutation)": ("evolution/population.py", "repeat"),
+    "breeding (mutation and validity check)": ("evolution/population.py", "breed"),
+    "repeat lookup (body hash)": ("evolution/population.py", "repeat"),
     "journal writes": ("nodes/journal/segments.py", "write"),
     "journal flushes (the fsync is on the outbox thread)": ("nodes/journal/segments.py", "flush"),
     "checkpoint hand-off (a thread writes the file)": ("nodes/runtime/checkpoints.py", "save"),
@@ -635,7 +615,7 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
     mix = []
     for k in range(messages // 4):
         job = TrainJob(run=run, job=f"c{k:05d}.1", child=f"c{k:05d}", node=f"w{k % 300}",
-                       genome=genome, task="ft", ppo=ppo, parent="i0001", mutation_seed=k,
+                       genome=genome, task="ft", ppo=ppo, parent="i0001", mutation="gear",
                        lease_s=60.0)  # fmt: skip
         mix += [
             Tournament(run=run, child=job.child, contestants=("i0001",) * 4,
@@ -950,6 +930,11 @@ def main() -> None:
     parser.add_argument("--workers", default="100,1000,10000", help="simulated worker counts")
     parser.add_argument("--duration", type=float, default=8.0, help="seconds per measurement")
     parser.add_argument("--profile-births", type=int, default=200)
+    parser.add_argument(
+        "--in-flight",
+        default="1,1000,10000",
+        help="coordinator_profile's jobs in flight (comma-separated)",
+    )
     parser.add_argument("--train-steps", type=int, default=8 * 4096)
     parser.add_argument("--work", help="folder for the runs' files (default: a temp folder)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' files")
@@ -977,7 +962,7 @@ def main() -> None:
             out["recovery"] = bench_recovery(work)
         if only is None or "coordinator_profile" in only:
             out["coordinator_profile"] = bench_coordinator_profile(
-                work, [1, 1000, 10000], args.profile_births
+                work, [int(k) for k in args.in_flight.split(",")], args.profile_births
             )
         if only is None or "assignments" in only:
             out["assignments"] = [

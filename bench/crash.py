@@ -1,8 +1,8 @@
 """Crash consistency of a run directory, checked at every point of a real run's writes; prints JSON.
 
 1. Record. A small real run (the smoke profile: P=4, T=2, 10 bodies, no evaluation) of a real
-   `derl coordinator` process and two simulated trainers (`Trainer`: each breeds its child, answers
-   its job at once with a fitness and checkpoint bytes that depend only on the child, and sends the
+   `derl coordinator` process and two simulated trainers (`Trainer`: each answers its job at once
+   with its body, a fitness and checkpoint bytes that depend only on the child, and sends the
    report again every 0.5 s until it is acknowledged or rejected, as `derl trainer` does) over real
    Zenoh, under `strace -f`: every open, write (with its bytes), truncate, rename, link, unlink,
    mkdir, fsync, fdatasync and syncfs of the coordinator and its checkpoint writer process, and
@@ -115,8 +115,8 @@ def checkpoint_of(child: str) -> bytes:
 
 @cache
 def _report(job: TrainJob) -> FitnessReport:
-    """`job`'s report (bench/bus.py's fake result: a tournament child bred as its trainer would)
-    with this child's checkpoint and fitness: later children are fitter (as evolution hopes), so
+    """`job`'s report (bench/bus.py's fake result, with the job's body) with this child's
+    checkpoint and fitness: later children are fitter (as evolution hopes), so
     the last ones born are the best, whose checkpoints the run's results must hold."""
     from bus import _report as report_of
 

@@ -5,15 +5,16 @@ Per profile, worker count and fitness model, over seeds: W trainers each train o
 time (a training takes a uniform 0.5-1.5 time units), the P initial bodies first; a free trainer
 gets the next tournament's child, bred as the coordinator breeds it, and a child whose body
 (`body_hash`) is born already is born at once with that body's fitness (a repeat, no training),
-as the coordinator does (`Evolution.repeat`; `missed`: born bodies it did not see, their first
-draft being invalid). With ``hold`` false a body equal to one still in training is trained again
-(`trained_twice`, with the same fitness: training is deterministic within a run); with ``hold``
-true (the coordinator's policy, `CoordinatorState.hold`) a child whose first draft is that of a
-child in training waits for its birth, then is looked up again, while its trainer takes the next
-child. Fitness models: ``random`` (every distinct body an independent N(0, 1), the default) and
-``inherited`` (the parent's plus N(0, 0.5)). The
-initial population is drawn once per profile (its sampling dominates the cost); the seeds vary
-the tournaments, the mutations and the fitness. `saved` is repeats / tournament children.
+as the coordinator does (`Evolution.body`, then `Evolution.repeat`: their CPU time per child is
+the coordinator's cost of deciding a body, `decide_ms`). With ``hold`` false a body equal to one
+still in training is trained again (`trained_twice`, with the same fitness: training is
+deterministic within a run); with ``hold`` true (the coordinator's policy,
+`CoordinatorState.hold`) a child whose body is that of a child in training waits for its birth,
+then is born as its repeat, while its trainer takes the next child. Fitness models: ``random``
+(every distinct body an independent N(0, 1), the default) and ``inherited`` (the parent's plus
+N(0, 0.5)). The initial population is drawn once per profile (its sampling dominates the
+cost); the seeds vary the tournaments, the mutations and the fitness. `saved` is repeats /
+tournament children.
 Run: python bench/repeats.py [--profiles demo paper] [--seeds 5] [--workers 1 2 16]
 [--fitness random inherited]
 """
@@ -30,7 +31,7 @@ from collections import deque
 
 import numpy as np
 
-from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
+from derl.evolution import Evolution, EvolutionConfig, load_profile
 from derl.unimal import Genome, body_hash, sample_population
 
 MODELS = ("random", "inherited")
@@ -40,7 +41,7 @@ def simulate(
     config: EvolutionConfig, initial: list[Genome], workers: int, model: str, seed: int, hold: bool
 ) -> dict[str, float]:
     """One run: tournament children, repeats born untrained, and equal bodies trained twice;
-    `hold`: a child whose first draft is that of a child in training waits for its birth."""
+    `hold`: a child whose body is that of a child in training waits for its birth."""
     config = config.model_copy(update={"seed": seed})
     evolution = Evolution(config, initial)
     rng = np.random.default_rng([seed, 7])
@@ -53,43 +54,39 @@ def simulate(
         evolution.birth(str(name), fitness[body_hash(genome)], genome)
     running: list[tuple[float, str, Genome, str]] = []  # (finish, child, body, hash)
     training: dict[str, int] = {}  # hash -> trainings of it under way
-    drafted: dict[str, str] = {}  # first draft's hash -> the child in training with it
+    in_training_with: dict[str, str] = {}  # hash -> the child in training with that body
     held: dict[str, list[str]] = {}  # child in training -> the children held for it
     waiting: deque[str] = deque()  # children released by a birth: looked up again first
-    repeats = missed = in_training = 0
-    lookups: list[float] = []  # s per `Evolution.repeat` (the coordinator's cost per child)
+    repeats = in_training = 0
+    costs: list[float] = []  # CPU s to breed and look up a child (the coordinator's, per child)
     now, idle = 0.0, workers
 
     def next_child() -> str | None:
         if waiting:
             return waiting.popleft()
         started = evolution.settled + len(running) + sum(map(len, held.values()))
-        if started >= config.total:
+        if started >= config.total or not evolution.born:
             return None
         decided = evolution.tournament()
         evolution.record(decided)
         return decided.name
 
     def assign() -> bool:
-        nonlocal repeats, missed, in_training
+        nonlocal repeats, in_training
         while (name := next_child()) is not None:
-            start = time.perf_counter()
-            repeat = evolution.repeat(name)  # as the coordinator looks it up
-            lookups.append(time.perf_counter() - start)
-            if repeat is not None:
-                earlier, body, _ = repeat
+            start = time.thread_time()
+            body, _ = evolution.body(name)  # as the coordinator breeds it and looks it up
+            earlier = evolution.repeat(name)
+            costs.append(time.thread_time() - start)
+            if earlier is not None:
                 evolution.birth(name, evolution.fitness[earlier], body, earlier)
                 repeats += 1
                 continue
-            draft = evolution.draft(name)
-            if hold and draft is not None and drafted.get(draft, name) != name:
-                held.setdefault(drafted[draft], []).append(name)
+            key = evolution.body_key(name)
+            if hold and in_training_with.get(key, name) != name:
+                held.setdefault(in_training_with[key], []).append(name)
                 continue
-            if draft is not None:
-                drafted.setdefault(draft, name)
-            body = breed(*evolution.to_train(name))[0]
-            missed += evolution.repeat_of(body) is not None  # its first draft was invalid
-            key = body_hash(body)
+            in_training_with.setdefault(key, name)
             in_training += training.get(key, 0) > 0
             training[key] = training.get(key, 0) + 1
             if key not in fitness:
@@ -111,17 +108,16 @@ def simulate(
         idle += 1
         training[key] -= 1
         evolution.birth(name, fitness[key], body)
-        if drafted.get(evolution.drafts.get(name) or "") == name:
-            del drafted[evolution.drafts[name]]
+        if in_training_with.get(key) == name:
+            del in_training_with[key]
         waiting.extendleft(reversed(held.pop(name, [])))
         dispatch()
     assert evolution.complete and not held and not waiting
     return {
         "children": config.total - config.population,
         "repeats": repeats,
-        "missed": missed,
         "in_training": in_training,
-        "lookup_ms": statistics.median(lookups) * 1e3,
+        "decide_ms": [c * 1e3 for c in costs],
     }
 
 
@@ -137,6 +133,7 @@ def bench(
         for count, model, hold in itertools.product(workers, models, (False, True)):
             runs = [simulate(config, initial, count, model, seed, hold) for seed in range(seeds)]
             saved = [r["repeats"] / r["children"] for r in runs]
+            decide = sorted(ms for r in runs for ms in r["decide_ms"])
             results.append(
                 {
                     "profile": config.name,
@@ -150,10 +147,13 @@ def bench(
                     "repeats_median": statistics.median(r["repeats"] for r in runs),
                     "saved_median": round(statistics.median(saved), 4),
                     "saved_range": [round(min(saved), 4), round(max(saved), 4)],
-                    "missed_median": statistics.median(r["missed"] for r in runs),
                     "trained_twice_median": statistics.median(r["in_training"] for r in runs),
                     "repeats": [r["repeats"] for r in runs],
-                    "lookup_ms_median": round(statistics.median(r["lookup_ms"] for r in runs), 3),
+                    "decide_ms": {
+                        "median": round(statistics.median(decide), 2),
+                        "p99": round(decide[int(0.99 * (len(decide) - 1))], 2),
+                        "max": round(decide[-1], 2),
+                    },
                     "initial_sampling_s": round(sampled_s, 1),
                 }
             )

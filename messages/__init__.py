@@ -4,6 +4,7 @@ from derl.messages.codec import DecodeError, decode, encode
 from derl.messages.keys import InvalidKey, KeySpace, ParsedKey, check_segment, kind_of, parse
 from derl.messages.schema import (
     MESSAGE_TYPES,
+    SCHEMA_CHANGES,
     SCHEMA_VERSION,
     Ack,
     Birth,
@@ -31,6 +32,7 @@ from derl.messages.schema import (
 
 __all__ = [
     "MESSAGE_TYPES",
+    "SCHEMA_CHANGES",
     "SCHEMA_VERSION",
     "Ack",
     "Birth",

@@ -62,7 +62,8 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             task="ft",
             ppo=PPOConfig(total_steps=5_000_000, seed=i),
             parent=parent,
-            mutation_seed=2**40 + i,
+            mutation="grow_limb",
+            mutation_detail="pair on limb 0 end",
             lease_s=3.0,
         ),
         EvalJob(
@@ -100,8 +101,6 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             job=job,
             node=node,
             genome=GENOME,
-            mutation="grow_limb",
-            mutation_detail="pair on limb 0 end",
             fitness=123.25 + i,
             fitness_source="window",
             fitness_episodes=32,

@@ -29,7 +29,14 @@ from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome
 from derl.unimal.mutations import OPERATORS
 
-SCHEMA_VERSION: Final = 3
+SCHEMA_VERSION: Final = 4
+
+SCHEMA_CHANGES: Final = {
+    4: "the coordinator decides every body: a `TrainJob` carries the child's own body and the "
+    "mutation that made it (`mutation`, `mutation_detail`) instead of its parent's body and a "
+    "`mutation_seed`, and a `FitnessReport` names no mutation (its body must be its job's)",
+}
+"""What each schema version changed from the one before."""
 
 FitnessSource = Literal["window", "last_episodes", "unfinished"]
 """As `derl.rl.episodes.FitnessSource`: "window" (the learning curve's values of the iterations in
@@ -103,13 +110,14 @@ class WorkerReady(MessageBase):
 
 
 class TrainJob(MessageBase):
-    """The coordinator's order to `node`: train `child` from scratch in `task` with `ppo`.
+    """The coordinator's order to `node`: train `child`, whose body is `genome`, from scratch in
+    `task` with `ppo`.
 
-    The child's body is `genome`, or, when `mutation_seed` is set (a tournament's child not yet
-    born), `derl.evolution.breed(genome, mutation_seed)`: `genome` is then the parent's body and
-    the trainer breeds the child itself (deterministic: every attempt gets the same body). `ppo`
-    is the whole learning configuration (budget, seed, copies, hyperparameters), as saved with
-    the run, so a resumed run trains as it started whatever the code's defaults are now.
+    The coordinator decides every body: an initial one is drawn from the run's seed, a
+    tournament's child is bred by the coordinator from its parent's body (`mutation` says how),
+    and a report of another body is rejected. `ppo` is the whole learning configuration (budget,
+    seed, copies, hyperparameters), as saved with the run, so a resumed run trains as it started
+    whatever the code's defaults are now.
     """
 
     type: Literal["TrainJob"] = "TrainJob"
@@ -120,15 +128,18 @@ class TrainJob(MessageBase):
     node: Id
     """The trainer it is assigned to."""
     genome: Genome
-    """The child's body, or its parent's when `mutation_seed` is set."""
+    """The child's body."""
     task: Id
     """The world to train in (ft, vt or mvt)."""
     ppo: PPOConfig
     """The whole learning configuration: budget, seed, copies, hyperparameters."""
     parent: Id | None = None
     """The body the child is mutated from (None in the initial population)."""
-    mutation_seed: Seed | None = None
-    """Set: the trainer breeds the child from `genome` with this seed."""
+    mutation: str | None = None
+    """The mutation operator that made the child from its parent (None in the initial
+    population)."""
+    mutation_detail: Text = ""
+    """What the mutation changed, in words."""
     lease_s: LeaseSeconds
     """Seconds without progress after which the job is taken back."""
 
@@ -140,10 +151,17 @@ class TrainJob(MessageBase):
     def seed(self) -> int:
         return self.ppo.seed
 
+    @field_validator("mutation")
+    @classmethod
+    def _known_operator(cls, value: str | None) -> str | None:
+        if value is not None and value not in OPERATORS:
+            raise ValueError(f"unknown mutation operator {value!r}; known: {', '.join(OPERATORS)}")
+        return value
+
     @model_validator(mode="after")
-    def _bred_from_parent(self) -> TrainJob:
-        if self.mutation_seed is not None and self.parent is None:
-            raise ValueError("a mutation_seed needs the parent it mutates")
+    def _mutated_from_parent(self) -> TrainJob:
+        if (self.mutation is None) != (self.parent is None):
+            raise ValueError("a child has a parent and the mutation that made it, or neither")
         return self
 
 
@@ -178,8 +196,9 @@ class EvalJob(MessageBase):
 
 class Tournament(MessageBase):
     """A decision, recorded as a fact: the contestants, the winner (parent) and the seed of the
-    child's mutation (`derl.evolution.breed`; its FitnessReport names the mutation). The rule
-    that made it is `derl.evolution.Evolution.tournament`; the wire only carries the outcome.
+    child's mutation (the coordinator breeds the child with `derl.evolution.breed`; its TrainJob
+    carries the body and names the mutation). The rule that made it is
+    `derl.evolution.Evolution.tournament`; the wire only carries the outcome.
 
     `iteration` counts the tournaments of the run (0 for the first).
     """
@@ -235,8 +254,7 @@ class TrainProgress(MessageBase):
 
 class FitnessReport(MessageBase):
     """The outcome of a training job, re-sent until acknowledged; carries the body that was
-    trained, the mutation that made it (None for a body of the initial population) and the
-    policy weights."""
+    trained (its job's: a report of another body is rejected) and the policy weights."""
 
     type: Literal["FitnessReport"] = "FitnessReport"
     child: Id
@@ -246,11 +264,7 @@ class FitnessReport(MessageBase):
     node: Id
     """The trainer that did it."""
     genome: Genome
-    """The body that was trained."""
-    mutation: str | None = None
-    """The mutation operator that made it (None in the initial population)."""
-    mutation_detail: Text = ""
-    """What the mutation changed, in words."""
+    """The body that was trained: its job's."""
     fitness: Finite
     """Mean episode sum of the world's selection term (the fitness)."""
     fitness_source: FitnessSource
@@ -275,13 +289,6 @@ class FitnessReport(MessageBase):
     """Env steps per second of the training."""
     checkpoint: Annotated[bytes, Field(strict=True, max_length=MAX_CHECKPOINT_BYTES)]
     """`derl.rl.checkpoint.Checkpoint.to_bytes()` of the trained policy."""
-
-    @field_validator("mutation")
-    @classmethod
-    def _known_operator(cls, value: str | None) -> str | None:
-        if value is not None and value not in OPERATORS:
-            raise ValueError(f"unknown mutation operator {value!r}; known: {', '.join(OPERATORS)}")
-        return value
 
 
 class Ack(MessageBase):

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import Processes, free_port
+from nodes_fixtures import FullDisk, Processes, free_port
 
 from derl.unimal import Genome, Joint, Limb
 
@@ -44,6 +44,17 @@ def procs(tmp_path: Path) -> Iterator[Processes]:
         yield processes
     finally:
         processes.close()
+
+
+@pytest.fixture(params=FullDisk.kinds())
+def full_disk(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[FullDisk]:
+    """A folder whose writes the test makes fail and work again (`FullDisk`): on a small tmpfs
+    where this machine lets a test mount one, and with the writers' file-size limit."""
+    disk = FullDisk(tmp_path / "disk", request.param)
+    try:
+        yield disk
+    finally:
+        disk.close()
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

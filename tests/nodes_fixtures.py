@@ -3,11 +3,15 @@ children in their own process groups that die with the test, and what the journa
 
 from __future__ import annotations
 
+import contextlib
 import os
+import resource
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from collections import Counter
@@ -33,6 +37,10 @@ from derl.nodes.runtime.processes import child_setup, stop_all
 
 from derl.rl import PPOConfig
 from derl.unimal import Genome
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from soak import descendants  # the soak's: the processes started by a process, and by them
 
 M = TypeVar("M", bound=MessageBase)
 
@@ -252,12 +260,11 @@ def write_hand_run(run_dir: Path, run: str, world: str, births: list[HandBirth])
                                                  "mutation": "gear"})  # fmt: skip
             else:
                 job = TrainJob(run=run, job=f"{b.child}.1", child=b.child, node="t0",
-                               genome=b.genome if parent is None else parent.genome, task=world,
-                               ppo=ppo, parent=b.parent,
-                               mutation_seed=None if parent is None else 7, lease_s=30)  # fmt: skip
+                               genome=b.genome, task=world, ppo=ppo, parent=b.parent,
+                               mutation=None if parent is None else "gear", lease_s=30)  # fmt: skip
                 report = FitnessReport(
                     run=run, child=b.child, job=job.job, node="t0", genome=b.genome,
-                    mutation=None if parent is None else "gear", fitness=b.fitness,
+                    fitness=b.fitness,
                     fitness_source="window", fitness_episodes=3,
                     curve=Curve(env_steps=(2048, 4096), returns=(b.fitness / 2, b.fitness)),
                     energy=50.0, cost_of_work=1.0, mass=12.0, episodes=9, env_steps=4096,
@@ -266,9 +273,70 @@ def write_hand_run(run_dir: Path, run: str, world: str, births: list[HandBirth])
                 birth = Birth(
                     run=run, child=b.child, parent=b.parent, job=job.job, node="t0", birth=k,
                     generation=generation, fitness=b.fitness, cost_of_work=1.0, energy=50.0,
-                    mass=12.0, mutation=report.mutation, genome=b.genome,
+                    mass=12.0, mutation=job.mutation, genome=b.genome,
                 )  # fmt: skip
                 journal.write(job)
                 journal.write(report)
             journal.write(birth)
             done[b.child] = birth
+
+
+class FullDisk:
+    """A disk the test fills and frees, with real write faults from the kernel (no mock of the
+    journal or of the files): a small tmpfs mounted at `path` where mounting is allowed (root),
+    filled with a file until writes fail with ENOSPC; else the file-size limit (RLIMIT_FSIZE) of
+    the processes that write, set to the size of the journal's last segment in `path` so that
+    the journal's next write fails with EFBIG (Python ignores SIGXFSZ), and so does any file
+    growing past it (a checkpoint), while a process's small log file elsewhere still grows."""
+
+    def __init__(self, path: Path, kind: str) -> None:
+        self.path, self.kind = path, kind
+        self.filler = path / "filler"
+        self.limited: list[int] = []
+        path.mkdir(parents=True, exist_ok=True)
+        if kind == "tmpfs":
+            subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(path)],
+                           check=True, capture_output=True)  # fmt: skip
+
+    @staticmethod
+    def kinds() -> list[str]:
+        """The kinds this machine allows: tmpfs where a test may mount one, and fsize."""
+        if os.geteuid() != 0 or shutil.which("mount") is None:
+            return ["fsize"]
+        probe = Path(tempfile.mkdtemp(prefix="derl-mount-probe-"))
+        try:
+            mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs",
+                                      str(probe)], capture_output=True).returncode == 0  # fmt: skip
+            if mounted:
+                subprocess.run(["umount", str(probe)], check=True)
+        finally:
+            probe.rmdir()
+        return ["tmpfs", "fsize"] if mounted else ["fsize"]
+
+    def fill(self, pids: list[int]) -> None:
+        """Writes fail from now on (of `pids` and their children, for fsize)."""
+        if self.kind == "tmpfs":
+            with contextlib.suppress(OSError), self.filler.open("wb") as f:
+                while True:
+                    f.write(bytes(1 << 16))
+                    f.flush()
+            return
+        journals = sorted(self.path.rglob("segment-*.mcap"))
+        limit = journals[-1].stat().st_size if journals else 0
+        self.limited = [p for pid in pids for p in (pid, *descendants(pid))]
+        for pid in self.limited:
+            resource.prlimit(pid, resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+
+    def free(self) -> None:
+        """Writes work again."""
+        if self.kind == "tmpfs":
+            self.filler.unlink(missing_ok=True)
+            return
+        for pid in {*self.limited, *(d for p in self.limited for d in descendants(p))}:
+            with contextlib.suppress(ProcessLookupError):
+                resource.prlimit(pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY,) * 2)
+
+    def close(self) -> None:
+        self.free()
+        if self.kind == "tmpfs":
+            subprocess.run(["umount", "-l", str(self.path)], capture_output=True)

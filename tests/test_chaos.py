@@ -10,31 +10,30 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
-import msgpack
 import pytest
-import zenoh
 from derl.messages import (
     Birth,
     ChildFailed,
     JobFailed,
     JobLost,
     MessageBase,
-    RunStatus,
     TrainJob,
     TrainProgress,
     WorkerReady,
-    encode,
 )
-from derl.messages.examples import examples
-from derl.messages.keys import ARITY
 from derl.nodes.runtime.bus import Bus
 from derl.nodes.tools.logs import read_log
 from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from soak import put_garbage
 
 PROFILE = {
     "total": 20,  # room for the coordinator kill after the trainer faults, on a fast machine too
@@ -72,24 +71,6 @@ class Saboteur:
 
     def leave(self) -> None:
         self.token.undeclare()
-
-
-def _garbage(bus: Bus) -> tuple[int, zenoh.LivelinessToken]:
-    """Malformed payloads on a key of every kind (ids of trainer a where a node goes), and a
-    liveliness token outside the key space: the number of payloads put, and the token."""
-    status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
-    payloads = (
-        b"\xff\x00garbage",
-        msgpack.packb({**status.model_dump(), "schema_version": 99}),
-        msgpack.packb([1, 2]),
-        encode(status),  # a valid message of the wrong type (on every key but its own)
-    )
-    for kind, arity in ARITY.items():
-        parts = ("trainer", "a") if kind == "alive" else ("a", "x", "x")[:arity]
-        for payload in payloads if kind != "status" else payloads[:3]:
-            bus.session.put(bus.keys.key(kind, *parts), payload)
-    stray = bus.session.liveliness().declare_token(f"derl/{bus.run}/alive/trainer/b@d")
-    return len(ARITY) * len(payloads) - 1, stray
 
 
 def _lost(run_dir: Path, progress: TrainProgress) -> Callable[[], list[JobLost]]:
@@ -140,7 +121,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         # session hears trainer a: a peer's puts reach another peer once the two are linked)
         observer.training("a", timeout=60)
         at["garbage"] = time.time()
-        put, _stray = _garbage(bus)
+        put, _stray = put_garbage(bus)
         coordinator_kinds = 5 * 4  # ready, fitness, progress, eval, failure: all four payloads
         wait_for(lambda: observer.statuses[-1].rejected >= coordinator_kinds, 30, "rejections")
         garbage_noticed = round(time.time() - at["garbage"], 1)

@@ -1,7 +1,7 @@
 """The coordinator's handlers on a real Zenoh session: group commit (nothing is published before
 the journal file holds it) and checkpoint files (an Ack only once the file is on disk, and a
 lost file written again from the repeated report), and a child whose body is born already born
-as its repeat, untrained, through a restart (and one drafted like a child in training held until
+as its repeat, untrained, through a restart (and one bred like a child in training held until
 that child is born)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import queue
 import shutil
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +21,7 @@ import pytest
 from derl.messages import (
     Ack,
     Birth,
+    ChildFailed,
     Curve,
     EvalJob,
     FitnessReport,
@@ -41,10 +42,9 @@ from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 
-from derl.evolution import Evolution, EvolutionConfig, breed, load_profile
-from derl.evolution.population import first_draft
+from derl.evolution import Evolution, EvolutionConfig, breed, load_profile, population
 from derl.rl import PPOConfig, PPOHyperparameters
-from derl.unimal import Genome, sample_population
+from derl.unimal import Genome, Joint, Limb, sample_population
 from tests.nodes_fixtures import free_port, run_id
 
 QUIET_S = 0.5  # how long "nothing was published" is watched for
@@ -82,6 +82,23 @@ def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[Messa
     initial = sample_population(2, np.random.default_rng(3))
     with _serving(run_id(), tmp_path, config, initial) as served:
         yield served
+
+
+@pytest.fixture
+def coordinator_of(tmp_path: Path) -> Iterator[Callable[..., Coordinator]]:
+    """Makes the coordinator of a run of the smoke profile changed by its keywords (`initial`:
+    the initial bodies, else drawn), with no evaluation and a real Zenoh session as its bus."""
+    with ExitStack() as stack:
+
+        def make(initial: list[Genome] | None = None, **changes: object) -> Coordinator:
+            config = load_profile("smoke").model_copy(
+                update={"eval_top": 0, "eval_tasks": (), **changes}
+            )
+            bodies = initial or sample_population(config.population, np.random.default_rng(3))
+            served = _serving(run_id(), tmp_path, config, bodies)
+            return stack.enter_context(served)[0]
+
+        yield make
 
 
 def _quiet(heard: queue.Queue[MessageBase]) -> bool:
@@ -160,7 +177,8 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert second.child in coordinator.state.evolution.fitness
     assert report.model_copy(update={"checkpoint": b""}) in _journaled(coordinator)
     assert _quiet(heard), "an Ack went out for a checkpoint that is not on disk"
-    assert "checkpoint was not written" in caplog.text
+    assert f"cannot write {folder / second.child}.pt (Not a directory)" in caplog.text
+    assert coordinator.ledger.stalled
 
     # the trainer sends its report again: the checkpoint is written, then acknowledged
     folder.unlink()
@@ -171,6 +189,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(ack, Ack) and ack.child == second.child
     assert coordinator.ledger.checkpoints.path(second.child).read_bytes() == b"weights-2"
     assert coordinator.policy.born == 2
+    assert not coordinator.ledger.stalled
 
 
 def _wait_for(path: Path) -> bytes:
@@ -192,11 +211,8 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
     for founder in evolution.initial:
         evolution.birth(founder.name, 1.0, founder.genome)
     decided = evolution.tournament()  # its parent and seed do not depend on the bodies
-    for k in range(100):  # a body whose child's first draft is valid (else it is missed)
-        body = sample_population(1, np.random.default_rng(k))[0]
-        child_body = breed(body, decided.mutation_seed)[0]
-        if first_draft(body, decided.mutation_seed)[0] == child_body:
-            break
+    body = sample_population(1, np.random.default_rng(0))[0]
+    child_body = breed(body, decided.mutation_seed)[0]
     initial = [body, child_body] if decided.parent == "i0000" else [child_body, body]
     twin = "i0001" if decided.parent == "i0000" else "i0000"
 
@@ -244,7 +260,7 @@ def _born(run: str, child: str, parent: str | None, genome: Genome, birth: int) 
     )  # fmt: skip
 
 
-def test_a_child_drafted_like_one_in_training_waits_for_its_birth() -> None:
+def test_a_child_bred_like_one_in_training_waits_for_its_birth() -> None:
     """Two tournaments that draw the same parent and mutation: the second child is held while
     the first trains, goes first in the queue once it is born, and is then its repeat."""
     config = load_profile("smoke").model_copy(update={"population": 2, "total": 6})
@@ -253,19 +269,72 @@ def test_a_child_drafted_like_one_in_training_waits_for_its_birth() -> None:
     run = "held"
     for k, genome in enumerate(initial):
         state.apply(_born(run, f"i000{k}", None, genome, k))
-    seed = next(s for s in range(100) if first_draft(initial[0], s) == breed(initial[0], s))
+    seed = 7
     for k in range(2):
         state.apply(Tournament(run=run, child=f"c0000{k}", contestants=("i0000",),
                                fitness=(1.0,), parent="i0000", mutation_seed=seed,
                                iteration=k))  # fmt: skip
+        state.evolution.body(f"c0000{k}")  # bred by the coordinator
     state.training("c00000")
     assert not state.hold("c00000")  # not held for itself
     assert state.hold("c00001") and state.held == {"c00001": "c00000"}
     assert list(state.waiting) == ["c00000"] and not state.wants_tournament()
-    body, mutation = breed(initial[0], seed)
+    body, _ = breed(initial[0], seed)
     state.apply(_born(run, "c00000", "i0000", body, 2))
-    assert list(state.waiting) == ["c00001"] and not state.held and not state.drafted
-    assert state.evolution.repeat("c00001") == ("c00000", body, mutation)
+    assert list(state.waiting) == ["c00001"] and not state.held and not state.in_training
+    assert state.evolution.repeat("c00001") == "c00000"
+
+
+def test_tournaments_start_once_every_initial_body_is_assigned(
+    coordinator_of: Callable[..., Coordinator],
+) -> None:
+    """Issue 31, as the released code: with 2 trainers and P = 4, a trainer that is free once
+    every initial body is assigned gets a tournament child drawn from the births so far, while
+    the last initial body still trains; that one is born when it finishes, in birth order, and
+    enters the population."""
+    coordinator = coordinator_of(population=4, total=8, tournament=2)
+    jobs = {w: _job_for(coordinator, w) for w in ("w1", "w2")}  # i0000, i0001
+    for worker in ("w1", "w2", "w1"):  # i0000, i0001, i0002 born; i0003 is given to w2
+        coordinator._handle(_report(jobs[worker], b"weights"))
+        jobs[worker] = _job_for(coordinator, worker)
+    child = jobs["w1"].child
+    assert child.startswith("c") and jobs["w2"].child == "i0003"
+    tournaments = {m.child: m for m in _journaled(coordinator) if isinstance(m, Tournament)}
+    assert all("i0003" not in t.contestants for t in tournaments.values())  # not born yet
+    assert jobs["w1"].parent == tournaments[child].parent and jobs["w1"].mutation is not None
+    for worker in ("w2", "w1"):  # the initial body is born first, then the child
+        coordinator._handle(_report(jobs[worker], b"weights"))
+    coordinator.settle()
+    births = [m for m in _journaled(coordinator) if isinstance(m, Birth)]
+    births = [m.child for m in births]
+    assert births[:3] == ["i0000", "i0001", "i0002"] and births[-2:] == ["i0003", child]
+    assert "i0003" in [m.agent for m in coordinator.policy.state.evolution.population]
+
+
+def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
+    coordinator_of: Callable[..., Coordinator], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The coordinator breeds each child: a parent of which no valid child can be bred (not a
+    valid body itself: three limbs in one place, which no single mutation fixes) gives a child
+    that is given up at once (ChildFailed, no training: breeding is deterministic, so no retry
+    would change it), and the run goes on. (Breeding gives up after 5 draws here, not 100.)"""
+    monkeypatch.setattr(population, "MAX_DRAWS", 5)
+    joint = Joint(axis="x", range=(-30, 60), gear=200)
+    limb = Limb(id=0, paired=False, length=0.3, theta=0, phi=90, joints=(joint,))
+    stacked = [Genome(head_density=700, limb_density=600, limbs=tuple(
+        limb.model_copy(update={"id": k, "length": length}) for k in range(3)))
+        for length in (0.3, 0.4)]  # fmt: skip
+    coordinator = coordinator_of(population=2, total=3, initial=stacked)
+    for worker in ("w1", "w2"):
+        coordinator._handle(_report(_job_for(coordinator, worker), b"weights"))
+    _ready(coordinator, "w1")
+    coordinator.settle()
+    assert coordinator.state.job_of("w1") is None
+    failed = [m for m in _journaled(coordinator) if isinstance(m, ChildFailed)]
+    assert [(m.child, m.attempts) for m in failed] == [("c00000", 0)]
+    assert failed[0].error.startswith("MutationFailed: ")
+    assert not [m for m in _journaled(coordinator) if isinstance(m, TrainJob) and m.parent]
+    assert coordinator.state.evolution.complete and coordinator._status().failed == 1
 
 
 def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_descendants(
@@ -280,14 +349,14 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
     run = "repaired"
     body = breed(initial[0], 7)[0]
 
-    def job(child: str, parent: str, genome: Genome, seed: int) -> TrainJob:
+    def job(child: str, parent: str, genome: Genome) -> TrainJob:
         return TrainJob(run=run, job=f"{child}.1", child=child, node="w1", genome=genome,
                         task=config.world, ppo=config.training_ppo(), parent=parent,
-                        mutation_seed=seed, lease_s=config.lease_s)  # fmt: skip
+                        mutation="gear", lease_s=config.lease_s)  # fmt: skip
 
     kept = [_born(run, f"i000{k}", None, genome, k) for k, genome in enumerate(initial)]
     later = [  # Tournament(c00000, parent i0000, iteration 0) was in the damaged part
-        job("c00000", "i0000", initial[0], 7),
+        job("c00000", "i0000", body),
         _born(run, "c00000", "i0000", body, 2),
         Tournament(
             run=run,
@@ -298,7 +367,7 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
             mutation_seed=3,
             iteration=1,
         ),
-        job("c00001", "c00000", body, 3),
+        job("c00001", "c00000", breed(body, 3)[0]),
     ]
     with caplog.at_level(logging.WARNING, logger="derl.coordinator"):
         for msg in [*kept, *later]:  # as a restarted coordinator replays its journal

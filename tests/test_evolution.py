@@ -10,10 +10,10 @@ import pytest
 from pydantic import ValidationError
 
 from derl.analysis.study import load_study_profile
-from derl.evolution import Child, Evolution, breed, load_profile, population
-from derl.evolution.population import first_draft, tournament_draws
-from derl.unimal import Genome, Joint, Limb, body_hash, check_body, is_valid, sample_population
-from derl.unimal.mutations import OPERATORS, MutationFailed
+from derl.evolution import Child, Evolution, breed, load_profile
+from derl.evolution.population import tournament_draws
+from derl.unimal import Genome, check_body, is_valid, sample_population
+from derl.unimal.mutations import OPERATORS
 
 
 @pytest.fixture(scope="module")
@@ -38,16 +38,26 @@ def test_breeding_is_one_valid_mutation_and_the_same_for_a_seed(initial: list[Ge
     assert len({c.model_dump_json() for c in children.values()}) > 6
 
 
-def test_a_childs_first_draft_is_the_child_when_valid(initial: list[Genome]) -> None:
-    """What `Evolution.repeat` rests on: a born body is valid, so a draft equal to one is the
-    child itself."""
-    parent, same = initial[1], 0
-    for seed in range(30):
-        drafted, bred = first_draft(parent, seed), breed(parent, seed)
-        if is_valid(drafted[0]):
-            assert drafted == bred  # the body and its mutation
-            same += 1
-    assert same > 20
+def test_a_child_is_bred_once_where_its_tournament_is_held(initial: list[Genome]) -> None:
+    """The holder of the state breeds each tournament child (with the full validity check) the
+    first time its body is asked for; a body recorded as a fact (the child's job) is kept and
+    never bred again, so a resumed coordinator gives the child the body its job carried."""
+    evolution = _evolution(initial)
+    for k, child in enumerate(evolution.initial):
+        assert evolution.body(child.name) == (initial[k], None)
+        evolution.birth(child.name, float(k), initial[k])
+    decided = evolution.tournament()
+    evolution.record(decided)
+    body, mutation = evolution.body(decided.name)
+    assert (body, mutation) == breed(initial[int(decided.parent[1:])], decided.mutation_seed)
+    assert is_valid(body) and evolution.body(decided.name) == (body, mutation)
+    other = _evolution(initial)
+    for k, child in enumerate(other.initial):
+        other.birth(child.name, float(k), initial[k])
+    other.record(decided)
+    recorded = breed(initial[0], 99)
+    other.decided(decided.name, *recorded)  # as its journaled job says
+    assert other.body(decided.name) == recorded != (body, mutation)
 
 
 def test_a_child_whose_body_is_born_is_known_as_a_repeat(initial: list[Genome]) -> None:
@@ -56,65 +66,29 @@ def test_a_child_whose_body_is_born_is_known_as_a_repeat(initial: list[Genome]) 
         evolution.birth(child.name, float(k), initial[k])
     decided = evolution.tournament()
     evolution.record(decided)
+    body, _ = evolution.body(decided.name)
     assert evolution.repeat(decided.name) is None  # its body is new
-    body, mutation = breed(*evolution.to_train(decided.name))
     shuffled = body.model_copy(update={"limbs": body.limbs[::-1]})  # same body, other order
-    evolution.birth(decided.name, 7.0, shuffled)
+    assert evolution.repeat_of(shuffled) is None
+    evolution.birth(decided.name, 7.0, body)
+    assert evolution.repeat_of(shuffled) == decided.name
     again = evolution.tournament()
     evolution.record(replace(again, parent=decided.parent, mutation_seed=decided.mutation_seed))
-    assert evolution.repeat(again.name) == (decided.name, body, mutation)
-    assert evolution.repeat("i0000") is None  # an initial body is trained
-
-
-def test_only_an_initial_body_is_checked_when_a_child_repeats_it(
-    initial: list[Genome], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A tournament child's body was checked by its trainer (`breed`), so a repeat of it costs
-    the coordinator no MuJoCo compile (it was a sixth of the coordinator's loop at 1,000
-    workers); an initial body, which may be given by hand, is checked once."""
-    checked: list[str] = []
-
-    def counting(genome: Genome) -> bool:
-        checked.append(body_hash(genome))
-        return is_valid(genome)
-
-    monkeypatch.setattr(population, "is_valid", counting)
-    evolution = _evolution(initial)
-    for k, child in enumerate(evolution.initial):
-        evolution.birth(child.name, float(k), initial[k])
-    decided = evolution.tournament()
-    evolution.record(decided)
-    body, mutation = breed(*evolution.to_train(decided.name))
-    evolution.birth(decided.name, 7.0, body)
-    for seed in (decided.mutation_seed, decided.mutation_seed):  # twice: a repeat each time
-        again = evolution.tournament()
-        evolution.record(replace(again, parent=decided.parent, mutation_seed=seed))
-        assert evolution.repeat(again.name) == (decided.name, body, mutation)
-    assert checked == []
-    # a child whose first draft is an initial body: that body is checked, once
-    parent = int(decided.parent[1:])
-    other = (parent + 1) % len(initial)
-    draft = first_draft(initial[parent], decided.mutation_seed)[0]
-    founders = [draft if k == other else body for k, body in enumerate(initial)]
-    evolution = _evolution(founders)
-    for k, child in enumerate(evolution.initial):
-        evolution.birth(child.name, float(k), founders[k])
-    again = evolution.tournament()  # the same parent and seed: they depend on fitness only
-    evolution.record(again)
-    assert (again.parent, again.mutation_seed) == (decided.parent, decided.mutation_seed)
-    evolution.repeat(again.name)
-    evolution.repeat(again.name)
-    assert checked == [body_hash(draft)]
+    evolution.body(again.name)
+    assert evolution.repeat(again.name) == decided.name
+    twin = evolution.tournament()  # a child bred by hand as the shuffled body: the same body
+    evolution.record(twin)
+    evolution.decided(twin.name, shuffled, None)
+    assert evolution.repeat(twin.name) == decided.name
 
 
 def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body(
     initial: list[Genome],
 ) -> None:
     evolution = _evolution(initial)
-    with pytest.raises(RuntimeError, match="initial population"):
+    with pytest.raises(RuntimeError, match="needs an agent born"):
         evolution.tournament()
     for k, child in enumerate(evolution.initial):
-        assert evolution.to_train(child.name) == (initial[k], None)
         assert evolution.birth(child.name, float(k), initial[k]) is not None
     assert evolution.birth("i0000", 99.0, initial[0]) is None  # born already
     assert evolution.birth("c77777", 1.0, initial[0]) is None  # never decided
@@ -129,17 +103,15 @@ def test_tournaments_pick_the_fittest_and_children_are_born_with_their_bred_body
     evolution.record(decided)
     assert evolution.tournament().name != decided.name  # the next decision
     parent_body = evolution.genomes[decided.parent]
-    assert evolution.to_train(decided.name) == (parent_body, decided.mutation_seed)
-
-    child_body, _ = breed(parent_body, decided.mutation_seed)
+    child_body, _ = evolution.body(decided.name)
+    assert child_body == breed(parent_body, decided.mutation_seed)[0]
     member = evolution.birth(decided.name, 50.0, child_body)
     assert member is not None and member.parent == decided.parent
-    assert evolution.to_train(decided.name) == (child_body, None)
     assert [m.agent for m in evolution.population] == ["i0001", "i0002", "i0003", decided.name]
     assert evolution.best() == member  # the fittest born, aged out of the population or not
     again = evolution.tournament()
     evolution.record(again)
-    evolution.birth(again.name, 50.0, breed(*evolution.to_train(again.name))[0])
+    evolution.birth(again.name, 50.0, evolution.body(again.name)[0])
     assert evolution.best() == member  # the first born of equals
 
 
@@ -164,7 +136,7 @@ def test_replaying_decisions_and_births_rebuilds_the_state(initial: list[Genome]
     for k in range(6):
         decided = live.tournament()
         live.record(decided)
-        body = breed(*live.to_train(decided.name))[0]
+        body = live.body(decided.name)[0]
         live.birth(decided.name, 10.0 + k, body)
         facts.append((decided, decided.name, 10.0 + k, body))
     for decided, agent, fitness, body in facts:
@@ -224,8 +196,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     state.apply(tournament)
     state.apply(tournament)  # replayed twice: still one waiting child
     assert list(state.waiting) == [decided.name] and not state.wants_tournament()
-    genome, seed = state.evolution.to_train(decided.name)
-    assert seed == decided.mutation_seed
+    genome, mutation = state.evolution.body(decided.name)
     state.apply(
         TrainJob(
             run="r",
@@ -236,7 +207,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
             task="ft",
             ppo=ppo,
             parent=decided.parent,
-            mutation_seed=seed,
+            mutation=mutation.op,
             lease_s=10.0,
         )
     )
@@ -259,37 +230,6 @@ def test_replicates_differ_by_their_seed_alone() -> None:
     assert one == start(1)
     assert all(a != b for a, b in zip(one[0], two[0], strict=True))
     assert one[1] != two[1]
-
-
-def test_a_child_that_cannot_be_bred_is_no_repeat(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A child whose first draft is a born body but that cannot be bred at all (its parent, not
-    a valid body, has three limbs in one place: no single mutation fixes that) is no repeat:
-    `repeat` says so instead of raising (the coordinator's lookup raised on every WorkerReady
-    that drew the child); its trainer fails the same way and the child is given up. (Breeding
-    gives up after 5 draws here, not 100: 19 s of MuJoCo compiles for the same outcome.)"""
-    monkeypatch.setattr(population, "MAX_DRAWS", 5)
-    joint = Joint(axis="x", range=(-30, 60), gear=200)
-    limb = Limb(id=0, paired=False, length=0.3, theta=0, phi=90, joints=(joint,))
-    limbs = tuple(limb.model_copy(update={"id": k}) for k in range(3))
-    stacked = Genome(head_density=700, limb_density=600, limbs=limbs)
-    config = load_profile("smoke").model_copy(update={"population": 2, "tournament": 2})
-
-    def decided(initial: list[Genome]) -> tuple[Evolution, Child]:
-        evolution = Evolution(config, initial)
-        for k, founder in enumerate(evolution.initial):
-            evolution.birth(founder.name, float(1 - k), founder.genome)
-        child = evolution.tournament()  # parent and seed do not depend on the bodies
-        evolution.record(child)
-        return evolution, child
-
-    _, probe = decided([stacked, stacked])
-    draft = first_draft(stacked, probe.mutation_seed)[0]
-    order = [stacked, draft] if probe.parent == "i0000" else [draft, stacked]
-    evolution, child = decided(order)
-    assert evolution.draft(child.name) == body_hash(draft)  # a born body
-    with pytest.raises(MutationFailed):
-        breed(stacked, child.mutation_seed)
-    assert evolution.repeat(child.name) is None
 
 
 def test_changes_set_dotted_keys_of_a_profile_and_are_checked_like_it(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -16,9 +17,13 @@ import msgpack
 import pytest
 from derl.messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, kind_of
 from derl.messages.examples import examples
+from derl.nodes.coordinator.evolution import EvolutionPolicy
+from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.errors import REFUSED, DerlError
 from derl.nodes.journal.segments import (
     Journal,
     JournalDamaged,
+    JournalFault,
     JournalWriter,
     compact,
     read_segment,
@@ -31,6 +36,9 @@ from mcap.records import Message
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
+from nodes_fixtures import FullDisk
+
+from derl.evolution import load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -143,6 +151,31 @@ def test_undecodable_records_are_skipped(tmp_path: Path, caplog) -> None:
     assert "not msgpack" in caplog.text
     assert "schema version 99" in caplog.text
     assert "non-msgpack channel" in caplog.text
+
+
+def test_a_journal_of_another_schema_version_is_refused_as_a_whole(tmp_path: Path) -> None:
+    """A journal written by a derl of schema version 3 (its jobs carried a parent's body and a
+    mutation seed): every message of it would be skipped, and a coordinator would have started
+    the run again from nothing in its directory. It is refused in one line instead, by the
+    coordinator (exit status 78) and by every reader."""
+    (tmp_path / "journal").mkdir()
+    path = tmp_path / "journal" / "segment-0001.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f, compression=CompressionType.NONE)
+        writer.start()
+        schema = writer.register_schema("Birth", SchemaEncoding.JSONSchema, b"{}")
+        channel = writer.register_channel("derl/run1/births", MessageEncoding.MessagePack, schema,
+                                          {"schema_version": "3"})  # fmt: skip
+        raw = {**mixed(13)[-1].model_dump(), "schema_version": 3}
+        writer.add_message(channel, log_time=1, data=msgpack.packb(raw), publish_time=1)
+        writer.finish()
+    for read in (lambda: list(read_segment(path)), lambda: list(replay(tmp_path))):
+        with pytest.raises(DerlError, match="schema version 3, and this derl reads version 4"):
+            read()
+    with pytest.raises(DerlError) as refused:
+        Coordinator("run1", tmp_path, EvolutionPolicy("run1", tmp_path, load_profile("smoke")))
+    assert refused.value.code == REFUSED and "derl that wrote it" in str(refused.value)
+    assert segments(tmp_path) == [path]  # no new segment was started beside it
 
 
 def test_a_corrupt_chunk_is_skipped_with_a_warning_and_reading_goes_on(
@@ -313,3 +346,40 @@ def test_compaction_keeps_every_message(tmp_path: Path) -> None:
         assert summary.statistics.message_count == count
         assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
         assert len(summary.channels) == len(MESSAGE_TYPES)
+
+
+def test_a_journal_that_cannot_be_written_keeps_what_it_could_not_write_until_it_can(
+    full_disk: FullDisk,
+) -> None:
+    """A full disk (a real write fault): the journal raises nothing where it writes, `sync`
+    raises its `JournalFault` (naming the file and why), and `recover` fails while the disk is
+    full, leaving no new segment behind; once the disk has room it cuts the segment back to
+    what was synced and writes the rest into a new one: every message once, in order."""
+    written = mixed(60)
+    journal = Journal(full_disk.path / "run")
+    for msg in written[:20]:
+        journal.write(msg, flush=False)
+    journal.flush()
+    journal.sync()
+    full_disk.fill([os.getpid()])
+    try:
+        for msg in written[20:40]:
+            journal.write(msg, flush=False)
+        journal.flush()
+        with pytest.raises(JournalFault, match=r"cannot write .*segment-0001\.mcap: ") as fault:
+            journal.sync()
+        assert fault.value.errno in (errno.ENOSPC, errno.EFBIG)
+        for msg in written[40:50]:  # while it cannot write: kept, nothing tried
+            journal.write(msg, flush=False)
+        journal.flush()
+        assert journal.recover() is None
+        assert segments(full_disk.path / "run") == [journal.segment]
+    finally:
+        full_disk.free()
+    assert journal.recover() == 30
+    assert journal.segment.name == "segment-0002.mcap"
+    for msg in written[50:]:
+        journal.write(msg)
+    journal.sync()
+    journal.close()
+    assert payloads(list(replay(full_disk.path / "run"))) == payloads(written)

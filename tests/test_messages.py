@@ -121,8 +121,9 @@ BAD_VALUES = [
     ("Tournament", "fitness", (1.0, 2.0)),
     ("Tournament", "fitness", (1.0, math.nan, 1.0)),
     ("Tournament", "mutation_seed", -1),
-    ("TrainJob", "parent", None),  # its mutation_seed needs a parent
-    ("FitnessReport", "mutation", "teleport"),
+    ("TrainJob", "parent", None),  # its mutation needs a parent
+    ("TrainJob", "mutation", None),  # a parent needs the mutation
+    ("TrainJob", "mutation", "teleport"),
     ("FitnessReport", "genome.limbs", ({"id": 0},)),
     ("Tournament", "contestants", ()),
     ("Tournament", "iteration", -1),
@@ -172,7 +173,7 @@ def test_unknown_keys_are_rejected(msg: MessageBase) -> None:
 @pytest.mark.parametrize(
     ("raw", "reason"),
     [
-        ({**_dump(SAMPLES[0]), "schema_version": 2}, "schema version 2, expected 3"),
+        ({**_dump(SAMPLES[0]), "schema_version": 3}, "schema version 3, expected 4"),
         ({k: v for k, v in _dump(SAMPLES[0]).items() if k != "schema_version"}, "schema version"),
         ({**_dump(SAMPLES[0]), "type": "Teleport"}, "unknown message type 'Teleport'"),
         ({**_dump(SAMPLES[0]), "type": [1, 2]}, "unknown message type"),

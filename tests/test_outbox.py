@@ -2,8 +2,9 @@
 syncfs, or one fsync per file where there is none; a repeat's link to a file of the same batch;
 one bad file fails alone; a writer process that dies fails its batch, the next starts another)
 and the outbox (replies released once the journal is synced, an Ack only once its checkpoint is
-on disk and never if the write failed, jobs and births not held behind it; a failed sync or a
-fault of its own stops the coordinator instead of stalling it)."""
+on disk and never if the write failed, jobs and births not held behind it; a failed sync holds
+every reply until the journal is written again, a fault of its own stops the coordinator instead
+of stalling it), and what could not be written said once a minute."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from derl.messages import Ack, RunStatus
+from derl.nodes.coordinator.disk_faults import DiskFaults
 from derl.nodes.coordinator.outbox import Outbox
 from derl.nodes.journal.segments import Journal, read_segment
 from derl.nodes.runtime.checkpoint_writer import write_batch
@@ -92,7 +94,7 @@ def _status(run: str, born: int) -> RunStatus:
 
 
 def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    tmp_path: Path,
 ) -> None:
     journal = Journal(tmp_path)
     synced: list[int] = []
@@ -117,26 +119,50 @@ def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
     assert [data for _, data in outbox.take()] == [b"first", b"later"]
 
     written.set_result(None)
-    lost.set_exception(OSError(errno.ENOSPC, "No space left on device", "/r/c1.pt.tmp"))
+    full = OSError(errno.ENOSPC, "No space left on device")
+    lost.set_exception(full)
     outbox.drain()
     assert [data for _, data in outbox.take()] == [b"ack"]  # the lost one is never sent
-    (said,) = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
-    assert said == (  # one readable line (it was the whole Ack's repr)
-        "the Ack of c1 (job j1 of n1) is held back: its checkpoint was not written ([Errno 28] "
-        "No space left on device: '/r/c1.pt.tmp'); the trainer sends its report again"
-    )
     outbox.close()
     journal.close()
 
 
-@pytest.mark.parametrize("fault", [OSError(errno.EIO, "I/O error"), RuntimeError("a bug")])
-def test_an_outbox_that_fails_stops_the_coordinator_instead_of_stalling_it(
-    fault: Exception,
-) -> None:
-    """Nothing is released once the sync fails, or the outbox thread meets a fault of its own:
-    `send` raises it from then on (the coordinator's loop stops on it and its supervisor
-    restarts it from the journal) and `drain` returns; a thread that just died would leave the
-    loop running with every worker waiting for ever."""
+def test_an_outbox_whose_sync_fails_holds_every_reply_until_it_is_resumed() -> None:
+    """A journal that cannot be synced (a full disk) holds what is sent, in order, without
+    stopping the coordinator; `drain` does not wait for it; `resume` (the journal written
+    again) releases it all, and later groups are synced again."""
+    fails = [True]
+
+    def sync() -> None:
+        if fails[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    outbox = Outbox(sync)
+    outbox.send([(_status("r", 1), b"first", None)])
+    outbox.send([(_status("r", 2), b"second", None)])
+    deadline = time.monotonic() + 5
+    while outbox.fault is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert isinstance(outbox.fault, OSError) and outbox.failure is None
+    outbox.send([(_status("r", 3), b"third", None)])  # held too: no sync is tried
+    outbox.drain()
+    time.sleep(0.2)
+    assert outbox.take() == []
+    fails[0] = False
+    outbox.resume()
+    outbox.send([(_status("r", 4), b"fourth", None)])
+    outbox.drain()
+    assert [data for _, data in outbox.take()] == [b"first", b"second", b"third", b"fourth"]
+    assert outbox.fault is None
+    outbox.close()
+
+
+def test_an_outbox_with_a_fault_of_its_own_stops_the_coordinator_instead_of_stalling_it() -> None:
+    """Nothing is released once the outbox thread meets a fault of its own: `send` raises it
+    from then on (the coordinator's loop stops on it and its supervisor restarts it from the
+    journal) and `drain` returns; a thread that just died would leave the loop running with
+    every worker waiting for ever."""
+    fault = RuntimeError("a bug")
 
     def sync() -> None:
         raise fault
@@ -147,7 +173,7 @@ def test_an_outbox_that_fails_stops_the_coordinator_instead_of_stalling_it(
     deadline = time.monotonic() + 5
     while outbox.failure is None and time.monotonic() < deadline:
         time.sleep(0.01)
-    with pytest.raises(type(fault)):
+    with pytest.raises(RuntimeError):
         outbox.send([(status, b"second", None)])
     drained = threading.Thread(target=outbox.drain, daemon=True)
     drained.start()
@@ -155,3 +181,25 @@ def test_an_outbox_that_fails_stops_the_coordinator_instead_of_stalling_it(
     assert not drained.is_alive(), "drain waits for ever"
     assert outbox.take() == []
     outbox.close()
+
+
+def test_what_cannot_be_written_is_said_at_once_then_once_a_minute(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    now = [0.0]
+    faults = DiskFaults(clock=lambda: now[0])
+    full = OSError(errno.ENOSPC, "No space left on device")
+    with caplog.at_level(logging.WARNING, logger="derl.coordinator"):
+        for second in range(130):  # a write tried every second for 130 s
+            now[0] = float(second)
+            faults.failed(Path("/r/journal/segment-0001.mcap"), full, "it waits")
+        faults.works("the journal goes on")
+        faults.works("again: nothing to say")
+    assert [r.getMessage() for r in caplog.records] == [
+        "cannot write /r/journal/segment-0001.mcap (No space left on device): it waits",
+        "still cannot write, for 60 s: /r/journal/segment-0001.mcap (No space left on device): "
+        "it waits (60 writes failed in the last 60 s)",
+        "still cannot write, for 120 s: /r/journal/segment-0001.mcap (No space left on device): "
+        "it waits (60 writes failed in the last 60 s)",
+        "writing works again, after 129 s: the journal goes on",
+    ]

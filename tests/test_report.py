@@ -48,8 +48,9 @@ TABLES = (
 )
 
 
-def _job(child: str, genome: Genome, parent: str | None, attempt: int = 1) -> TrainJob:
-    """`genome` is the body for an initial one, the parent's for a tournament child."""
+def _job(
+    child: str, genome: Genome, parent: str | None, attempt: int = 1, mutation: str | None = None
+) -> TrainJob:
     return TrainJob(
         run="hand",
         job=f"{child}.{attempt}",
@@ -59,7 +60,7 @@ def _job(child: str, genome: Genome, parent: str | None, attempt: int = 1) -> Tr
         task="vt",
         ppo=PPOConfig(total_steps=300, num_envs=1, rollout_steps=100, minibatch_size=100),
         parent=parent,
-        mutation_seed=None if parent is None else 7,
+        mutation=mutation,
         lease_s=30,
     )
 
@@ -69,7 +70,6 @@ def _report(
     fitness: float,
     curve: tuple[float, ...],
     genome: Genome,
-    mutation: str | None = None,
     attempt: int = 1,
 ):
     return FitnessReport(
@@ -78,7 +78,6 @@ def _report(
         job=f"{child}.{attempt}",
         node="t0",
         genome=genome,
-        mutation=mutation,
         fitness=fitness,
         fitness_source="window",
         fitness_episodes=3,
@@ -94,13 +93,15 @@ def _report(
     )
 
 
-def _birth(report: FitnessReport, parent: str | None, birth: int, generation: int) -> Birth:
-    """The coordinator's Birth of an accepted `report`."""
+def _birth(
+    report: FitnessReport, parent: str | None, birth: int, generation: int, mutation: str | None
+) -> Birth:
+    """The coordinator's Birth of an accepted `report` (of a job made by `mutation`)."""
     return Birth(
         run=report.run, child=report.child, parent=parent, job=report.job, node=report.node,
         birth=birth, generation=generation, fitness=report.fitness,
         cost_of_work=report.cost_of_work, energy=report.energy, mass=report.mass,
-        mutation=report.mutation, genome=report.genome,
+        mutation=mutation, genome=report.genome,
     )  # fmt: skip
 
 
@@ -115,12 +116,13 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
             journal.write(_job(f"i{k}", founders[k], None))
             report = _report(f"i{k}", fitness, (fitness / 2, fitness, fitness), founders[k])
             journal.write(report)
-            journal.write(_birth(report, None, k, 0))
+            journal.write(_birth(report, None, k, 0, None))
             journal.write(
                 Ack(run="hand", of="FitnessReport", job=f"i{k}.1", child=f"i{k}", node="t0")
             )
         journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0), founders[1]))  # repeated: 1st counts
-        for child, parent, body, k in (("c0", "i2", founders[2], 0), ("c1", "c0", c0_body, 1)):
+        made = {"c0": "grow_limb", "c1": "gear"}
+        for child, parent, body, k in (("c0", "i2", c0_body, 0), ("c1", "c0", c1_body, 1)):
             journal.write(
                 Tournament(
                     run="hand",
@@ -132,14 +134,14 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
                     iteration=k,
                 )
             )
-            journal.write(_job(child, body, parent))
-        journal.write(_job("c0", founders[2], "i2", attempt=2))
+            journal.write(_job(child, body, parent, mutation=made[child]))
+        journal.write(_job("c0", c0_body, "i2", attempt=2, mutation=made["c0"]))
         for report, parent, k in (
-            (_report("c0", 150.0, (20.0, 40.0, 150.0), c0_body, "grow_limb", 2), "i2", 3),
-            (_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body, "gear"), "c0", 4),
+            (_report("c0", 150.0, (20.0, 40.0, 150.0), c0_body, 2), "i2", 3),
+            (_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body), "c0", 4),
         ):
             journal.write(report)
-            journal.write(_birth(report, parent, k, k - 2))
+            journal.write(_birth(report, parent, k, k - 2, made[report.child]))
         for task, seed, reward in (("patrol", 0, 5.0), ("patrol", 1, 7.0), ("incline", 0, 3.0)):
             result = EvalResult(
                 run="hand",

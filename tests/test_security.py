@@ -34,6 +34,7 @@ from derl.messages import (
     Birth,
     FitnessReport,
     MessageBase,
+    Reject,
     Rejection,
     RunStatus,
     TrainJob,
@@ -48,14 +49,18 @@ from derl.nodes.launch.model import load
 from derl.nodes.runtime.bus import Bus, ZenohOptions, zenoh_config
 from nodes_fixtures import (
     REPO,
+    LocalRun,
     Processes,
     assert_born_once,
     derl_argv,
     free_port,
+    observe,
     run_id,
     wait_for,
     write_profile,
 )
+
+from derl.evolution import breed
 
 FORGED_FITNESS = -4242.0
 
@@ -252,3 +257,37 @@ def test_tls_and_per_node_access_control(tmp_path: Path, sessions: list) -> None
         assert {"TrainJob", "FitnessReport", "Ack", "RunStatus", "Birth"} <= kinds
     finally:
         processes.close()
+
+
+FORGED_BODY_FITNESS = 55.5  # plausible: within the world's bound, above what the trainer reaches
+
+
+def test_a_report_with_another_body_than_its_job_is_rejected(tmp_path: Path, procs) -> None:
+    """On a run without TLS anyone can publish on a trainer's key (with TLS: a trainer's own
+    certificate). A report for a tournament child in flight, published on its trainer's key
+    before the trainer's own, naming the trainer and its job, carrying another valid mutated
+    body and a plausible fitness: rejected (the coordinator decides every body), and the child
+    is born once, from its trainer's report, with its job's body."""
+    local = LocalRun.at(tmp_path, population=2, total=3, train_steps=36864)
+    procs.start("coordinator", local.coordinator())
+    with observe(local) as observer:
+        jobs: queue.Queue[TrainJob] = queue.Queue()
+        observer.bus.subscribe(observer.bus.keys.job("a"), jobs.put, (TrainJob,))
+        wait_for(lambda: observer.statuses, 60, "the coordinator's status")
+        procs.start("a", local.trainer("a"))
+        job = jobs.get(timeout=120)
+        while job.parent is None:  # the initial bodies' jobs
+            job = jobs.get(timeout=120)
+        forged_body, _ = breed(job.genome, 12345)
+        template = next(m for m in examples(local.run, 0) if isinstance(m, FitnessReport))
+        forged = template.model_copy(update={
+            "job": job.job, "child": job.child, "node": "a", "genome": forged_body,
+            "fitness": FORGED_BODY_FITNESS, "env_steps": job.steps})  # fmt: skip
+        observer.bus.publish(forged)
+        assert procs.finish(procs.started["coordinator"], timeout=120) == 0
+    assert_born_once(local.dir, 3)
+    journal = list(replay(local.dir))
+    birth = next(m for m in journal if isinstance(m, Birth) and m.child == job.child)
+    assert birth.fitness != FORGED_BODY_FITNESS and birth.genome != forged_body
+    rejects = [m for m in journal if isinstance(m, Reject) and m.job == job.job]
+    assert [m.reason for m in rejects] == ["not the body of its job"]

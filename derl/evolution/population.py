@@ -1,27 +1,26 @@
 """Aging (regularized) tournament evolution as a deterministic state machine, with no bus.
 
 The population is the P most recently born agents, in birth order. The initial P bodies come from
-the run's seed; afterwards each tournament draws T members with replacement, the fittest is the
-parent (the first drawn among equals), and one mutation of its body is the child. Tournament k
-draws from a hash of (seed, k) (`tournament_draws`), so a decision depends only on the state it
-was made in: replaying recorded decisions and births rebuilds the same state, and the next
-decision is the one the crashed run would have made.
+the run's seed; afterwards each tournament draws T members with replacement from the births so
+far (fewer than P while initial bodies are still training), the fittest is the parent (the first
+drawn among equals), and one mutation of its body is the child. Tournament k draws from a hash of
+(seed, k) (`tournament_draws`), so a decision depends only on the state it was made in: replaying
+recorded decisions and births rebuilds the same state, and the next decision is the one the
+crashed run would have made.
 
-A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child.
-Breeding (a mutation and its validity check, a few ms) is deterministic, so it runs wherever the
-child is trained, as in the original DERL where every worker mutated its own child. Training is
-deterministic within a run, so a child whose body equals one already born (`repeat`, by
-`body_hash`: the same body whatever its limb numbering) is born as a repeat with that body's
-result instead of being trained again; where it is decided, only the child's first draft (the
-first body breeding tries, before the validity check that is most of its cost) is made and
-looked up: a draft that is a born body is the child if valid, checked once per born body.
+A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child
+(a mutation and its full validity check: deterministic, so the same seed gives the same body).
+Whoever holds this state breeds the child (`body`) before it is trained, so every body is
+decided here, recorded once decided (`decided`: a journal that carries it gives it back), and a
+trainer trains the body it is given. Training is deterministic within a run, so a child whose
+body equals one already born (`repeat`, by `body_hash`: the same body whatever its limb
+numbering) is born as a repeat with that body's result instead of being trained again.
 """
 
 from __future__ import annotations
 
 import hashlib
 import struct
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,8 +31,6 @@ from derl.unimal import (
     Mutation,
     MutationFailed,
     body_hash,
-    check_body,
-    is_valid,
     mutate,
     sample_population,
 )
@@ -69,8 +66,8 @@ class Member:
 
 @dataclass(frozen=True)
 class Child:
-    """A body to train: an initial one (its genome, no parent) or a tournament's winner to
-    breed (`breed(genome of parent, mutation_seed)`; the genome is known once it is born)."""
+    """A body to train: an initial one (its genome, no parent) or a tournament's decision, the
+    child of `parent` to breed with `mutation_seed` (`Evolution.body`)."""
 
     name: str
     genome: Genome | None
@@ -81,28 +78,17 @@ class Child:
     iteration: int = -1
 
 
-def breed(
-    parent: Genome, seed: int, check: Callable[[Genome], None] = check_body
-) -> tuple[Genome, Mutation]:
-    """The child of a tournament: one valid mutation of `parent`, the same for the same seed."""
+def breed(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
+    """The child of a tournament: one valid mutation of `parent`, the same for the same seed
+    (each operator tries up to 50 times, and up to `MAX_DRAWS` operators are drawn)."""
     rng = np.random.default_rng(seed)
     reason = ""
     for _ in range(MAX_DRAWS):
         try:
-            return mutate(parent, rng, check=check)
+            return mutate(parent, rng)
         except MutationFailed as failure:
             reason = str(failure)
     raise MutationFailed("every drawn operator", MAX_DRAWS, reason)
-
-
-def _unchecked(genome: Genome) -> None:
-    """No validity check (`first_draft`)."""
-
-
-def first_draft(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
-    """The first body `breed(parent, seed)` tries and its mutation, before the validity check
-    (MuJoCo's compile, most of breeding's cost): the child itself whenever that body is valid."""
-    return breed(parent, seed, check=_unchecked)
 
 
 class Evolution:
@@ -118,17 +104,16 @@ class Evolution:
                 f"{len(initial)} initial bodies for a population of {config.population}"
             )
         self.initial = [Child(f"i{k:04d}", genome) for k, genome in enumerate(initial)]
-        self.unborn_initial = {child.name for child in self.initial}
+        # every child's body once decided (an initial one from the start), and its mutation
         self.genomes: dict[str, Genome] = {c.name: c.genome for c in self.initial}
+        self.mutations: dict[str, Mutation | None] = {c.name: None for c in self.initial}
         self.parents: dict[str, str | None] = {c.name: None for c in self.initial}
         self.seeds: dict[str, int | None] = {c.name: None for c in self.initial}
         self.born: list[Member] = []
         self.fitness: dict[str, float] = {}
-        self.given_up: set[str] = set()  # children whose trainings kept failing: never born
+        self.given_up: set[str] = set()  # children never born (not bred, or trainings failed)
         self.bodies: dict[str, str] = {}  # body_hash -> the first agent born with that body
-        self.drafts: dict[str, str | None] = {}  # child -> body_hash of its first draft
-        self.drafted: dict[str, tuple[Genome, Mutation]] = {}  # that draft, until it is born
-        self.valid: dict[str, bool] = {}  # body_hash of a born body -> it passes `check_body`
+        self.hashes: dict[str, str] = {}  # child -> body_hash of its body (computed once)
         self.iterations = 0
         self._best: Member | None = None
 
@@ -136,10 +121,6 @@ class Evolution:
     def population(self) -> list[Member]:
         """The P most recently born agents."""
         return self.born[-self.config.population :]
-
-    @property
-    def initial_born(self) -> bool:
-        return not self.unborn_initial
 
     @property
     def settled(self) -> int:
@@ -156,10 +137,11 @@ class Evolution:
         return self._best
 
     def tournament(self) -> Child:
-        """Decide the next child (call `record` with it to make it part of the state)."""
-        if not self.initial_born:
-            raise RuntimeError("tournaments start once the initial population is born")
+        """Decide the next child from the births so far (call `record` with it to make it part
+        of the state)."""
         population = self.population
+        if not population:
+            raise RuntimeError("a tournament needs an agent born")
         positions, mutation_seed = tournament_draws(
             self.config.seed, self.iterations, self.config.tournament, len(population)
         )
@@ -183,54 +165,43 @@ class Evolution:
         self.seeds[child.name] = child.mutation_seed
         self.iterations = max(self.iterations, child.iteration + 1)
 
-    def to_train(self, child: str) -> tuple[Genome, int | None]:
-        """What a trainer needs for `child`: its body, or its parent's body and the seed to
-        breed it with (until it is born)."""
-        if child in self.genomes:
-            return self.genomes[child], None
-        return self.genomes[self.parents[child]], self.seeds[child]
+    def body(self, child: str) -> tuple[Genome, Mutation | None]:
+        """`child`'s body and the mutation that made it (None: an initial body): a tournament's
+        child is bred from its parent's body the first time it is asked for (a few ms: the
+        validity check compiles the body; `MutationFailed` if no valid child comes of it)."""
+        if child not in self.genomes:
+            seed = self.seeds[child]
+            assert seed is not None, child
+            self.decided(child, *breed(self.genomes[self.parents[child]], seed))
+        return self.genomes[child], self.mutations[child]
+
+    def decided(self, child: str, genome: Genome, mutation: Mutation | None) -> None:
+        """`child`'s body is `genome` (made by `mutation`): a fact, as its job records it."""
+        if child not in self.genomes:
+            self.genomes[child] = genome
+            self.mutations[child] = mutation
+
+    def body_key(self, child: str) -> str:
+        """The `body_hash` of `child`'s body (decided before)."""
+        key = self.hashes.get(child)
+        if key is None:
+            key = self.hashes[child] = body_hash(self.genomes[child])
+        return key
 
     def give_up(self, child: str) -> None:
-        """`child` will never be born (its trainings failed); the run goes on without it."""
+        """`child` will never be born (it could not be bred, or its trainings failed); the run
+        goes on without it."""
         if child in self.parents and child not in self.fitness:
             self.given_up.add(child)
-            self.drafted.pop(child, None)
-            self.unborn_initial.discard(child)
 
     def repeat_of(self, genome: Genome) -> str | None:
         """The first agent born with the body `genome` (None: a body not born yet)."""
         return self.bodies.get(body_hash(genome))
 
-    def draft(self, child: str) -> str | None:
-        """The `body_hash` of tournament child `child`'s first draft (None: an initial child, or
-        one that cannot be bred); the child's own when the draft is valid."""
-        if child not in self.drafts:
-            parent_body, seed = self.to_train(child)
-            key = None
-            if seed is not None:
-                try:
-                    self.drafted[child] = first_draft(parent_body, seed)
-                    key = body_hash(self.drafted[child][0])
-                except MutationFailed:  # its trainer fails the same way: the child is given up
-                    pass
-            self.drafts[child] = key
-        return self.drafts[child]
-
-    def repeat(self, child: str) -> tuple[str, Genome, Mutation] | None:
-        """If tournament child `child` will have a body born already: that agent, the body and
-        its mutation. The child's first draft is looked up: one that is a born body and valid is
-        the child. A tournament child's body is valid (its trainer bred it with `check_body`);
-        an initial body, which may be given by hand, is checked once, at its first lookup
-        (`check_body` depends on the body, not on its limbs' numbering). A child whose draft is
-        invalid and whose body is born is missed (rare: trained)."""
-        key = self.draft(child)
-        earlier = self.bodies.get(key)
-        if earlier is None or child not in self.drafted:
-            return None
-        genome, mutation = self.drafted[child]
-        if key not in self.valid:
-            self.valid[key] = is_valid(genome)
-        return (earlier, genome, mutation) if self.valid[key] else None
+    def repeat(self, child: str) -> str | None:
+        """The agent born already with `child`'s body (decided before), if another."""
+        earlier = self.bodies.get(self.body_key(child))
+        return None if earlier == child else earlier
 
     def birth(
         self, agent: str, fitness: float, genome: Genome, repeat_of: str | None = None
@@ -240,15 +211,10 @@ class Evolution:
         if agent in self.fitness or agent not in self.parents:
             return None
         self.genomes.setdefault(agent, genome)
-        drafted = self.drafted.pop(agent, None)  # the draft's hash, if it is the body born
-        key = self.drafts[agent] if drafted and drafted[0] == genome else body_hash(genome)
-        self.bodies.setdefault(key, agent)
-        if self.seeds[agent] is not None:  # bred, so checked, by its trainer (`breed`)
-            self.valid[key] = True
+        self.bodies.setdefault(self.body_key(agent), agent)
         member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
         self.born.append(member)
         if self._best is None or fitness > self._best.fitness:
             self._best = member
         self.fitness[agent] = fitness
-        self.unborn_initial.discard(agent)
         return member

@@ -72,7 +72,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _frame_size(text: str) -> tuple[int, int]:
     """'320x240' -> (320, 240)."""
     width, _, height = text.lower().partition("x")
-    if not (width.isdigit() and height.isdigit() and 16 <= min(int(width), int(height))):
+    if not (width.isdigit() and height.isdigit() and min(int(width), int(height)) >= 16):
         raise argparse.ArgumentTypeError(f"{text!r}: give WIDTHxHEIGHT in pixels, e.g. 320x240")
     return int(width), int(height)
 

@@ -1,17 +1,18 @@
 """A run's policy: the aging tournament evolution as jobs, births and failures.
 
 A ready trainer gets the first waiting child (an initial body, or one whose job was lost or
-failed: on another trainer than the one it failed on, while there is one), else, once the initial
-bodies are born, the child of a new tournament (`derl.evolution` holds the rule; the `Tournament`
-is journaled). Before a child is assigned its body is looked up (`Evolution.repeat`: its first
-draft, ~0.1 ms, and breeding only if that is a born body): a body born already is not trained
-again, the child is born at once as its repeat (Birth `repeat_of`, with its result, and its
-checkpoint file linked) and the trainer gets the next child. A child whose first draft is that of
-a child in training is held back until that one is born (`CoordinatorState.hold`), then looked up
-again: it is then most likely its repeat.
+failed: on another trainer than the one it failed on, while there is one), else, once every
+initial body is assigned and one is born, the child of a new tournament drawn from the births so
+far (`derl.evolution` holds the rule; the `Tournament` is journaled). The coordinator decides
+every body: it breeds a tournament's child itself (`Evolution.body`: `breed` with its full
+validity check, a few ms; a child of which no valid body can be bred is given up at once) and
+sends the body in the job, which records it. A body born already is not trained again: the child
+is born at once as its repeat (Birth `repeat_of`, with its result, and its checkpoint file
+linked) and the trainer gets the next child. A child whose body is that of a child in training is
+held back until that one is born (`CoordinatorState.hold`), then born as its repeat.
 
 The first valid report for a child is its birth, whoever trained it (another job for it is
-cancelled): valid when the job was issued to the sender for that child, the body fits the job,
+cancelled): valid when the job was issued to the sender for that child, the body is the job's,
 the fitness is within what the world allows and the env steps within the job's budget; its
 checkpoint is written, and the Ack goes out once it is on disk. A report that can never be taken
 is rejected. A child whose training failed `max_attempts` times is given up (ChildFailed). Once
@@ -51,7 +52,7 @@ from derl.nodes.errors import Refused
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
-from derl.unimal import Genome
+from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
 
 log = logging.getLogger("derl.coordinator")
@@ -96,7 +97,7 @@ class EvolutionPolicy:
 
     def _training(self, node: str, trainers: int) -> TrainJob | None:
         """The next child to train for `node`; children whose body is born already are born as
-        repeats on the way, without training."""
+        repeats on the way, without training, and children that cannot be bred are given up."""
         state, evolution = self.state, self.state.evolution
         while True:
             child = state.next_child_for(node, trainers)
@@ -106,10 +107,10 @@ class EvolutionPolicy:
                 child = decided.name
             if child is None:
                 return None
-            if not self._born_as_repeat(child) and not state.hold(child):
+            if self._bred(child) and not self._born_as_repeat(child) and not state.hold(child):
                 break
         state.training(child)
-        genome, mutation_seed = evolution.to_train(child)
+        genome, mutation = evolution.body(child)
         job = TrainJob(
             run=self.run,
             job=state.next_job_id(child),
@@ -119,20 +120,42 @@ class EvolutionPolicy:
             task=self.config.world,
             ppo=self.training_ppo,
             parent=evolution.parents[child],
-            mutation_seed=mutation_seed,
+            mutation=None if mutation is None else mutation.op,
+            mutation_detail="" if mutation is None else mutation.detail,
             lease_s=self.config.lease_s,
         )
         log.debug("%s -> %s (%s)", child, node, job.job)
         return job
 
+    def _bred(self, child: str) -> bool:
+        """Whether `child` has its body (bred now if it is a tournament's new child); a child no
+        valid body can be bred from (every drawn operator failed: deterministic, so no retry
+        would change it) is given up."""
+        try:
+            self.state.evolution.body(child)
+        except MutationFailed as failure:
+            log.error("%s given up: no valid child of %s can be bred (%s)", child,
+                      self.state.evolution.parents[child], failure)  # fmt: skip
+            self.ledger.commit(
+                ChildFailed(
+                    run=self.run,
+                    child=child,
+                    parent=self.state.evolution.parents[child],
+                    attempts=0,
+                    error=f"MutationFailed: {failure}"[:1000],
+                )
+            )
+            return False
+        return True
+
     def _born_as_repeat(self, child: str) -> bool:
         """If `child`'s body is born already (a repeat: training is deterministic within a
         run), it is born now with that body's result and checkpoint, and True."""
         state = self.state
-        repeat = state.evolution.repeat(child)
-        if repeat is None:
+        earlier = state.evolution.repeat(child)
+        if earlier is None:
             return False
-        earlier, genome, mutation = repeat
+        genome, mutation = state.evolution.body(child)
         first = state.born[earlier]
         parent = state.evolution.parents[child]
         birth = first.model_copy(
@@ -141,8 +164,8 @@ class EvolutionPolicy:
                 "parent": parent,
                 "birth": len(state.births),
                 "generation": state.generation(parent),
-                "mutation": mutation.op,
-                "mutation_detail": mutation.detail,
+                "mutation": None if mutation is None else mutation.op,
+                "mutation_detail": "" if mutation is None else mutation.detail,
                 "genome": genome,
                 "repeat_of": earlier,
             }
@@ -162,7 +185,7 @@ class EvolutionPolicy:
             saved = None  # a crash (or a failed write) may have lost its checkpoint file
             born_from = state.born[report.child].job
             if born_from == report.job and not ledger.checkpoints.path(report.child).exists():
-                saved = ledger.checkpoints.save(report.child, report.checkpoint)
+                saved = ledger.save(report.child, report.checkpoint)
             ledger.ack(report, report.child, after=saved)
         elif report.child in state.failed:
             ledger.reject(report, report.child, "the child was given up")
@@ -181,7 +204,7 @@ class EvolutionPolicy:
     def _birth(self, report: FitnessReport, order: TrainJob) -> None:
         """The first valid report for a child: its birth (and the end of any other job for it)."""
         state, ledger = self.state, self.ledger
-        saved = ledger.checkpoints.save(report.child, report.checkpoint)
+        saved = ledger.save(report.child, report.checkpoint)
         ledger.commit(report.model_copy(update={"checkpoint": b""}), publish=False)
         birth = Birth(
             run=self.run,
@@ -195,9 +218,9 @@ class EvolutionPolicy:
             cost_of_work=report.cost_of_work,
             energy=report.energy,
             mass=report.mass,
-            mutation=report.mutation,
-            mutation_detail=report.mutation_detail,
-            genome=report.genome,
+            mutation=order.mutation,
+            mutation_detail=order.mutation_detail,
+            genome=order.genome,
         )
         other = state.by_child.get(report.child)
         ledger.commit(birth)
@@ -209,16 +232,11 @@ class EvolutionPolicy:
                                  reason=f"{report.child} was born from {report.job}"))  # fmt: skip
 
     def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
-        """Why `report` cannot be accepted for `order` ("" if it can).
-
-        A child bred by its trainer is taken as reported (breeding is deterministic and trainers
-        are trusted like their fitness; with TLS only the node's own certificate can publish on
-        its keys)."""
-        if order.mutation_seed is None:
-            if report.mutation is not None or report.genome != order.genome:
-                return "not the body of its job"
-        elif report.mutation is None:
-            return "a tournament child without its mutation"
+        """Why `report` cannot be accepted for `order` ("" if it can): the body is the job's
+        (the coordinator decided it), so a report can misstate only the fitness, within the
+        world's bound, and the env steps, within the job's budget."""
+        if report.genome != order.genome:
+            return "not the body of its job"
         bound = self.fitness_bound
         if not abs(report.fitness) <= bound:
             return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"

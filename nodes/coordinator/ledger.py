@@ -9,11 +9,19 @@ into the journal file and hands its replies to the `Outbox`, which releases them
 on the disk (an Ack also waits for its report's checkpoint file); the node loop publishes what was
 released. Acknowledging, rejecting and counting rejections are here too: each is a committed
 message.
+
+A journal or a checkpoint file that cannot be written (a full disk, an I/O error) makes the
+ledger `stalled`: nothing more is released (an Ack whose file failed is dropped), the loop
+commits nothing and tries `recover` every second, which writes what was not on the disk (the
+journal's messages into a new segment, the checkpoints kept in memory into their files) and
+releases what was held; the trainers' re-sent reports are then acknowledged. What failed, and
+that it works again, is said once a minute (`DiskFaults`).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from concurrent.futures import Future
 from pathlib import Path
 
@@ -26,6 +34,7 @@ from derl.messages import (
     Rejection,
     encode,
 )
+from derl.nodes.coordinator.disk_faults import DiskFaults
 from derl.nodes.coordinator.outbox import Outbox, Reply
 from derl.nodes.coordinator.state import CoordinatorState
 from derl.nodes.errors import Refused
@@ -33,6 +42,12 @@ from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segment
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 
 log = logging.getLogger("derl.coordinator")
+
+STALLED = (
+    "the coordinator acknowledges nothing more and waits, the run's state kept, trying every "
+    "second to write it again"
+)
+CHECKPOINT_WAIT_S = 30.0  # the longest `recover` waits for a checkpoint file written again
 
 
 class Ledger:
@@ -55,8 +70,64 @@ class Ledger:
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
         self.replies: list[Reply] = []  # the group's: published once it is on disk
+        self.faults = DiskFaults()
         self.outbox = Outbox(self.journal.sync)
+        self._lock = threading.Lock()  # `unwritten`, changed by the checkpoint writer's thread
+        self.unwritten: dict[str, bytes] = {}  # child -> its checkpoint, whose file failed
+        self._recovered: list[str] = []  # what `recover` wrote again since writing failed
         self.rejected = 0  # messages refused, counted for `RunStatus`
+
+    @property
+    def stalled(self) -> bool:
+        """The journal or a checkpoint file cannot be written: nothing is released until
+        `recover` works."""
+        return (
+            self.journal.failure is not None
+            or self.outbox.fault is not None
+            or bool(self.unwritten)
+        )
+
+    def recover(self) -> bool:
+        """Write the journal again (`Journal.recover`) and release what was held, then write the
+        checkpoints that failed; whether it all worked (if not, it is said once a minute)."""
+        failure = self.journal.failure  # what stalled it (the first time, the first failure)
+        rewritten = self.journal.recover()
+        if rewritten is None:
+            assert failure is not None
+            self.faults.failed(failure.path, failure.error, STALLED)
+            return False
+        if failure is not None:
+            segment = self.journal.segment.name
+            self._recovered.append(f"the journal goes on in {segment} ({rewritten} messages "
+                                   "not on the disk written into it)")  # fmt: skip
+        self.outbox.resume()
+        with self._lock:
+            unwritten = dict(self.unwritten)
+        for child, checkpoint in unwritten.items():
+            try:
+                self.save(child, checkpoint).result(timeout=CHECKPOINT_WAIT_S)
+            except Exception:  # said by `_saved`
+                return False
+            self._recovered.append(f"{self.checkpoints.path(child).name} written")
+        self.faults.works(", ".join(self._recovered))
+        self._recovered = []
+        return True
+
+    def save(self, child: str, checkpoint: bytes) -> Future[None]:
+        """Write `child`'s checkpoint file (`CheckpointFiles.save`); if that fails, the ledger is
+        stalled, and keeps the bytes to write them again (`recover`)."""
+        saved = self.checkpoints.save(child, checkpoint)
+        saved.add_done_callback(lambda done: self._saved(child, checkpoint, done))
+        return saved
+
+    def _saved(self, child: str, checkpoint: bytes, done: Future[None]) -> None:
+        error = done.exception()
+        with self._lock:
+            if error is None:
+                self.unwritten.pop(child, None)
+                return
+            self.unwritten[child] = checkpoint
+        self.faults.failed(self.checkpoints.path(child), error, STALLED)
 
     def commit(
         self, msg: MessageBase, publish: bool = True, after: Future[None] | None = None

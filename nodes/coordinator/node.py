@@ -14,7 +14,11 @@ from its key's node segment is rejected by the bus check, journaled and counted.
 the loop publishes the run's status, every 5 s its population; births and failed children go out
 on ``births/<child>``, and a Zenoh query on ``births/*`` or ``population`` answers a monitor that
 starts late. When the state says the run is over, the policy writes its results and the loop
-announces the end a few times, then returns.
+announces the end a few times, then returns. While the journal or a checkpoint file cannot be
+written (a full disk: `Ledger.stalled`) the loop commits nothing and publishes only what was on
+the disk before, drops what would need a commit (the workers send their reports and asks
+again), and tries every second to write again; then it goes on where it was, the jobs' leases
+started afresh.
 """
 
 from __future__ import annotations
@@ -60,6 +64,7 @@ TAKE = 64  # messages a pass takes from one inlet before the next one's turn (8:
 RESEND_AFTER_S = 2.0  # a job order is sent again for a WorkerReady that came in this long after
 # the last (`_ready`)
 IDLE_S = (0.0005, 0.01)  # the wait when nothing came: the first, doubled up to the last
+RETRY_S = 1.0  # a coordinator whose journal cannot be written tries again this often
 RECENT_BIRTHS = 1000  # births a late monitor gets by query
 INLETS = (  # what the loop takes, in this order in each pass
     ("ready", (WorkerReady,)),
@@ -93,6 +98,8 @@ class Coordinator:
         self.idle: dict[str, dict[str, None]] = {"trainer": {}, "evaluator": {}}
         self.trainers = 0  # of them, trainers (counted, not scanned: one count per assignment)
         self.rates: dict[str, float] = {}  # node -> steps/s
+        self.failures_held: list[JobFailed] = []  # JobFailed that came while stalled
+        self.retry_at = 0.0  # when a stalled coordinator next tries to write its journal
         self.stop = threading.Event()
         log.info("run %s: %d journaled messages replayed, %d born", run, self.ledger.replayed,
                  policy.progress().born)  # fmt: skip
@@ -125,7 +132,11 @@ class Coordinator:
         idle_s = IDLE_S[0]
         outbox = self.ledger.outbox
         while not self.stop.is_set():
+            if self.ledger.stalled:
+                self._stalled(inlets)
+                continue
             took = self._take_group(inlets, changes)
+            self.ledger.flush()  # the group's births and Acks do not wait for the breeding below
             self._assign_idle()
             self.ledger.flush()
             outbox.released.clear()
@@ -145,6 +156,29 @@ class Coordinator:
                 self._say(self.policy.snapshot())
                 next_snapshot = now + SNAPSHOT_PERIOD_S
         return False
+
+    def _stalled(self, inlets: list[Inlet]) -> None:
+        """The journal or a checkpoint cannot be written: take what comes without committing
+        anything (progress keeps its job's lease; a failed job waits for later; reports and asks
+        are dropped: their senders send them again; liveliness changes wait in their queue), and
+        every `RETRY_S` try to write again. Once it works, the leases start afresh."""
+        for inlet in inlets:
+            for msg in inlet.take(TAKE):
+                if isinstance(msg, TrainProgress):
+                    self._handle(msg)
+                elif isinstance(msg, JobFailed):
+                    self.failures_held.append(msg)
+        self._publish_released()  # what was on the disk before goes out
+        now = time.monotonic()
+        if now < self.retry_at:
+            self.stop.wait(0.05)
+            return
+        self.retry_at = now + RETRY_S
+        if self.ledger.recover():
+            self.heard.update(dict.fromkeys(self.state.jobs, now))
+            held, self.failures_held = self.failures_held, []
+            for failure in held:
+                self._take(failure)
 
     def _every_second(self, now: float, last_end: bool) -> bool:
         """Log, check the leases, say the status; whether the run is over (the `last_end` time,
@@ -295,9 +329,9 @@ class Coordinator:
 
     def _bus_rejected(self, why: str, key: str, msg: MessageBase | None) -> None:
         """A message the bus check refused; the ones that decode are journaled (`Rejection`)."""
-        if msg is None or msg.run != self.run:
-            self.ledger.rejected += 1  # garbage or another run's: counted (the bus logged it)
-            return
+        if msg is None or msg.run != self.run or self.ledger.stalled:
+            self.ledger.rejected += 1  # garbage, another run's, or while nothing can be
+            return  # journaled: counted (the bus logged it)
         self.ledger.rejection(why, key, msg)
 
     # --- workers and leases ------------------------------------------------------------------

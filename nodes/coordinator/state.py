@@ -7,10 +7,12 @@ JobFailed takes a job back (its subject waits for the next worker), a Cancel end
 child was born from another, a ChildFailed gives a child up, an EvalResult completes an
 evaluation; a Birth with `repeat_of` is a child never trained (its body is an earlier one's).
 Which jobs are in flight, who holds them and what waits for a worker are all derived here; time
-(leases) and the checks of incoming messages are the node's business. Not from the journal: the
-children held back because a child with their first draft is in training (`hold`); each goes
-back to the front of the queue once that child is born or given up (a restart forgets them: they
-are in the queue again, and held again when they come up).
+(leases) and the checks of incoming messages are the node's business. A TrainJob also records its
+child's body (the coordinator bred it: a fact, so a resumed coordinator trains the same body).
+Not from the journal: the children held back because a child with their body is in training
+(`hold`); each goes back to the front of the queue once that child is born (then it is born as
+its repeat) or given up (a restart forgets them: they are in the queue again, and held again when
+they come up).
 
 A journal whose damaged segment was replaced by its repaired part (`derl log repair`) may have
 lost a Tournament whose child's job, report or birth are in a later segment: each such message,
@@ -43,7 +45,7 @@ from derl.nodes.journal.history import EvalKey, RunHistory
 
 from derl.evolution import Child, Evolution, EvolutionConfig, Member
 from derl.rl import PPOConfig
-from derl.unimal import Genome
+from derl.unimal import Genome, Mutation
 
 log = logging.getLogger("derl.coordinator")
 
@@ -89,8 +91,8 @@ class CoordinatorState(RunHistory):
         self.eval_given_up: set[EvalKey] = set()  # failed `max_attempts` times
         self.by_node: dict[str, str] = {}  # node -> its job in flight
         self.by_child: dict[str, str] = {}  # child -> its training job in flight
-        self.drafted: dict[str, str] = {}  # first draft's body_hash -> the child trained with it
-        self.held: dict[str, str] = {}  # child -> the child in training with its first draft
+        self.in_training: dict[str, str] = {}  # body_hash -> the child in training with it
+        self.held: dict[str, str] = {}  # child -> the child in training with its body
         self.holding: dict[str, list[str]] = {}  # that child in training -> the children held
 
     @classmethod
@@ -139,6 +141,8 @@ class CoordinatorState(RunHistory):
         super().on_TrainJob(msg)
         self.orders[msg.job] = msg
         child = msg.child
+        made = None if msg.mutation is None else Mutation(msg.mutation, msg.mutation_detail)
+        self.evolution.decided(child, msg.genome, made)
         if child in self.by_child:
             self._remove(self.by_child[child])  # a reassignment supersedes the lost job
         if child in self.waiting:
@@ -207,16 +211,14 @@ class CoordinatorState(RunHistory):
                 self.eval_waiting.appendleft(key)
 
     def training(self, child: str) -> None:
-        """`child` is assigned for training: a later child with its first draft is held."""
-        key = self.evolution.draft(child)
-        if key is not None:
-            self.drafted.setdefault(key, child)
+        """`child` (its body decided) is assigned for training: a later child with its body is
+        held."""
+        self.in_training.setdefault(self.evolution.body_key(child), child)
 
     def hold(self, child: str) -> bool:
-        """Hold `child` back (True) if a child with its first draft is in training: it is
-        likely the same body, whose result it can take once born."""
-        key = self.evolution.draft(child)
-        earlier = None if key is None else self.drafted.get(key)
+        """Hold `child` (its body decided) back (True) if a child with its body is in training:
+        once that one is born, `child` is born as its repeat."""
+        earlier = self.in_training.get(self.evolution.body_key(child))
         if earlier is None or earlier == child:
             return False
         if child in self.waiting:
@@ -227,9 +229,9 @@ class CoordinatorState(RunHistory):
 
     def _release(self, child: str) -> None:
         """`child` is born or given up: the children held for it go first in the queue."""
-        key = self.evolution.drafts.get(child)
-        if key is not None and self.drafted.get(key) == child:
-            del self.drafted[key]
+        key = self.evolution.hashes.get(child)
+        if key is not None and self.in_training.get(key) == child:
+            del self.in_training[key]
         for held in reversed(self.holding.pop(child, [])):
             del self.held[held]
             self.waiting.appendleft(held)
@@ -267,15 +269,12 @@ class CoordinatorState(RunHistory):
         return None
 
     def wants_tournament(self) -> bool:
-        """Whether a new child should be decided for an idle trainer now."""
+        """Whether a new child should be decided for an idle trainer now: once no child waits
+        (every initial body is assigned: those still training are born when they finish) and
+        one is born, while fewer than the run's total are started."""
         evolution = self.evolution
         started = evolution.settled + self.training_in_flight() + len(self.waiting) + len(self.held)
-        return (
-            evolution.initial_born
-            and bool(evolution.born)
-            and not self.waiting
-            and started < self.config.total
-        )
+        return bool(evolution.born) and not self.waiting and started < self.config.total
 
     def next_job_id(self, child: str) -> str:
         return f"{child}.{self.attempts.get(child, 0) + 1}"

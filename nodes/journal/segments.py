@@ -21,6 +21,7 @@ from the next whole chunk. A closed segment can be compacted into zstd chunks.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
@@ -43,6 +44,7 @@ from derl.messages import (
     encode,
     kind_of,
 )
+from derl.nodes.errors import REFUSED, DerlError
 from derl.nodes.journal.reader import Damage, JournalDamaged, records
 from derl.nodes.runtime.rundir import sync_folder
 from mcap.records import Channel, Footer, Message, Schema
@@ -59,7 +61,13 @@ class JournalWriter:
     """One segment file, written message by message, each one (or group) flushed to the file."""
 
     def __init__(self, path: Path) -> None:
-        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._closed = False
+        self._open(Path(path))
+
+    def _open(self, path: Path) -> None:
+        """Start writing the new file `path` (its header in the file, its name on the disk)."""
+        self.path = path
         self._file = self.path.open("xb")
         self._writer = Writer(self._file, compression=CompressionType.NONE)
         self._writer.start(profile="", library=LIBRARY)
@@ -68,8 +76,6 @@ class JournalWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._sequence = 0
-        self._lock = threading.Lock()
-        self._closed = False
         self.pending = 0  # messages appended since the last flush
 
     def write(
@@ -87,18 +93,26 @@ class JournalWriter:
             if self._closed:
                 raise ValueError(f"{self.path} is closed")
             now = time.time_ns()
-            self._writer.add_message(
-                self._channel(msg),
-                log_time=now,
-                data=data,
-                publish_time=now if publish_time_ns is None else publish_time_ns,
-                sequence=self._sequence & 0xFFFF_FFFF,
-            )
-            if flush:
-                self._writer.flush()
-            else:
-                self.pending += 1
-            self._sequence += 1
+            self._add(msg, data, now, now if publish_time_ns is None else publish_time_ns, flush)
+
+    def _add(self, msg: MessageBase, data: bytes, logged: int, published: int, flush: bool) -> None:
+        """`write`'s work, the lock held."""
+        self._append(msg, data, logged, published)
+        if flush:
+            self._writer.flush()
+            self.pending = 0
+
+    def _append(self, msg: MessageBase, data: bytes, log_time: int, publish_time: int) -> None:
+        """Add `msg` to the chunk in progress (the lock held)."""
+        self._writer.add_message(
+            self._channel(msg),
+            log_time=log_time,
+            data=data,
+            publish_time=publish_time,
+            sequence=self._sequence & 0xFFFF_FFFF,
+        )
+        self.pending += 1
+        self._sequence += 1
 
     def flush(self) -> None:
         """Close the chunk of the messages appended since the last flush and write it into the
@@ -106,7 +120,7 @@ class JournalWriter:
         with self._lock:
             if not self._closed:
                 self._writer.flush()
-                self.pending = 0
+            self.pending = 0
 
     def sync(self) -> None:
         """Put what the file holds onto the disk (fsync); safe beside `write` and `flush` on
@@ -230,13 +244,32 @@ def read_segment(path: Path) -> Iterator[MessageBase]:
     return (logged.message for logged in read_logged(path))
 
 
+class OtherSchemaVersion(DerlError):
+    """A log written with another version of the messages' schema: refused, not skipped (every
+    message would be), as no restart or retry changes it."""
+
+    code = REFUSED
+
+    def __init__(self, path: Path, version: str) -> None:
+        super().__init__(
+            f"{path} was written with message schema version {version}, and this derl reads "
+            f"version {SCHEMA_VERSION} only: read or resume it with the derl that wrote it "
+            "(docs/protocol.md says what changed)"
+        )
+
+
 def read_logged(path: Path, damage: Damage = "skip") -> Iterator[Logged]:
     """The messages of one MCAP file in file order, with their topics and times; what a cut or
     corrupt file does is `damage`'s (see `records`). A message whose channel was lost with a
-    damaged part is read all the same, on the topic the journal gives its type."""
+    damaged part is read all the same, on the topic the journal gives its type.
+    `OtherSchemaVersion` for a channel that says another schema version (a journal or recording
+    of another derl)."""
     channels: dict[int, Channel] = {}
     for record in records(path, damage):
         if isinstance(record, Channel):
+            version = record.metadata.get("schema_version", "")
+            if version.isdecimal() and version != str(SCHEMA_VERSION):  # (not bytes a crash left)
+                raise OtherSchemaVersion(path, version)
             channels[record.id] = record
         elif isinstance(record, Message):
             channel = channels.get(record.channel_id)
@@ -259,8 +292,25 @@ def _topic(msg: MessageBase) -> str:
     return KeySpace(msg.run).family(kind_of(msg))
 
 
+class JournalFault(OSError):
+    """The journal cannot be written (its file, and why): nothing after its last sync is on the
+    disk, and nothing more is until `Journal.recover` succeeds."""
+
+    def __init__(self, path: Path, error: OSError) -> None:
+        why = error.strerror or str(error) or type(error).__name__
+        super().__init__(error.errno, f"cannot write {path}: {why}")
+        self.path, self.error = path, error
+
+
 class Journal(JournalWriter):
-    """A run's journal: writes the run's next segment; `replay` reads all of them."""
+    """A run's journal: writes the run's next segment; `replay` reads all of them.
+
+    A write, flush or sync that fails (a full disk, an I/O error) does not raise where it
+    happens: the journal keeps the messages written since its last sync in memory, writes
+    nothing more, and `sync` raises the `JournalFault` (`failure`) until `recover` has cut the
+    segment back to what was on the disk and written those messages into a new segment. An
+    fsync that failed cannot be retried on the same file (Linux may drop the pages it could not
+    write and report the next fsync as a success), so nothing unsynced is trusted to it."""
 
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = Path(run_dir)
@@ -272,8 +322,24 @@ class Journal(JournalWriter):
         numbered = _numbered(self.run_dir)
         if numbered:
             cut_torn_tail(numbered[-1][1])
-        number = max((n for n, _ in numbered), default=0) + 1
-        super().__init__(folder / f"segment-{number:04d}.mcap")
+        super().__init__(self._next_segment())
+        self.failure: JournalFault | None = None
+        # (message, encoding, publish time) since the last sync; the first `_flushed` are in
+        # the file; `_synced` bytes of the file are on the disk
+        self._unsynced: list[tuple[MessageBase, bytes, int]] = []
+        self._flushed = 0
+        self._synced = self._flushed_size = self._sync_file()
+        self._generation = 0  # segments started since the first (`recover`)
+
+    def _next_segment(self) -> Path:
+        number = max((n for n, _ in _numbered(self.run_dir)), default=0) + 1
+        return self.run_dir / "journal" / f"segment-{number:04d}.mcap"
+
+    def _sync_file(self) -> int:
+        """The segment (all flushed into it) onto the disk: its size, which a failure can cut it
+        back to."""
+        os.fsync(self._file.fileno())
+        return self._file.tell()
 
     @property
     def segment(self) -> Path:
@@ -283,6 +349,124 @@ class Journal(JournalWriter):
     def replay(self) -> Iterator[MessageBase]:
         """Every message journaled in this run so far, this segment's included."""
         return replay(self.run_dir)
+
+    def _add(self, msg: MessageBase, data: bytes, logged: int, published: int, flush: bool) -> None:
+        """As `JournalWriter._add`, kept until synced; nothing written after a failure."""
+        self._unsynced.append((msg, data, published))
+        if self.failure is not None:
+            return
+        try:
+            self._append(msg, data, logged, published)
+            if flush:
+                self._flush()
+        except OSError as error:
+            self._fail(error)
+
+    def flush(self) -> None:
+        with self._lock:
+            if not self._closed and self.failure is None:
+                try:
+                    self._flush()
+                except OSError as error:
+                    self._fail(error)
+            self.pending = 0
+
+    def _flush(self) -> None:
+        self._writer.flush()
+        self.pending = 0
+        self._flushed = len(self._unsynced)
+        self._flushed_size = self._file.tell()  # a chunk over 1 MiB goes out before its flush
+
+    def sync(self) -> None:
+        """What was flushed into the file onto the disk; `JournalFault` if it is not (a failed
+        write before, or this fsync)."""
+        with self._lock:
+            if self.failure is not None:
+                raise self.failure
+            if self._closed:
+                return
+            fd = os.dup(self._file.fileno())
+            size, flushed, generation = self._flushed_size, self._flushed, self._generation
+        try:
+            os.fsync(fd)
+        except OSError as error:
+            with self._lock:
+                if generation == self._generation:
+                    self._fail(error)
+                    raise self.failure from None
+            return  # an fsync of a segment `recover` replaced: its messages are in the new one
+        finally:
+            os.close(fd)
+        with self._lock:
+            if generation == self._generation:
+                del self._unsynced[:flushed]
+                self._flushed -= flushed
+                self._synced = size
+
+    def _fail(self, error: OSError) -> None:
+        """Stop writing (the lock held): `error` is the journal's failure until `recover`."""
+        if self.failure is None:
+            self.failure = JournalFault(self.path, error)
+
+    def recover(self) -> int | None:
+        """After a failure: cut the failed segment back to what its last sync put on the disk,
+        and write every message since into a new segment, synced; how many, or None if that did
+        not work (`failure` says why, and nothing is left half done: a new segment that could
+        not be written whole is removed)."""
+        with self._lock:
+            if self.failure is None:
+                return 0
+            failed, synced = self.path, self._synced
+            with contextlib.suppress(OSError):  # what it could not write is cut below
+                self._file.close()
+            try:
+                with failed.open("r+b") as f:
+                    f.truncate(synced)
+                    os.fsync(f.fileno())
+                self._open(self._next_segment())
+                for msg, data, published in self._unsynced:
+                    self._append(msg, data, time.time_ns(), published)
+                self._writer.flush()
+                size = self._sync_file()
+            except OSError as error:
+                where = self.path
+                self._discard_new(failed)
+                self.failure = JournalFault(where, error)
+                return None
+            rewritten = len(self._unsynced)
+            self._unsynced.clear()
+            self._flushed, self._synced, self._flushed_size, self.pending = 0, size, size, 0
+            self._generation += 1
+            self.failure = None
+            return rewritten
+
+    def _discard_new(self, failed: Path) -> None:
+        """Remove the new segment a failed `recover` started (the lock held), so that the
+        failed one stays the last; the failed one is what it writes to again."""
+        if self.path != failed:
+            with contextlib.suppress(OSError):
+                self._file.close()
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+                sync_folder(self.path.parent)
+            self.path = failed
+
+    def close(self) -> None:
+        """As `JournalWriter.close`; a journal that failed, or fails to close, is cut back to
+        what is on the disk (everything published is: the outbox syncs before it releases)."""
+        if self.failure is None:
+            try:
+                super().close()
+            except OSError as error:
+                self.failure = JournalFault(self.path, error)
+            else:
+                return
+        with self._lock:
+            self._closed = True
+            with contextlib.suppress(OSError):
+                self._file.close()
+            with contextlib.suppress(OSError), self.path.open("r+b") as f:
+                f.truncate(self._synced)
 
 
 def compact(segment: Path, out: Path | None = None) -> bool:

@@ -18,7 +18,15 @@ import derl.messages.codec
 import derl.messages.keys
 import derl.messages.schema
 import derl.messages.types
-from derl.messages import MESSAGE_TYPES, SCHEMA_VERSION, Curve, KeySpace, Member, MessageBase
+from derl.messages import (
+    MESSAGE_TYPES,
+    SCHEMA_CHANGES,
+    SCHEMA_VERSION,
+    Curve,
+    KeySpace,
+    Member,
+    MessageBase,
+)
 from derl.messages.examples import examples
 from derl.messages.keys import ARITY, PUBLISHERS, ROOT, ROUTES
 from derl.messages.types import ID_PATTERN
@@ -70,7 +78,11 @@ def protocol() -> str:
     lines = _header("The wire protocol", "protocol")
     lines += [
         f"Schema version: **{SCHEMA_VERSION}**. Every payload is a msgpack map with "
-        "`schema_version`, `type` (the message type) and `run`; a node refuses any other version.",
+        "`schema_version`, `type` (the message type) and `run`; a node refuses any other version, "
+        "and a journal or recording whose channels say another version is refused as a whole "
+        "(read or resume it with the derl that wrote it). What each version changed:",
+        "",
+        *(f"- {version}: {change}." for version, change in sorted(SCHEMA_CHANGES.items())),
         "",
         _markdown(inspect.getdoc(derl.messages.codec)),
         "",

@@ -4,16 +4,15 @@ A worker holds a liveliness token for its whole life and publishes WorkerReady w
 after 1, 2, 4, then every 8 s while no job comes (`ready_wait`: the coordinator sends a job to an
 idle worker that asked as soon as there is one). The first ask goes out once the coordinator's
 subscription is known here: one sent before is lost, and a neighbour may take the job meanwhile.
-It trains one job at a time with `derl.lifetime` and the job's own PPO configuration (one training
-per process; a tournament's child is first bred from its parent's body with
-`derl.evolution.breed`), reports progress every second (the coordinator's lease on the job), and
-re-sends its result every second until the coordinator acknowledges it, so a coordinator restart
-loses nothing. A Reject makes it drop the result, a Cancel of its job stops the training, and a
-training that raises is reported as JobFailed; each time it asks for work again. Every key it
-publishes on carries its node id. It stops on SIGTERM or SIGINT, or when the run is done. An idle
-worker that has heard no coordinator of its run for `UNHEARD_S` (the coordinator publishes the
-run's status every second) says so once: a mistyped run id or endpoint must not look like a quiet
-run.
+It trains one job at a time with `derl.lifetime`, the job's body (the coordinator decides every
+body) and the job's own PPO configuration (one training per process), reports progress every
+second (the coordinator's lease on the job), and re-sends its result every second until the
+coordinator acknowledges it, so a coordinator restart loses nothing. A Reject makes it drop the
+result, a Cancel of its job stops the training, and a training that raises is reported as
+JobFailed; each time it asks for work again. Every key it publishes on carries its node id. It
+stops on SIGTERM or SIGINT, or when the run is done. An idle worker that has heard no
+coordinator of its run for `UNHEARD_S` (the coordinator publishes the run's status every second)
+says so once: a mistyped run id or endpoint must not look like a quiet run.
 """
 
 from __future__ import annotations
@@ -44,10 +43,8 @@ from derl.messages import (
 )
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 
-from derl.evolution import breed
 from derl.lifetime import LifetimeResult, learn
 from derl.rl import Progress
-from derl.unimal import Genome, Mutation
 
 log = logging.getLogger("derl.worker")
 
@@ -215,15 +212,11 @@ class Worker:
                     )
                 )
 
-        genome, mutation = job.genome, None
-        if isinstance(job, TrainJob) and job.mutation_seed is not None:
-            genome, mutation = breed(job.genome, job.mutation_seed)
-            log.info("%s: %s bred from %s by %s", self.node, subject, job.parent, mutation.op)
-        summary, result = learn(genome, job.task, job.ppo, progress, nthread=self.nthread)
+        summary, result = learn(job.genome, job.task, job.ppo, progress, nthread=self.nthread)
         curve = Curve(env_steps=summary.curve_steps, returns=summary.curve_returns)
         if isinstance(job, TrainJob):
             checkpoint = result.checkpoint.to_bytes()
-            return self._fitness_report(job, genome, mutation, summary, curve, checkpoint)
+            return self._fitness_report(job, summary, curve, checkpoint)
         return EvalResult(
             run=self.run,
             agent=job.agent,
@@ -238,22 +231,14 @@ class Worker:
         )
 
     def _fitness_report(
-        self,
-        job: TrainJob,
-        genome: Genome,
-        mutation: Mutation | None,
-        summary: LifetimeResult,
-        curve: Curve,
-        checkpoint: bytes,
+        self, job: TrainJob, summary: LifetimeResult, curve: Curve, checkpoint: bytes
     ) -> FitnessReport:
         return FitnessReport(
             run=self.run,
             child=job.child,
             job=job.job,
             node=self.node,
-            genome=genome,
-            mutation=None if mutation is None else mutation.op,
-            mutation_detail="" if mutation is None else mutation.detail,
+            genome=job.genome,
             fitness=summary.fitness,
             fitness_source=summary.fitness_source,
             fitness_episodes=summary.fitness_episodes,

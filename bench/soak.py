@@ -1,0 +1,419 @@
+"""A long run under random faults, every node's resources sampled; prints JSON.
+
+A real run started with `derl launch` on this host, in router topology (a `derl router`, the
+coordinator, trainers and an evaluator, every node a Zenoh client of the router on loopback;
+multicast off), with a small cheap profile (`PROFILE`: FT, P=8, T=4, short trainings, one
+evaluation at the end). The launch's supervisor restarts a node that dies, as on a cluster. Every
+20 to 60 s (`--fault-every`) a fault drawn at random (`FAULTS`):
+
+- SIGKILL of a trainer, the evaluator, the coordinator or the router (the supervisor starts it
+  again; the coordinator resumes from its journal, the clients reconnect to the router);
+- SIGSTOP of one of them for 5 to 25 s, then SIGCONT (a trainer or the evaluator stopped past
+  its lease loses its job; a stopped router cuts every node off; a stopped coordinator hears
+  nothing);
+- garbage on every key kind of the run (`put_garbage`).
+
+Every `SAMPLE_S` it samples each node process (the launch, the router, the coordinator and its
+checkpoint writer, the trainers, the evaluator: each incarnation of each on its own) for its
+resident memory, open files and threads (`/proc`). At the end, after the run finishes:
+
+- `finished`: `derl launch` ended with status 0 (the coordinator finished the run and wrote its
+  results);
+- `born_once`: every child of the run is born exactly once, or given up;
+- `flat`: for every incarnation that lived long enough (past its warm-up, `WARMUP`, by at least
+  a quarter of the soak), the median of each figure over its last fifth of samples is within 10%
+  of the median over the fifth after its warm-up.
+
+The number of bodies is chosen so that the run lasts about `--minutes` on this machine (a
+calibration training first, unless `--total` is given); the faults go on until the run ends.
+Run: python bench/soak.py [--minutes 30] [--fault-every 20 60] [--seed 0] [--trainers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import random
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import yaml
+import zenoh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from derl.messages import Birth, ChildFailed, RunStatus, encode
+from derl.messages.examples import examples
+from derl.messages.keys import ARITY
+from derl.nodes.journal.segments import replay
+from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.processes import child_setup, stop_all
+
+PROFILE = {
+    "profile": "smoke",
+    "population": 8,
+    "tournament": 4,
+    "train_steps": 16384,
+    "num_envs": 16,
+    "lease_s": 15.0,
+    "eval_top": 1,
+    "eval_tasks": ["patrol"],
+    "eval_steps": 4096,
+}
+SAMPLE_S = 2.0
+WARMUP = (60.0, 0.2)  # an incarnation's warm-up: this many s, or this share of the soak if less
+FLAT = 1.10  # the largest ratio of late to early medians that counts as flat
+STOP_S = (5.0, 25.0)
+FAULTS = (
+    "SIGKILL trainer",
+    "SIGSTOP trainer",
+    "SIGKILL evaluator",
+    "SIGSTOP evaluator",
+    "SIGKILL coordinator",
+    "SIGSTOP coordinator",
+    "SIGKILL router",
+    "SIGSTOP router",
+    "garbage",
+)
+ROLES = ("router", "coordinator", "trainer", "evaluator")
+
+
+def put_garbage(bus: Bus) -> tuple[int, zenoh.LivelinessToken]:
+    """Malformed payloads on a key of every kind (ids of trainer a where a node goes), and a
+    liveliness token outside the key space: the number of payloads put, and the token."""
+    status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
+    payloads = (
+        b"\xff\x00garbage",
+        msgpack.packb({**status.model_dump(), "schema_version": 99}),
+        msgpack.packb([1, 2]),
+        encode(status),  # a valid message of the wrong type (on every key but its own)
+    )
+    for kind, arity in ARITY.items():
+        parts = ("trainer", "a") if kind == "alive" else ("a", "x", "x")[:arity]
+        for payload in payloads if kind != "status" else payloads[:3]:
+            bus.session.put(bus.keys.key(kind, *parts), payload)
+    stray = bus.session.liveliness().declare_token(f"derl/{bus.run}/alive/trainer/b@d")
+    return len(ARITY) * len(payloads) - 1, stray
+
+
+# --- the processes ---------------------------------------------------------------------------
+
+
+def descendants(pid: int) -> list[int]:
+    """The processes started by `pid`, and by them, now."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
+def label(pid: int) -> str | None:
+    """What process `pid` is: `derl launch`, a node's role (and a worker's name), the checkpoint
+    writer, or None for another process."""
+    try:
+        argv = (Path(f"/proc/{pid}") / "cmdline").read_bytes().decode().split("\0")
+    except OSError:
+        return None
+    if any(arg.endswith("checkpoint_writer") for arg in argv):
+        return "checkpoint_writer"
+    if "derl.nodes.cli" not in argv[:-1]:
+        return None
+    command = argv[argv.index("derl.nodes.cli") + 1]
+    if command in ("trainer", "evaluator") and "--name" in argv:
+        return f"{command} {argv[argv.index('--name') + 1]}"
+    return command if command in (*ROLES, "launch") else None
+
+
+def node_processes(root: int) -> dict[int, str]:
+    """The node processes under `root` (the launch), by pid, with their labels."""
+    labels = {pid: label(pid) for pid in (root, *descendants(root))}
+    return {pid: name for pid, name in labels.items() if name is not None}
+
+
+def sample(pid: int) -> dict[str, float] | None:
+    """Resident memory (MB), open files and threads of `pid` now (None: it is gone)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        fds = len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    if "VmRSS" not in fields:  # a zombie
+        return None
+    return {
+        "rss_mb": int(fields["VmRSS"].split()[0]) / 1024,
+        "open_files": fds,
+        "threads": int(fields["Threads"]),
+    }
+
+
+@dataclass
+class Incarnation:
+    """One process of a node, from its first sample to its last."""
+
+    label: str
+    pid: int
+    samples: list[tuple[float, dict[str, float]]] = field(default_factory=list)
+
+    def judged(self, warmup_s: float, span_s: float) -> dict[str, object] | None:
+        """Early and late medians of each figure and their ratios, if this incarnation lived
+        `span_s` past its warm-up; else None."""
+        if not self.samples:
+            return None
+        start = self.samples[0][0]
+        after = [(t, s) for t, s in self.samples if t >= start + warmup_s]
+        if len(after) < 10 or after[-1][0] - after[0][0] < span_s:
+            return None
+        fifth = max(2, len(after) // 5)
+        out: dict[str, object] = {"lived_s": round(after[-1][0] - start)}
+        flat = True
+        for figure in ("rss_mb", "open_files", "threads"):
+            early = statistics.median(s[figure] for _, s in after[:fifth])
+            late = statistics.median(s[figure] for _, s in after[-fifth:])
+            ratio = late / early if early else 1.0
+            flat = flat and ratio <= FLAT
+            out[figure] = {"early": round(early, 1), "late": round(late, 1),
+                           "ratio": round(ratio, 3)}  # fmt: skip
+        out["flat"] = flat
+        return out
+
+
+# --- the soak --------------------------------------------------------------------------------
+
+
+@dataclass
+class Soak:
+    work: Path
+    minutes: float
+    fault_every: tuple[float, float]
+    total: int
+    trainers: int = 2
+    seed: int = 0
+    train_steps: int = PROFILE["train_steps"]
+    run: str = "soak"
+    faults: list[dict[str, object]] = field(default_factory=list)
+    incarnations: dict[int, Incarnation] = field(default_factory=dict)
+    stopped: dict[int, float] = field(default_factory=dict)  # pid -> when to SIGCONT it
+
+    @property
+    def run_dir(self) -> Path:
+        return self.work / "run"
+
+    def launch_file(self, port: int) -> Path:
+        profile = self.work / "profile.yaml"
+        profile.write_text(yaml.safe_dump({**PROFILE, "total": self.total,
+                                           "train_steps": self.train_steps}))  # fmt: skip
+        endpoint = f"tcp/127.0.0.1:{port}"
+        nodes = [
+            {"role": "router", "restart": "always", "max_restarts": 10_000},
+            {"role": "coordinator", "restart": "on-failure", "max_restarts": 10_000},
+            {"role": "trainer", "count": self.trainers, "restart": "on-failure",
+             "max_restarts": 10_000},
+            {"role": "evaluator", "restart": "on-failure", "max_restarts": 10_000},
+        ]  # fmt: skip
+        data = {
+            "run": self.run,
+            "run_dir": str(self.run_dir),
+            "profile": str(profile),
+            "seed": self.seed,
+            "topology": {"kind": "router", "endpoint": endpoint, "host": "local"},
+            "hosts": [{"name": "local", "address": "localhost", "nodes": nodes}],
+        }
+        path = self.work / "launch.yaml"
+        path.write_text(yaml.safe_dump(data))
+        return path
+
+    def execute(self) -> dict[str, object]:
+        port = _free_port()
+        launch_file = self.launch_file(port)
+        log = (self.work / "launch.log").open("ab")
+        env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+        started = time.monotonic()
+        launch = subprocess.Popen(
+            [sys.executable, "-m", "derl.nodes.cli", "launch", str(launch_file)],
+            stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+            preexec_fn=child_setup,
+        )  # fmt: skip
+        rng = random.Random(self.seed)
+        options = ZenohOptions(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
+        stray: list[zenoh.LivelinessToken] = []
+        try:
+            time.sleep(3.0)  # the router listens
+            with open_session(options) as session:
+                bus = Bus(session, self.run)
+                next_fault = time.monotonic() + rng.uniform(*self.fault_every)
+                next_sample = 0.0
+                while launch.poll() is None:
+                    now = time.monotonic()
+                    self._resume_due(now)
+                    if now >= next_sample:
+                        self._sample(launch.pid, now - started)
+                        next_sample = now + SAMPLE_S
+                    if now >= next_fault:
+                        self._fault(rng, launch.pid, bus, stray, now - started)
+                        next_fault = now + rng.uniform(*self.fault_every)
+                    time.sleep(0.2)
+                self._resume_due(float("inf"))
+        finally:
+            self._resume_due(float("inf"))
+            stop_all([launch], timeout=10)
+            log.close()
+        return self.report(launch.returncode, time.monotonic() - started)
+
+    def _sample(self, root: int, at: float) -> None:
+        for pid, name in node_processes(root).items():
+            figures = sample(pid)
+            if figures is not None:
+                self.incarnations.setdefault(pid, Incarnation(name, pid)).samples.append(
+                    (at, figures)
+                )
+
+    def _resume_due(self, now: float) -> None:
+        for pid, due in list(self.stopped.items()):
+            if due <= now:
+                del self.stopped[pid]
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGCONT)
+
+    def _fault(self, rng: random.Random, root: int, bus: Bus, stray: list, at: float) -> None:
+        kind = rng.choice(FAULTS)
+        fault: dict[str, object] = {"at_s": round(at, 1), "kind": kind}
+        if kind == "garbage":
+            put, token = put_garbage(bus)
+            stray.append(token)
+            fault["payloads"] = put
+        else:
+            how, role = kind.split()
+            targets = [pid for pid, name in node_processes(root).items()
+                       if name.split()[0] == role and pid not in self.stopped]  # fmt: skip
+            if not targets:
+                fault["skipped"] = f"no {role} running"
+                self.faults.append(fault)
+                return
+            pid = rng.choice(targets)
+            fault["target"] = self.incarnations.get(pid, Incarnation(role, pid)).label
+            try:
+                if how == "SIGKILL":
+                    os.kill(pid, signal.SIGKILL)
+                else:
+                    os.kill(pid, signal.SIGSTOP)
+                    stopped_s = rng.uniform(*STOP_S)
+                    self.stopped[pid] = time.monotonic() + stopped_s
+                    fault["stopped_s"] = round(stopped_s, 1)
+            except ProcessLookupError:
+                fault["skipped"] = "it had just ended"
+        self.faults.append(fault)
+
+    def report(self, code: int | None, wall_s: float) -> dict[str, object]:
+        births = [m for m in replay(self.run_dir) if isinstance(m, Birth | ChildFailed)]
+        born = Counter(m.child for m in births if isinstance(m, Birth))
+        given_up = {m.child for m in births if isinstance(m, ChildFailed)}
+        warmup_s = min(WARMUP[0], WARMUP[1] * wall_s)
+        span_s = wall_s / 4
+        processes: dict[str, list[dict[str, object]]] = {}
+        for incarnation in self.incarnations.values():
+            judged = incarnation.judged(warmup_s, span_s)
+            if judged is not None:
+                processes.setdefault(incarnation.label, []).append(judged)
+        started = Counter(i.label for i in self.incarnations.values())
+        kinds = Counter(str(f["kind"]) for f in self.faults if "skipped" not in f)
+        return {
+            "minutes_asked": self.minutes,
+            "wall_s": round(wall_s),
+            "lasted_long_enough": wall_s >= 60 * self.minutes,
+            "finished": code == 0 and (self.run_dir / "summary.json").exists(),
+            "launch_exit_code": code,
+            "total": self.total,
+            "born": sum(born.values()),
+            "given_up": len(given_up),
+            "born_twice": sorted(c for c, n in born.items() if n > 1),
+            "born_once": max(born.values(), default=1) == 1
+            and len(born) + len(given_up) == self.total,
+            "faults": len(self.faults) - sum("skipped" in f for f in self.faults),
+            "faults_by_kind": dict(sorted(kinds.items())),
+            "fault_log": self.faults,
+            "incarnations": dict(sorted(started.items())),
+            "warmup_s": round(warmup_s),
+            "judged_processes": processes,
+            "flat": all(j["flat"] for judged in processes.values() for j in judged),
+        }
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def calibrate(train_steps: int) -> float:
+    """Seconds one training of the soak's profile takes here (a sampled body, in FT; the second
+    of two: the first pays for the imports and the first compiles)."""
+    import numpy as np
+
+    from derl.lifetime import learn
+    from derl.rl import PPOConfig
+    from derl.unimal import sample_population
+
+    config = PPOConfig(total_steps=train_steps, num_envs=PROFILE["num_envs"])
+    first, second = sample_population(2, np.random.default_rng(0))
+    learn(first, "ft", config)
+    start = time.monotonic()
+    learn(second, "ft", config)
+    return time.monotonic() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--fault-every", type=float, nargs=2, default=(20.0, 60.0))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--trainers", type=int, default=2)
+    parser.add_argument("--train-steps", type=int, default=PROFILE["train_steps"])
+    parser.add_argument("--total", type=int, help="bodies (default: about --minutes of them)")
+    parser.add_argument("--work", help="folder for the run (default: a temp folder)")
+    parser.add_argument("--keep", action="store_true", help="keep the run's folder")
+    args = parser.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    total = args.total
+    if total is None:  # the trainers in parallel, with a margin (a soak longer than asked is
+        # fine, a shorter one is not; a body born already is born at once, untrained)
+        body_s = calibrate(args.train_steps)
+        bodies = args.minutes * 60 / body_s * args.trainers * 1.3
+        total = max(PROFILE["population"] + 2, int(bodies))
+    work = Path(tempfile.mkdtemp(prefix="derl-soak-", dir=args.work))
+    soak = Soak(work, args.minutes, tuple(args.fault_every), total, args.trainers, args.seed,
+                args.train_steps)  # fmt: skip
+    try:
+        out = soak.execute()
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    out["work"] = str(work)
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
