@@ -166,10 +166,10 @@ def _rollout(args: argparse.Namespace) -> int:
             f"steps ({end})"
         )
         if number == 1 and args.video:
+            frames = episode.frames[:: args.video_every]
             try:
-                write_video(args.video, episode.frames[:: args.video_every])
+                write_video(args.video, frames)
             except OSError as error:
                 fail(str(error))
-            frames = len(episode.frames[:: args.video_every])
-            console.print(f"wrote {args.video} ({frames} frames)")
+            console.print(f"wrote {args.video} ({len(frames)} frames)")
     return 0
