@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from derl.messages import (
@@ -81,7 +81,9 @@ class CoordinatorState(RunHistory):
         self.config = config
         self.evolution = evolution
         self.jobs: dict[str, Job] = {}  # in flight
-        self.orders: dict[str, TrainJob | EvalJob] = {}  # every job ever sent
+        # the orders of jobs whose subject has no result yet (a late report is checked against
+        # its order); a result forgets them, so the state grows by births, not by jobs
+        self.orders: dict[str, TrainJob | EvalJob] = {}
         self.attempts: dict[str, int] = {}  # child -> trainings started
         self.failed_on: dict[str, set[str]] = {}  # child -> nodes whose training of it failed
         self.waiting: deque[str] = deque()  # children to (re)assign, in order
@@ -122,7 +124,6 @@ class CoordinatorState(RunHistory):
         return False
 
     def on_Tournament(self, msg: Tournament) -> None:
-        super().on_Tournament(msg)
         self.evolution.record(
             Child(
                 msg.child,
@@ -159,8 +160,13 @@ class CoordinatorState(RunHistory):
             self.eval_waiting.remove(key)
         self._add(Job(msg.job, msg.agent, msg.node, msg, key[1:]))
 
+    def on_FitnessReport(self, msg: FitnessReport) -> None:
+        """Nothing kept: the coordinator needs no learning curve (the journal holds them for
+        `derl report`), and keeping each report's was most of its memory's growth per birth."""
+
     def on_Birth(self, msg: Birth) -> None:
         super().on_Birth(msg)
+        self._forget_orders(lambda order: isinstance(order, TrainJob) and order.child == msg.child)
         self.evolution.birth(msg.child, msg.fitness, msg.genome, msg.repeat_of)
         self._remove(msg.job)
         if msg.child in self.waiting:  # born from a late report while it waited
@@ -187,6 +193,7 @@ class CoordinatorState(RunHistory):
 
     def on_ChildFailed(self, msg: ChildFailed) -> None:
         super().on_ChildFailed(msg)
+        self._forget_orders(lambda order: isinstance(order, TrainJob) and order.child == msg.child)
         self.evolution.give_up(msg.child)
         if msg.child in self.waiting:
             self.waiting.remove(msg.child)
@@ -194,8 +201,21 @@ class CoordinatorState(RunHistory):
 
     def on_EvalResult(self, msg: EvalResult) -> None:
         super().on_EvalResult(msg)
+        key = (msg.agent, msg.task, msg.seed, msg.steps)
+        self._forget_orders(
+            lambda order: (
+                isinstance(order, EvalJob)
+                and (order.agent, order.task, order.seed, order.steps) == key
+            )
+        )
         self._remove(msg.job)
         self._plan_evaluations()
+
+    def _forget_orders(self, done: Callable[[TrainJob | EvalJob], bool]) -> None:
+        """Forget the orders `done` says have their result (the few not yet resolved are
+        scanned)."""
+        for job_id in [job_id for job_id, order in self.orders.items() if done(order)]:
+            del self.orders[job_id]
 
     def _take_back(self, job_id: str) -> None:
         """A job ends without its result: its subject waits for the next ready worker."""

@@ -1,11 +1,12 @@
 """The one reading of a run's journal: its messages folded, in order, into the run's facts.
 
 `RunHistory.apply` dispatches each message to one handler (`on_<Type>`), which records what it
-means: a Tournament decides a child, a TrainJob or EvalJob assigns work, the FitnessReport the
-coordinator accepted is the evidence of a birth and the Birth that follows it is the birth
-(index, generation, fitness), a ChildFailed gives a child up, an EvalResult completes an
-evaluation. Every reader uses it: the coordinator's state (`nodes.coordinator.state` overrides the
-handlers to keep its jobs in flight), `derl report` and `derl study` (`run_log`), the monitor.
+means: a TrainJob or EvalJob assigns work (the first one says the run's world and budget), the
+FitnessReport the coordinator accepted is the evidence of a birth (its learning curve is kept)
+and the Birth that follows it is the birth (index, generation, fitness), a ChildFailed gives a
+child up, an EvalResult completes an evaluation. Every reader uses it: the coordinator's state
+(`nodes.coordinator.state` overrides the handlers to keep its jobs in flight, and keeps no
+learning curves), `derl report` and `derl study` (`run_log`), the monitor.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ from derl.messages import (
     JobFailed,
     JobLost,
     MessageBase,
-    Tournament,
     TrainJob,
 )
 from derl.nodes.errors import DerlError
@@ -49,8 +49,7 @@ class RunHistory:
 
     def __init__(self) -> None:
         self.run: str | None = None
-        self.tournaments: dict[str, Tournament] = {}  # child -> the decision
-        self.first_job: dict[str, TrainJob] = {}  # child -> its first TrainJob
+        self.first_job: TrainJob | None = None  # the run's first (its world and budget)
         self.issued: dict[str, str] = {}  # every job ever sent -> its node
         self.births: list[Birth] = []  # in birth order
         self.born: dict[str, Birth] = {}
@@ -75,12 +74,10 @@ class RunHistory:
 
     # --- handlers, one per message type, named after it (the coordinator extends them) ----
 
-    def on_Tournament(self, msg: Tournament) -> None:
-        self.tournaments.setdefault(msg.child, msg)
-
     def on_TrainJob(self, msg: TrainJob) -> None:
         self.issued[msg.job] = msg.node
-        self.first_job.setdefault(msg.child, msg)
+        if self.first_job is None:
+            self.first_job = msg
 
     def on_EvalJob(self, msg: EvalJob) -> None:
         self.issued[msg.job] = msg.node
@@ -180,7 +177,9 @@ def run_log(path: Path) -> RunLog:
         )
     if not bodies:
         raise DerlError(f"no body was born in {path}")
-    first = next(iter(history.first_job.values()))
+    first = history.first_job
+    if first is None:
+        raise DerlError(f"{path}: bodies were born but no training job is journaled")
     evaluations = tuple(
         Evaluation(
             agent=r.agent,
