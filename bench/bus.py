@@ -38,6 +38,10 @@
    during a real short training (learn() with the worker's progress cadence, through a real
    Zenoh session), plus the CPU the open session's own threads use, extrapolated to a
    paper-length training (5M steps) at the measured speed.
+6. `memory`: what the coordinator's memory grows by per birth over a paper-length run (4,000
+   births, 2 simulated workers, its handlers driven in this process as in 2.), each report
+   carrying a learning curve of a 5M-step training's length (1,220 points): the resident memory
+   of this process every 500 births, and its growth per birth from the first sample on.
 
 Run: python bench/bus.py [--workers 100,1000,10000] [--duration 8] [--only SECTIONS] [--skip-train]
 (about 4 minutes on an idle 2-core machine)
@@ -105,6 +109,7 @@ GOAL_RATE = 1000.0
 TIMESTAMPING = {"timestamping": {"enabled": True}}
 MAX_SETTLE_S = 10.0  # the longest a phase settles before its window opens
 SLOW_FILE_S = 100e-6  # creating a file slower than this is worth a warning
+PAPER_CURVE_POINTS = 5_000_000 // 4096  # a 5M-step training's curve: a point per rollout
 BODIES = 16  # sampled bodies; the initial population is them and children of them
 
 
@@ -473,13 +478,14 @@ def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
     return coordinator
 
 
-def _report(run: str, job: TrainJob, fitness: float) -> FitnessReport:
-    """A fake result for `job`, with its body (bred by the coordinator)."""
+def _report(run: str, job: TrainJob, fitness: float, points: int = 100) -> FitnessReport:
+    """A fake result for `job`, with its body (bred by the coordinator) and a learning curve of
+    `points` points."""
     return FitnessReport(
         run=run, child=job.child, job=job.job, node=job.node, genome=job.genome, fitness=fitness,
         fitness_source="window", fitness_episodes=10,
-        curve=Curve(env_steps=tuple(range(4096, 4096 * 101, 4096)),
-                    returns=tuple(float(k) for k in range(100))),
+        curve=Curve(env_steps=tuple(range(4096, 4096 * (points + 1), 4096)),
+                    returns=tuple(float(k) for k in range(points))),
         energy=1.0, cost_of_work=1.0, mass=1.0, episodes=10, env_steps=409600, wall_s=1.0,
         steps_per_s=1.0, checkpoint=b"",
     )  # fmt: skip
@@ -488,8 +494,8 @@ def _report(run: str, job: TrainJob, fitness: float) -> FitnessReport:
 class Driver:
     """Simulated workers driving the coordinator's own handlers in this process (no bus)."""
 
-    def __init__(self, coordinator, rng: random.Random) -> None:
-        self.coordinator, self.rng = coordinator, rng
+    def __init__(self, coordinator, rng: random.Random, curve_points: int = 100) -> None:
+        self.coordinator, self.rng, self.curve_points = coordinator, rng, curve_points
         self.busy: deque[TrainJob] = deque()
         self.idle: list[str] = []
         self.workers = 0
@@ -529,7 +535,8 @@ class Driver:
                     raise RuntimeError("the coordinator gives no work")
                 continue
             job = self.busy.popleft()
-            data = encode(_report(coordinator.run, job, self.rng.uniform(0, 100)))
+            fitness = self.rng.uniform(0, 100)
+            data = encode(_report(coordinator.run, job, fitness, self.curve_points))
             if profiler is not None:
                 profiler.enable()
             start = time.thread_time()
@@ -601,6 +608,33 @@ def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> 
             "top_self_time": top,
         })  # fmt: skip
     return out
+
+
+def _rss_mb() -> float:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def bench_memory(work: Path, births: int = 4000, every: int = 500) -> dict[str, object]:
+    config = load_profile("paper").model_copy(
+        update={"population": 8, "total": 10_000_000, "lease_s": 3600.0}
+    )
+    coordinator = _coordinator("memory", work / "memory", config)
+    driver = Driver(coordinator, random.Random(0), curve_points=PAPER_CURVE_POINTS)
+    driver.add_workers(2)
+    samples = []
+    try:
+        while len(coordinator.state.births) < births:
+            driver.run(every)
+            gc.collect()
+            samples.append({"births": len(coordinator.state.births), "rss_mb": round(_rss_mb(), 1)})
+    finally:
+        coordinator.close()
+    first, last = samples[0], samples[-1]
+    grown = last["births"] - first["births"]
+    return {
+        "samples": samples,
+        "rss_kb_per_birth": round((last["rss_mb"] - first["rss_mb"]) * 1024 / grown, 1),
+    }
 
 
 # --- 3. the journal ------------------------------------------------------------------------
@@ -940,7 +974,7 @@ def main() -> None:
     parser.add_argument("--keep", action="store_true", help="keep the runs' files")
     parser.add_argument("--skip-train", action="store_true", help="no bus-share training")
     parser.add_argument("--only", help="comma-separated sections (assignments, coordinator_"
-                        "profile, journal, recovery, bus_share)")  # fmt: skip
+                        "profile, journal, recovery, bus_share, memory)")  # fmt: skip
     parser.add_argument("--hub", nargs=2, metavar=("ENDPOINT", "RUN"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.hub:
@@ -968,6 +1002,8 @@ def main() -> None:
             out["assignments"] = [
                 bench_assignments(int(w), args.duration, work) for w in args.workers.split(",")
             ]
+        if only is None or "memory" in only:
+            out["memory"] = bench_memory(work)
         if (only is None or "bus_share" in only) and not args.skip_train:
             out["bus_share"] = bench_bus_share(args.train_steps)
     finally:
