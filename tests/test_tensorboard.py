@@ -18,7 +18,7 @@ from derl.messages import Birth, Curve, FitnessReport, MessageBase, RunStatus
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import JournalWriter
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.tools.tensorboard import TAGS
+from derl.nodes.tools.tensorboard import TAGS, LiveRun, Scalars, summary_writer
 from nodes_fixtures import Processes, derl_argv, free_port, wait_for
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -145,3 +145,20 @@ def test_the_live_watcher_writes_what_export_writes_and_goes_on_after_a_restart(
     assert got["run/born"][-1] == (len(FITNESS), len(FITNESS))
     assert got["run/best_fitness"][-1] == (len(FITNESS), 6.0)
     assert got["run/steps_per_s"][-1] == (len(FITNESS), 1500.0)
+
+
+def test_a_live_watcher_keeps_of_a_curve_only_what_its_birth_needs(tmp_path: Path) -> None:
+    """Once the criterion is known (at the first child's birth), a report heard keeps only its
+    curve's first point at the criterion: a watcher of a paper-length run does not hold every
+    1,220-point curve. The points written are the same."""
+    writer = summary_writer()(str(tmp_path))
+    live = LiveRun(Scalars(writer), ask_births=lambda: None)
+    heard = [(1.0, message) for message in _run("r")]
+    for now, part in enumerate((heard[: 2 * (INITIAL + 1)], [], heard[2 * (INITIAL + 1) :], [])):
+        live.fold(part, float(now))
+    writer.close()
+    curves = {child: len(r.curve.env_steps) for child, r in live.history.reports.items()}
+    assert curves == {"b0": 3, "b1": 3, "b2": 3, "b3": 3, "b4": 3, "b5": 0, "b6": 1}
+    got = _scalars(tmp_path)
+    for tag, points in _expected_births().items():
+        assert got[tag] == points, tag
