@@ -29,12 +29,15 @@ run: install
 		--video runs/smoke/best.gif
 
 # The README's clips, filmed from the agents shipped in agents/ (each a `derl train` folder:
-# genome.json, checkpoint.pt, result.json): 250 control steps (5 s), every 2nd frame.
+# genome.json, checkpoint.pt, result.json), 320x240: FT and VT 250 control steps (5 s) at real
+# speed (every 2nd frame), MVT a whole episode (20 s: its box is 15-24 m ahead) at twice it.
+clip = $(BIN)/derl rollout agents/$(1) --episodes 1 --episode-steps $(2) --video-size 320x240 \
+	--video-every $(3) --video docs/clips/$(1).gif
+
 clips: install
-	for agent in agents/*/; do \
-		$(BIN)/derl rollout $$agent --episodes 1 --episode-steps 250 --video-size 320x240 \
-			--video-every 2 --video docs/clips/$$(basename $$agent).gif || exit 1; \
-	done
+	$(call clip,ft,250,2)
+	$(call clip,vt,250,2)
+	$(call clip,mvt,1000,4)
 
 lint: install-test
 	$(BIN)/ruff check .
