@@ -29,15 +29,16 @@ run: install
 		--video runs/smoke/best.gif
 
 # The README's clips, filmed from the agents shipped in agents/ (each a `derl train` folder:
-# genome.json, checkpoint.pt, result.json), 320x240: FT and VT 250 control steps (5 s) at real
-# speed (every 2nd frame), MVT a whole episode (20 s: its box is 15-24 m ahead) at twice it.
+# genome.json, checkpoint.pt, result.json), 320x240: FT 250 control steps (5 s) at real
+# speed (every 2nd frame), VT 500 (10 s: past its first obstacles) and MVT a whole episode (20 s:
+# its box is 15-24 m ahead) at twice and four times it.
 clip = $(BIN)/derl rollout agents/$(1) --episodes 1 --episode-steps $(2) --video-size 320x240 \
 	--video-every $(3) --video docs/clips/$(1).gif
 
 clips: install
 	$(call clip,ft,250,2)
-	$(call clip,vt,250,2)
-	$(call clip,mvt,1000,4)
+	$(call clip,vt,500,4)
+	$(call clip,mvt,1000,8)
 
 lint: install-test
 	$(BIN)/ruff check .

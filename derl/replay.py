@@ -92,9 +92,11 @@ def play(
     seed: int = 0,
     episode_steps: int = EPISODE_STEPS,
     film: tuple[int, int] | None = None,
+    film_every: int = 1,
 ) -> Iterator[Episode]:
     """`episodes` episodes of one copy, each at most `episode_steps` control steps; the first is
-    filmed at `film` = (width, height) pixels when given (offscreen OpenGL, `MUJOCO_GL`)."""
+    filmed at `film` = (width, height) pixels when given (offscreen OpenGL, `MUJOCO_GL`), a
+    frame every `film_every` control steps (the others are not rendered)."""
     from derl.envs.video import FrameRecorder
 
     task = make_task(trained.task)
@@ -107,7 +109,10 @@ def play(
             total, steps, frames = 0.0, 0, []
             while True:
                 if recorder is not None and episode == 0:
-                    frames.append(recorder.frame())
+                    if steps % film_every == 0:
+                        frames.append(recorder.frame())
+                    else:
+                        recorder.follow()
                 step = env.step(trained.policy(obs))
                 obs, steps = step.obs, steps + 1
                 total += float(step.components[component][0])

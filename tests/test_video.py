@@ -166,3 +166,28 @@ def test_filming_leaves_the_physics_alone(quadruped: Genome) -> None:
             np.testing.assert_array_equal(head, env.head_pos[0])
             recorder.close()
     np.testing.assert_array_equal(*states)
+
+
+def test_a_clip_of_every_nth_frame_is_every_nth_frame_of_the_whole_clip(quadruped: Genome) -> None:
+    """`derl rollout --video-every N` renders only the frames it keeps: the camera still follows
+    the body at every step, so each kept frame is the one a clip of every frame would have."""
+    clips = []
+    for every in (1, 3):
+        env = _env(quadruped, "vt")
+        rng = np.random.default_rng(0)
+        recorder = FrameRecorder(env, 64, 48)
+        frames = []
+        try:
+            for step in range(12):
+                if step % every == 0:
+                    frames.append(recorder.frame())
+                else:
+                    recorder.follow()
+                env.step(rng.uniform(-1, 1, (1, env.model.nu)))
+        finally:
+            recorder.close()
+        clips.append(frames)
+    whole, kept = clips
+    assert len(kept) == 4
+    for frame, expected in zip(kept, whole[::3], strict=True):
+        assert np.array_equal(frame, expected)

@@ -39,7 +39,18 @@ class FrameRecorder:
         self.target: np.ndarray | None = None
 
     def frame(self) -> np.ndarray:
-        """An RGB image (height, width, 3) of copy 0 now."""
+        """An RGB image (height, width, 3) of copy 0 now (the camera `follow`s it first)."""
+        self.follow()
+        for hfield in self.set.take_uploads():
+            self.renderer._gl_context.make_current()  # the Renderer has no public upload call
+            mujoco.mjr_uploadHField(self.set.model, self.renderer._mjr_context, hfield)
+        self.camera.lookat[:] = self.target
+        self.renderer.update_scene(self.set.data, self.camera)
+        return self.renderer.render().copy()
+
+    def follow(self) -> None:
+        """Move the camera one frame's way after copy 0, without rendering (a frame skipped: the
+        camera moves as smoothly as in a clip of every frame)."""
         head = self.set.pose(self.target)
         focus = self.set.focus(head)
         if focus is None:
@@ -52,12 +63,6 @@ class FrameRecorder:
             self.target += FOLLOW * (head - self.target)
             turn = (azimuth - self.camera.azimuth + 180.0) % 360.0 - 180.0
             self.camera.azimuth += FOLLOW * turn
-        for hfield in self.set.take_uploads():
-            self.renderer._gl_context.make_current()  # the Renderer has no public upload call
-            mujoco.mjr_uploadHField(self.set.model, self.renderer._mjr_context, hfield)
-        self.camera.lookat[:] = self.target
-        self.renderer.update_scene(self.set.data, self.camera)
-        return self.renderer.render().copy()
 
     def close(self) -> None:
         self.renderer.close()

@@ -158,7 +158,8 @@ def _rollout(args: argparse.Namespace) -> int:
         fail(str(error), code=2)
     film = args.video_size if args.video else None
     for number, episode in enumerate(
-        play(trained, args.episodes, args.seed, args.episode_steps, film), start=1
+        play(trained, args.episodes, args.seed, args.episode_steps, film, args.video_every),
+        start=1,
     ):
         end = "fell/ended" if episode.fell else "time limit"
         console.print(
@@ -166,10 +167,9 @@ def _rollout(args: argparse.Namespace) -> int:
             f"steps ({end})"
         )
         if number == 1 and args.video:
-            frames = episode.frames[:: args.video_every]
             try:
-                write_video(args.video, frames)
+                write_video(args.video, episode.frames)
             except OSError as error:
                 fail(str(error))
-            console.print(f"wrote {args.video} ({len(frames)} frames)")
+            console.print(f"wrote {args.video} ({len(episode.frames)} frames)")
     return 0
