@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from derl.messages import (
@@ -84,6 +84,7 @@ class CoordinatorState(RunHistory):
         # the orders of jobs whose subject has no result yet (a late report is checked against
         # its order); a result forgets them, so the state grows by births, not by jobs
         self.orders: dict[str, TrainJob | EvalJob] = {}
+        self.orders_of: dict[str | EvalKey, list[str]] = {}  # child or evaluation -> its jobs
         self.attempts: dict[str, int] = {}  # child -> trainings started
         self.failed_on: dict[str, set[str]] = {}  # child -> nodes whose training of it failed
         self.waiting: deque[str] = deque()  # children to (re)assign, in order
@@ -142,6 +143,7 @@ class CoordinatorState(RunHistory):
         super().on_TrainJob(msg)
         self.orders[msg.job] = msg
         child = msg.child
+        self.orders_of.setdefault(child, []).append(msg.job)
         made = None if msg.mutation is None else Mutation(msg.mutation, msg.mutation_detail)
         self.evolution.decided(child, msg.genome, made)
         if child in self.by_child:
@@ -155,6 +157,7 @@ class CoordinatorState(RunHistory):
         super().on_EvalJob(msg)
         self.orders[msg.job] = msg
         key = (msg.agent, msg.task, msg.seed, msg.steps)
+        self.orders_of.setdefault(key, []).append(msg.job)
         self._plan_evaluations()
         if key in self.eval_waiting:
             self.eval_waiting.remove(key)
@@ -166,7 +169,7 @@ class CoordinatorState(RunHistory):
 
     def on_Birth(self, msg: Birth) -> None:
         super().on_Birth(msg)
-        self._forget_orders(lambda order: isinstance(order, TrainJob) and order.child == msg.child)
+        self._forget_orders(msg.child)
         self.evolution.birth(msg.child, msg.fitness, msg.genome, msg.repeat_of)
         self._remove(msg.job)
         if msg.child in self.waiting:  # born from a late report while it waited
@@ -193,7 +196,7 @@ class CoordinatorState(RunHistory):
 
     def on_ChildFailed(self, msg: ChildFailed) -> None:
         super().on_ChildFailed(msg)
-        self._forget_orders(lambda order: isinstance(order, TrainJob) and order.child == msg.child)
+        self._forget_orders(msg.child)
         self.evolution.give_up(msg.child)
         if msg.child in self.waiting:
             self.waiting.remove(msg.child)
@@ -201,21 +204,14 @@ class CoordinatorState(RunHistory):
 
     def on_EvalResult(self, msg: EvalResult) -> None:
         super().on_EvalResult(msg)
-        key = (msg.agent, msg.task, msg.seed, msg.steps)
-        self._forget_orders(
-            lambda order: (
-                isinstance(order, EvalJob)
-                and (order.agent, order.task, order.seed, order.steps) == key
-            )
-        )
+        self._forget_orders((msg.agent, msg.task, msg.seed, msg.steps))
         self._remove(msg.job)
         self._plan_evaluations()
 
-    def _forget_orders(self, done: Callable[[TrainJob | EvalJob], bool]) -> None:
-        """Forget the orders `done` says have their result (the few not yet resolved are
-        scanned)."""
-        for job_id in [job_id for job_id, order in self.orders.items() if done(order)]:
-            del self.orders[job_id]
+    def _forget_orders(self, subject: str | EvalKey) -> None:
+        """`subject` (a child or an evaluation) has its result: forget the orders of its jobs."""
+        for job_id in self.orders_of.pop(subject, ()):
+            self.orders.pop(job_id, None)
 
     def _take_back(self, job_id: str) -> None:
         """A job ends without its result: its subject waits for the next ready worker."""
