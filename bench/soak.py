@@ -25,7 +25,8 @@ resident memory, open files and threads (`/proc`). At the end, after the run fin
   of the median over the fifth after its warm-up.
 
 The number of bodies is chosen so that the run lasts about `--minutes` on this machine (a
-calibration training first, unless `--total` is given); the faults go on until the run ends.
+calibration training first, unless `--total` is given); the faults go on until the run ends, or
+for at most twice `--minutes` (then the run is left to finish).
 Run: python bench/soak.py [--minutes 30] [--fault-every 20 60] [--seed 0] [--trainers 2]
 """
 
@@ -270,7 +271,9 @@ class Soak:
                     if now >= next_sample:
                         self._sample(launch.pid, now - started)
                         next_sample = now + SAMPLE_S
-                    if now >= next_fault:
+                    # faults for the minutes asked (twice that at most), then the run may finish:
+                    # under load an evaluation can outlast a fault every few seconds for ever
+                    if now >= next_fault and now - started < 2 * 60 * self.minutes:
                         self._fault(rng, launch.pid, bus, stray, now - started)
                         next_fault = now + rng.uniform(*self.fault_every)
                     time.sleep(0.2)
