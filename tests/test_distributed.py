@@ -17,12 +17,15 @@ import pytest
 from derl.messages import Birth, FitnessReport, JobLost, encode
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import replay, segments
+from derl.nodes.runtime.bus import ZenohOptions, open_session, zenoh_config
 from nodes_fixtures import (
     LocalRun,
     Observer,
     Processes,
     assert_born_once,
     births,
+    derl_argv,
+    free_port,
     jobs,
     journaled,
     observe,
@@ -163,8 +166,52 @@ def test_garbage_on_every_key_is_rejected(
     wait_for(lambda: len(births(local.dir)) >= 1, 180, "the run going on")
 
 
+def _rss_mb(pid: int) -> float:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return (
+        int(next(line for line in status.splitlines() if line.startswith("VmRSS")).split()[1])
+        / 1024
+    )
+
+
+# A monitor of the user's own: Zenoh's default config (shared memory on), multicast off
+OWN_MONITOR = """
+import json, sys, zenoh
+config = zenoh.Config()
+for key, value in (("mode", "client"), ("connect/endpoints", [sys.argv[1]]),
+                   ("scouting/multicast/enabled", False), ("connect/timeout_ms", 30000)):
+    config.insert_json5(key, json.dumps(value))
+with zenoh.open(config) as session:
+    for _ in range(20):  # over the size Zenoh moves by shared memory, as a checkpoint is
+        session.put("derl/churn/x", bytes(10_000))
+"""
+
+
+def test_a_node_does_not_grow_by_the_sessions_that_come_and_go(procs: Processes) -> None:
+    """Zenoh 1.x negotiates shared memory with every session from another process on the same
+    host by default, and a router or peer then kept about 19 MB for each one that ever
+    connected (a trainer restarted, a monitor started): the soak's coordinator and router grew
+    by it. derl's sessions have shared memory off, so even monitors with Zenoh's default config
+    coming and going leave a node within a few MB."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    process = procs.start("router", derl_argv("router", "--listen", router))
+
+    def monitor_comes_and_goes() -> None:
+        subprocess.run([sys.executable, "-c", OWN_MONITOR, router], check=True, timeout=60)
+
+    heard: list[int] = []
+    with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
+        session.declare_subscriber("derl/churn/**", lambda sample: heard.append(1))
+        monitor_comes_and_goes()  # the router's own warm-up
+        before = _rss_mb(process.pid)
+        for _ in range(8):
+            monitor_comes_and_goes()
+        grown = _rss_mb(process.pid) - before
+    assert heard  # the router forwarded them
+    assert grown < 20, f"the router grew by {grown:.1f} MB over 8 sessions"
+
+
 def test_worker_defaults_keep_multicast_off() -> None:
-    from derl.nodes.runtime.bus import ZenohOptions, zenoh_config
 
     config = zenoh_config(ZenohOptions())
     assert '"enabled":false' in config.get_json("scouting/multicast").replace(" ", "")

@@ -1,11 +1,13 @@
 """The Zenoh side of every node: a session configured from flags, typed publish and subscribe.
 
 Defaults follow measurements (docs/bus.md): multicast scouting OFF (only explicit
-endpoints), a 2.5 s transport lease (a hung node is declared dead 2.5 s after it stops), control
+endpoints), shared memory OFF (with Zenoh's default, a node kept memory for every session that
+ever came), a 2.5 s transport lease (a hung node is declared dead 2.5 s after it stops), control
 messages sent with `CongestionControl.BLOCK` (the default DROP loses bursts even on loopback),
 monitors subscribing through a `RingChannel` so a slow viewer can never stall a trainer. A
 ``--zenoh-config`` file (TLS, access control, anything Zenoh accepts) is the base; flags given on
-the command line override it, and multicast stays off unless ``--multicast`` is given.
+the command line override it, multicast stays off unless ``--multicast`` is given, and shared
+memory stays off.
 """
 
 from __future__ import annotations
@@ -88,6 +90,9 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     if options.connect or not options.config_file:
         put("connect/endpoints", list(options.connect))
     put("scouting/multicast/enabled", options.multicast)
+    # derl sends no shared-memory buffers, and with Zenoh's shared memory on, a router or peer
+    # kept ~19 MB for every same-host session that ever sent it large samples (docs/bus.md)
+    put("transport/shared_memory/enabled", False)
     put("transport/link/tx/lease", options.lease_ms)
     if options.mode == "client":
         put("connect/timeout_ms", 30_000)  # wait for a router that starts a little later
