@@ -174,8 +174,9 @@ def _rss_mb(pid: int) -> float:
     )
 
 
-# A monitor of the user's own: Zenoh's default config (shared memory on), multicast off
-OWN_MONITOR = """
+# A client of the user's own (Zenoh's default config: shared memory on; multicast off) sending
+# large samples, as a trainer sends its checkpoints
+OWN_CLIENT = """
 import json, sys, zenoh
 config = zenoh.Config()
 for key, value in (("mode", "client"), ("connect/endpoints", [sys.argv[1]]),
@@ -190,22 +191,22 @@ with zenoh.open(config) as session:
 def test_a_node_does_not_grow_by_the_sessions_that_come_and_go(procs: Processes) -> None:
     """Zenoh 1.x negotiates shared memory with every session from another process on the same
     host by default, and a router or peer then kept about 19 MB for each one that ever
-    connected (a trainer restarted, a monitor started): the soak's coordinator and router grew
-    by it. derl's sessions have shared memory off, so even monitors with Zenoh's default config
-    coming and going leave a node within a few MB."""
+    connected and sent it large samples (each trainer or evaluator restarted): the soak's
+    coordinator and router grew by it. derl's sessions have shared memory off, so even clients
+    of Zenoh's default config coming and going leave a node within a few MB."""
     router = f"tcp/127.0.0.1:{free_port()}"
     process = procs.start("router", derl_argv("router", "--listen", router))
 
-    def monitor_comes_and_goes() -> None:
-        subprocess.run([sys.executable, "-c", OWN_MONITOR, router], check=True, timeout=60)
+    def client_comes_and_goes() -> None:
+        subprocess.run([sys.executable, "-c", OWN_CLIENT, router], check=True, timeout=60)
 
     heard: list[int] = []
     with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
         session.declare_subscriber("derl/churn/**", lambda sample: heard.append(1))
-        monitor_comes_and_goes()  # the router's own warm-up
+        client_comes_and_goes()  # the router's own warm-up
         before = _rss_mb(process.pid)
         for _ in range(8):
-            monitor_comes_and_goes()
+            client_comes_and_goes()
         grown = _rss_mb(process.pid) - before
     assert heard  # the router forwarded them
     assert grown < 20, f"the router grew by {grown:.1f} MB over 8 sessions"
