@@ -1,6 +1,7 @@
 """The distributed run, with real processes on real Zenoh (loopback, multicast off): a whole
 smoke run, and runs that survive a trainer SIGKILLed or SIGSTOPped mid-training, a coordinator
-SIGKILLed and restarted (with a torn journal tail), and garbage on every key."""
+SIGKILLed and restarted (with a torn journal tail), and garbage on every key; a node that does not
+grow by the sessions that come and go."""
 
 from __future__ import annotations
 
@@ -167,11 +168,11 @@ def test_garbage_on_every_key_is_rejected(
 
 
 def _rss_mb(pid: int) -> float:
-    status = Path(f"/proc/{pid}/status").read_text()
-    return (
-        int(next(line for line in status.splitlines() if line.startswith("VmRSS")).split()[1])
-        / 1024
-    )
+    """The resident memory of process `pid`, in MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for process {pid}")
 
 
 # A client of the user's own (Zenoh's default config: shared memory on; multicast off) sending
@@ -212,8 +213,8 @@ def test_a_node_does_not_grow_by_the_sessions_that_come_and_go(procs: Processes)
     assert grown < 20, f"the router grew by {grown:.1f} MB over 8 sessions"
 
 
-def test_worker_defaults_keep_multicast_off() -> None:
-
+def test_worker_defaults_keep_multicast_and_shared_memory_off() -> None:
     config = zenoh_config(ZenohOptions())
     assert '"enabled":false' in config.get_json("scouting/multicast").replace(" ", "")
+    assert config.get_json("transport/shared_memory/enabled") == "false"
     assert encode(examples("r", 0, 0)[0])
