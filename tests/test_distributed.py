@@ -32,6 +32,7 @@ from nodes_fixtures import (
     observe,
     wait_for,
 )
+from soak import sample  # bench/, on the path by nodes_fixtures
 
 PROFILE = {
     "total": 4,
@@ -167,14 +168,6 @@ def test_garbage_on_every_key_is_rejected(
     wait_for(lambda: len(births(local.dir)) >= 1, 180, "the run going on")
 
 
-def _rss_mb(pid: int) -> float:
-    """The resident memory of process `pid`, in MB."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError(f"no VmRSS for process {pid}")
-
-
 # A client of the user's own (Zenoh's default config: shared memory on; multicast off) sending
 # large samples, as a trainer sends its checkpoints
 OWN_CLIENT = """
@@ -205,10 +198,10 @@ def test_a_node_does_not_grow_by_the_sessions_that_come_and_go(procs: Processes)
     with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
         session.declare_subscriber("derl/churn/**", lambda sample: heard.append(1))
         client_comes_and_goes()  # the router's own warm-up
-        before = _rss_mb(process.pid)
+        before = sample(process.pid)["rss_mb"]
         for _ in range(8):
             client_comes_and_goes()
-        grown = _rss_mb(process.pid) - before
+        grown = sample(process.pid)["rss_mb"] - before
     assert heard  # the router forwarded them
     assert grown < 20, f"the router grew by {grown:.1f} MB over 8 sessions"
 
