@@ -18,10 +18,12 @@ from derl.envs.arenas import Floor
 from derl.envs.batched import MAX_SPEED
 from derl.envs.endings import Escaped
 from derl.envs.eval_tasks import ObstacleConfig
+from derl.envs.flat_ground import AGENT_BIT, PLANE_NAME
 from derl.envs.heightmap import sample
 from derl.envs.rewards import REWARD_WEIGHTS, Escape, Forward, RewardWeights
 from derl.envs.task import Task
 from derl.envs.terrain import Terrain, TerrainConfig
+from derl.envs.terrain_stack import HFIELD_NAME
 from derl.envs.view import EnvView
 from derl.unimal import Genome, Joint, Limb
 
@@ -428,6 +430,66 @@ def test_first_obstacles_are_uniform_over_the_episodes_started(quadruped: Genome
     assert ((counts - expected) ** 2 / expected).sum() < 9.21  # chi-square, 2 dof, p = 0.01
 
 
+def _ground_contacts(env: UnimalEnv, body: str | None = None) -> dict[str, np.ndarray]:
+    """Per copy, how many contacts each ground (the flat stretches' plane, the heightfield)
+    has, with the agent (``body`` None) or with the body ``body``."""
+    model = env.model
+    plane, heightfield = model.geom(PLANE_NAME).id, model.geom(HFIELD_NAME).id
+    agent = model.geom_contype == AGENT_BIT
+    counts = {"plane": np.zeros(env.num_envs, int), "heightfield": np.zeros(env.num_envs, int)}
+    for i in range(env.num_envs):
+        data = env.batch.get_data(i)
+        for pair in data.contact.geom[: data.ncon]:
+            other = pair[1] if pair[0] in (plane, heightfield) else pair[0]
+            mine = agent[other] if body is None else model.geom_bodyid[other] == model.body(body).id
+            for name, geom in (("plane", plane), ("heightfield", heightfield)):
+                counts[name][i] += bool(mine and geom in pair)
+    return counts
+
+
+def test_flat_stretches_are_a_plane_and_obstacles_the_heightfield(quadruped: Genome) -> None:
+    """As the released code's corridor (box geoms for the flat segments, heightfields for the
+    obstacles): a body on a flat stretch touches a plane, which makes a capsule's 2 contacts
+    where flat heightfield made up to 8, and a box's 4 where it made 49; carried onto its
+    first obstacle, the body stands on the heightfield and not the plane below it."""
+    env = _env(quadruped, "vt", fall_ratio=0.0)
+    env.reset(0)
+    zero = np.zeros((env.num_envs, env.action_dim), np.float32)
+    touched = {"plane": 0, "heightfield": 0}
+    for _ in range(40):
+        env.step(zero)
+        for name, count in _ground_contacts(env).items():
+            touched[name] += count.sum()
+    assert touched["plane"] > 40 and touched["heightfield"] == 0
+    stack = env.task.terrains
+    on_hill = np.column_stack([stack.first_obstacle + 1.0, np.zeros(env.num_envs)])
+    ground = env.task.arena.ground(on_hill)
+    assert np.isfinite(on_hill).all() and (ground > 0.0).all()  # hills, steps and rubble rise
+    env.qpos[:, env.root : env.root + 2] = on_hill
+    env.qpos[:, env.root + 2] = ground + env.rest_height + 0.05
+    env.qvel[:] = 0.0
+    env.task.posed(env, env.all)  # the bodies moved: the grounds they touch follow
+    env.batch.forward()
+    touched = {"plane": 0, "heightfield": 0}
+    for _ in range(40):
+        result = env.step(zero)
+        assert not result.terminated.any()
+        for name, count in _ground_contacts(env).items():
+            touched[name] += count.sum()
+    assert touched["heightfield"] > 40 and touched["plane"] == 0
+    assert (env.head_pos[:, 2] > env.task.arena.ground(env.head_pos[:, :2]) + 0.1).all()
+    # MVT's box, simulated throughout: at rest on a flat stretch it touches the plane alone
+    env = _env(quadruped, "mvt", n=16, sleep=False)
+    env.reset(1)
+    for _ in range(20):
+        env.step(np.zeros((env.num_envs, env.action_dim), np.float32))
+    box = _ground_contacts(env, "box")
+    on_plane = box["plane"] > 0
+    assert on_plane.any() and (box["plane"][on_plane] <= 4).all()
+    assert not box["heightfield"][on_plane].any()
+    assert (box["heightfield"][~on_plane] > 4).all()
+
+
 def test_terrain_is_written_ahead_of_the_body(quadruped: Genome) -> None:
     """A VT copy's terrain is written as its body comes near: after a reset, the start and the
     stretch ahead of it; a body carried along +x sees (heightmap, ground) what it would see were
@@ -599,6 +661,7 @@ def _box_run(genome: Genome, sleep: bool, nudge: float = 0.0) -> tuple[np.ndarra
             env.qpos[:, env.root : env.root + 2] = obj.position[:, :2]
             env.qpos[:, env.root + 2] = obj.position[:, 2] + 0.6
             env.qvel[:] = 0.0
+            task.posed(env, env.all)  # the bodies moved: the grounds they touch follow
             env.batch.forward()
         result = env.step(zero)
         assert not (result.terminated | result.truncated).any()
@@ -610,11 +673,12 @@ def _box_run(genome: Genome, sleep: bool, nudge: float = 0.0) -> tuple[np.ndarra
 
 
 def test_sleeping_boxes_move_as_awake_ones(quadruped: Genome) -> None:
-    """MuJoCo's sleeping freezes MVT's box once it rests (its ~40 contacts with the heightfield
-    skipped) until a push or a body wakes it. Untouched, a sleeping box stays within 0.5 mm of
-    the box simulated throughout; pushed or hit, it moves as that box does, up to the spread that
-    a 0.1 mm shift of the box gives (sliding on the heightfield's triangles magnifies any
-    difference: 0.1 mm becomes tens of cm), and nothing stays asleep."""
+    """MuJoCo's sleeping freezes MVT's box once it rests (its contacts with the ground skipped:
+    4 with a flat stretch's plane, about 40 with an obstacle's heightfield) until a push or a
+    body wakes it. Untouched, a sleeping box stays within 0.5 mm of the box simulated
+    throughout; pushed or hit, it moves as that box does, up to the spread that a 0.1 mm shift
+    of the box gives (sliding over contacts that come and go magnifies any difference: 0.1 mm
+    becomes tens of cm), and nothing stays asleep."""
     slept, asleep = _box_run(quadruped, sleep=True)
     awake, never = _box_run(quadruped, sleep=False)
     nudged, _ = _box_run(quadruped, sleep=False, nudge=1e-4)

@@ -256,6 +256,35 @@ def test_terrains_drawn_in_place_are_what_mujoco_sees() -> None:
         np.testing.assert_allclose(hits, terrain.height_at(points[:, 0], points[:, 1]), atol=2e-3)
 
 
+def test_level_holds_over_flat_stretches_only() -> None:
+    """`TerrainStack.level`, which gives a body the plane instead of the heightfield: true for
+    every stretch of x inside a flat segment (the start included, and beyond the ends), false
+    wherever a vertex under it, or next to it, is not at z = 0."""
+    config = TerrainConfig(size_x=40.0, size_y=10.0, start_flat=4.0)
+    spec = mujoco.MjSpec()
+    add_hfield(spec, config, HeightmapGrid())
+    stack = TerrainStack(config, spec.compile(), 4, HeightmapGrid())
+    stack.renew(np.arange(4), np.random.default_rng(5))
+    heights, res = stack.heights, config.resolution
+    x = stack.layout.x_min + np.arange(stack.layout.ncol) * res
+    rng = np.random.default_rng(0)
+    which = rng.integers(0, 4, 4000)
+    low = rng.uniform(-22.0, 22.0, 4000)
+    high = low + rng.uniform(0.0, 3.0, 4000)
+    level = stack.level(low, high, which)
+    near = [(x >= lo - res) & (x <= hi + res) for lo, hi in zip(low, high, strict=True)]
+    zero = np.array([not heights[i][:, n].any() for i, n in zip(which, near, strict=True)])
+    assert level.any() and not (level & ~zero).any()
+    inside = np.zeros(4000, bool)  # within a flat segment, a cell clear of its ends
+    for i in range(4):
+        for span in stack.plans[i]:
+            if span.kind == "flat":
+                start = x[span.c0] + (res if span.c0 else -50.0)
+                end = x[span.c1] - 2 * res if span.c1 < len(x) - 1 else 50.0
+                inside |= (which == i) & (low >= start) & (high <= end)
+    assert inside.sum() > 200 and level[inside].all()
+
+
 def test_height_at_interpolates_on_mujoco_triangles() -> None:
     heights = np.zeros((3, 3), dtype=np.float32)
     heights[0, 1] = 1.0  # vertex at (x, y) = (0, -1) of a 2 x 2 m world

@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy import ndimage
 
+from derl.envs.flat_ground import FlatGround, add_plane
 from derl.envs.heightmap import HeightmapGrid
 from derl.envs.rewards import CONTROL_DT
 from derl.envs.task import Arena
@@ -63,7 +64,8 @@ class Heightfield(Arena):
     the points whose ground is read, as far as a heightmap reads or a body reaches in a step
     (`TerrainStack.reach`); the environment reads the ground under every head at every step
     (its fall test) and at every placement. For worlds where nothing but the body touches the
-    terrain; otherwise all of it is written at each reset."""
+    terrain; otherwise all of it is written at each reset. The corridor's flat stretches are a
+    plane's, as the released code's were box geoms (`derl.envs.flat_ground`)."""
 
     def __init__(
         self,
@@ -80,15 +82,26 @@ class Heightfield(Arena):
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_hfield(spec, self.config, self.grid)
+        if self.draw is None:
+            add_plane(spec)
 
     def bind(self, env: EnvView) -> None:
         self.terrains = TerrainStack(
             self.config, env.model, env.num_envs, self.grid, self.draw, self.ahead
         )
         env.set_models(self.terrains.models)
+        self.flats = FlatGround(env, self.terrains) if self.draw is None else None
 
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
         self.terrains.renew(ids, env.rng)
+
+    def posed(self, env: EnvView, ids: np.ndarray) -> None:
+        if self.flats is not None:
+            self.flats.choose(ids)
+
+    def update(self, env: EnvView) -> None:
+        if self.flats is not None:
+            self.flats.choose(env.all)
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)

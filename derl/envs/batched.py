@@ -306,6 +306,7 @@ class UnimalEnv:
         # the initial state has zero qvel and ctrl
         qvel_noise = self.rng.uniform(-noise, noise, (n, len(self.agent_dofs)))
         self.qvel[ids[:, None], self.agent_dofs] = qvel_noise
+        self.task.posed(self, ids)
         start = time.perf_counter()
         # mj_forward, as the released code's reset (`set_state`): the first observation reads
         # the accelerometer and touch sensors at the spawn state

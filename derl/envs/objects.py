@@ -11,6 +11,7 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from derl.envs.flat_ground import OBJECT_BIT
 from derl.envs.task import Arena, Part
 from derl.envs.view import EnvView
 
@@ -159,6 +160,7 @@ class CarriedObject(Part):
             mass=self.placement.box_mass,
             rgba=[0.85, 0.7, 0.2, 1],
             condim=3,
+            contype=OBJECT_BIT,
         )
         for key, value in self.geom.items():
             setattr(geom, key, value)

@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from derl.envs.terrain_stack import TerrainStack
 
 Arrays = dict[str, np.ndarray]
-HOOKS = ("build", "bind", "start", "reset", "placed", "update")
+HOOKS = ("build", "bind", "start", "reset", "posed", "placed", "update")
 
 
 class Part:
@@ -42,6 +42,10 @@ class Part:
 
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
         """New episodes for copies ``ids``, before their bodies are placed: terrain, objects."""
+
+    def posed(self, env: EnvView, ids: np.ndarray) -> None:
+        """The bodies of ``ids`` are in their start poses (their state only: MuJoCo has not yet
+        computed positions or contacts from it)."""
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         """The bodies of ``ids`` are placed: record start-of-episode quantities."""
@@ -164,6 +168,10 @@ class Task:
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
         for reset in self._hooks["reset"]:
             reset(env, ids)
+
+    def posed(self, env: EnvView, ids: np.ndarray) -> None:
+        for posed in self._hooks["posed"]:
+            posed(env, ids)
 
     def placed(self, env: EnvView, ids: np.ndarray) -> None:
         for placed in self._hooks["placed"]:

@@ -94,6 +94,9 @@ class TerrainStack(HeightStack):
         self.written = np.zeros((count, 3), np.intp)
         """Each copy's written rectangle of `padded`: columns [0, c), rows [r0, r1): (c, r0, r1)."""
         self.written[:] = (shape[1], 0, shape[0])
+        self._changes_before = np.tile(np.arange(self.layout.ncol, dtype=np.int32), (count, 1))
+        """Per copy and terrain column c, how many of the strips between columns c' and c' + 1
+        (c' < c) are not level at z = 0 (`level`); every strip until a planned terrain says."""
         self.first_obstacle = np.full(count, np.inf)
         """x where each copy's first obstacle starts (inf: none; -inf: anywhere)."""
         self.generated = 0
@@ -115,6 +118,7 @@ class TerrainStack(HeightStack):
             for c0, c1 in obstacles:
                 changes[max(c0 - 1, 0) : c1] = True
             self.rough[i] = spread(changes, self.margin)
+            np.cumsum(changes, out=self._changes_before[i, 1:])
             self.first_obstacle[i] = x_min + obstacles[0][0] * res if obstacles else np.inf
             if self.ahead is None:
                 self.complete(i)
@@ -135,6 +139,20 @@ class TerrainStack(HeightStack):
         for k in np.flatnonzero(short).tolist():
             col, row = cells[k].tolist()
             self._extend(int(which[k]), min(col, ncol), max(row - ahead, 0), row + ahead + 1)
+
+    def level(self, low: np.ndarray, high: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """Bool, shaped as ``low``: whether planned terrain ``which[k]`` (the last axis) is
+        level at z = 0 for every x in [low[..., k], high[..., k]] (m), beyond its ends included
+        (flat there)."""
+        layout, last = self.layout, self.layout.ncol - 1
+        cols = np.stack([low, high])
+        cols -= layout.x_min
+        cols *= 1.0 / layout.resolution
+        np.minimum(np.maximum(cols, 0.0, out=cols), last, out=cols)
+        strips = cols.astype(np.intp)  # the strip between columns c and c + 1 under each end
+        np.minimum(strips[1] + 1, last, out=strips[1])
+        counts = self._changes_before
+        return counts[which, strips[1]] == counts[which, strips[0]]
 
     def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
         self.reach(xy, which)
