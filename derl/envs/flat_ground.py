@@ -1,4 +1,4 @@
-"""Flat stretches on a plane, obstacles on the heightfield, as the released code built the corridor.
+"""Flat stretches on a plane, obstacles on the heightfield, as the released code built them.
 
 The released code made VT's and MVT's flat segments of box geoms and only its obstacles of
 heightfield geoms. On a heightfield every grid triangle under a geom is a contact of its own: a
@@ -76,7 +76,7 @@ def reach(model: mujoco.MjModel, body: int) -> float:
 
 class FlatGround:
     """Which ground each body of each copy collides with, written into the copies' own models
-    (`TerrainStack.models`, planned terrains built with ``add_hfield(..., plane=True)``)."""
+    (`TerrainStack.models` of planned terrains, built with `add_hfield` and `add_plane`)."""
 
     def __init__(self, env: EnvView, terrains: TerrainStack) -> None:
         model = env.model
