@@ -18,7 +18,7 @@ steps (measured: the FT agent about 1 m/s from a standing start, 1.4 m/s over wh
 MANIPULATION = 400.0
 """The least manipulation score (reach + push) of the MVT agent's first whole episode: the reach
 term pays 100 a metre the body comes closer to the box (15-25 m ahead at the start), so this is 4
-m closer (measured: 507-1,165 over its first 4 episodes, 695 in the first; it comes 5-12 m
+m closer (measured: 494-1,048 over its first 4 episodes, 1,045 in the first; it comes 5-10 m
 closer to the box and reaches it in none of them within 20 s)."""
 
 
