@@ -39,7 +39,7 @@ from bodies import reference_body
 
 from derl.envs import EnvConfig, UnimalEnv, make_task
 from derl.lifetime import ppo_config
-from derl.rl import Progress, train
+from derl.rl import Progress, TrainResult, train
 
 WORLDS = ("ft", "vt", "mvt")
 LIMBS = (6, 10)
@@ -49,25 +49,13 @@ CORES = 64
 SHARE_AT_16 = 0.80
 
 
-def rate(job: tuple[str, int, int]) -> tuple[float, float]:
-    """Env steps per CPU-second of a training of ``iterations`` PPO iterations of one body in
-    one world (the environment built as `derl.lifetime.learn` builds it, then timed), and the
-    share of its wall time spent in MuJoCo (its steps and the forward passes of resets)."""
-    world, limbs, iterations = job
-    config = ppo_config(world, iterations * 4096, seed=0)
-    env = UnimalEnv(reference_body(limbs), make_task(world), EnvConfig(num_envs=config.num_envs))
-    start = time.process_time()
-    result = train(env, config)
-    return result.env_steps / (time.process_time() - start), env.physics_s / result.wall_time_s
-
-
-def lifetime(job: tuple[str, int, int]) -> dict[str, float]:
-    """A whole lifetime (`STEPS`) of one body in one world: its env steps per CPU-second over
-    the first ``early`` iterations and over all of it, the shares of its wall time (MuJoCo, the
-    rest of the environment, the update, inference, the rest) and of flat heightmap rows (-1:
-    no heightmap)."""
-    world, limbs, early = job
-    config = ppo_config(world, STEPS, seed=0)
+def training(
+    world: str, limbs: int, steps: int, early: int = 0
+) -> tuple[TrainResult, float, float | None]:
+    """A training of ``steps`` env steps of one body in one world, the environment built as
+    `derl.lifetime.learn` builds it: its result, its env steps per CPU-second, and those over
+    its first ``early`` iterations (None for 0)."""
+    config = ppo_config(world, steps, seed=0)
     env = UnimalEnv(reference_body(limbs), make_task(world), EnvConfig(num_envs=config.num_envs))
     first: list[float] = []
 
@@ -77,13 +65,38 @@ def lifetime(job: tuple[str, int, int]) -> dict[str, float]:
 
     start = time.process_time()
     result = train(env, config, at)
-    split, wall = result.time_split, result.wall_time_s
-    assert split.physics_s is not None
+    return result, result.env_steps / (time.process_time() - start), (first or [None])[0]
+
+
+def physics_share(result: TrainResult) -> float:
+    """The share of a training's wall time spent in MuJoCo (its steps and the forward passes
+    of resets)."""
+    assert result.time_split.physics_s is not None  # `UnimalEnv` counts it
+    return result.time_split.physics_s / result.wall_time_s
+
+
+def rate(job: tuple[str, int, int]) -> tuple[float, float]:
+    """Env steps per CPU-second of a training of ``iterations`` PPO iterations of one body in
+    one world, and its `physics_share`."""
+    world, limbs, iterations = job
+    result, steps_per_s, _ = training(world, limbs, iterations * 4096)
+    return steps_per_s, physics_share(result)
+
+
+def lifetime(job: tuple[str, int, int]) -> dict[str, float]:
+    """A whole lifetime (`STEPS`) of one body in one world: its env steps per CPU-second over
+    the first ``early`` iterations and over all of it, the shares of its wall time (MuJoCo, the
+    rest of the environment, the update, inference, the rest) and of flat heightmap rows (-1:
+    no heightmap)."""
+    world, limbs, early = job
+    result, steps_per_s, first = training(world, limbs, STEPS, early)
+    assert first is not None, "early must be within the lifetime's iterations"
+    split, wall, physics = result.time_split, result.wall_time_s, physics_share(result)
     return {
-        "early": first[0],
-        "lifetime": result.env_steps / (time.process_time() - start),
-        "physics_share": split.physics_s / wall,
-        "env_beyond_physics_share": (split.env_s - split.physics_s) / wall,
+        "early": first,
+        "lifetime": steps_per_s,
+        "physics_share": physics,
+        "env_beyond_physics_share": split.env_s / wall - physics,
         "update_share": split.update_s / wall,
         "inference_share": split.inference_s / wall,
         "other_share": split.other_s / wall,
