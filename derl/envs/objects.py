@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from derl.envs.flat_ground import OBJECT_BIT
 from derl.envs.task import Arena, Part
 from derl.envs.view import EnvView
+from derl.unimal.mjcf import FRICTION
 
 Draw = Callable[[np.random.Generator, int], np.ndarray]
 
@@ -160,6 +161,7 @@ class CarriedObject(Part):
             mass=self.placement.box_mass,
             rgba=[0.85, 0.7, 0.2, 1],
             condim=3,
+            friction=list(FRICTION),  # the released unimal.xml's default geom class
             contype=OBJECT_BIT,
         )
         for key, value in self.geom.items():
