@@ -1,6 +1,6 @@
 """The UNIMAL design space: genomes, mutations, validity, MJCF compilation and descriptors."""
 
-from derl.unimal.canonical import body_hash, canonical_form
+from derl.unimal.canonical import body_hash, canonical_form, canonical_genome
 from derl.unimal.descriptors import Descriptors, describe, stability_ratio
 from derl.unimal.genome import Genome, Joint, Limb
 from derl.unimal.mjcf import agent_spec, standalone_spec, to_mjcf
@@ -21,6 +21,7 @@ __all__ = [
     "applicable",
     "body_hash",
     "canonical_form",
+    "canonical_genome",
     "check_body",
     "describe",
     "is_valid",

@@ -6,14 +6,16 @@ and every pair grown on it then store the mirror direction (theta -> 360 - theta
 hinge the negated range, since the mirror image of an x hinge axis is the twin's axis reversed
 (`derl.unimal.geometry`); y hinges keep theirs. Everything else that shapes the body's physics is
 in the form: both densities, and per entry its site, pairing, length, direction and hinges (axis,
-range, gear), with the entries grown on it.
+range, gear), with the entries grown on it. `canonical_genome` writes the form back as a genome:
+its limbs numbered in the form's order, each stored twin the form's, so that equal bodies are
+equal genomes and build the same model with its limbs, observations and actions in one order.
 """
 
 from __future__ import annotations
 
 import hashlib
 
-from derl.unimal.genome import Genome, Limb
+from derl.unimal.genome import Genome, Joint, Limb
 
 Form = tuple
 
@@ -26,6 +28,31 @@ def canonical_form(genome: Genome) -> Form:
 def body_hash(genome: Genome) -> str:
     """A stable 64-bit hex digest of `canonical_form` (equal bodies, equal hashes)."""
     return hashlib.sha256(repr(canonical_form(genome)).encode()).hexdigest()[:16]
+
+
+def canonical_genome(genome: Genome) -> Genome:
+    """The same body as one genome for all its numberings: `canonical_form` written back, limb
+    ids in its depth-first order (`canonical_form` of the result is `genome`'s)."""
+    head_density, limb_density, children = canonical_form(genome)
+    limbs: list[Limb] = []
+
+    def write(forms: Form, parent: int | None) -> None:
+        for site, paired, length, theta, phi, joints, grown in forms:
+            limb = Limb(
+                id=len(limbs),
+                parent=parent,
+                site=site,
+                paired=paired,
+                length=length,
+                theta=theta,
+                phi=phi,
+                joints=tuple(Joint(axis=a, range=r, gear=g) for a, r, g in joints),
+            )
+            limbs.append(limb)
+            write(grown, limb.id)
+
+    write(children, None)
+    return Genome(head_density=head_density, limb_density=limb_density, limbs=tuple(limbs))
 
 
 def _children(genome: Genome, parent: int | None, mirrored: bool) -> Form:
