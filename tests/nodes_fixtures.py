@@ -49,6 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 TINY_PROFILE = {
     "profile": "smoke",
     "population": 2,
+    "in_flight": 1,
     "tournament": 2,
     "total": 3,
     "train_steps": 4096,  # two PPO iterations of 16 envs x 128 steps: ~0.3 s per body

@@ -23,6 +23,7 @@ from derl.unimal import Genome
 PROFILE = {
     "profile": "smoke",
     "population": 2,
+    "in_flight": 1,
     "tournament": 2,
     "total": 5,
     "train_steps": 49152,  # a few seconds per body

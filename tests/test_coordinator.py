@@ -14,6 +14,7 @@ import shutil
 import threading
 import time
 import tracemalloc
+from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -81,7 +82,7 @@ def _serving(
 @pytest.fixture
 def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[MessageBase]]]:
     """The coordinator of a 2-body run of 3 children."""
-    config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
+    config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 3})
     initial = sample_population(2, np.random.default_rng(3))
     with _serving(run_id(), tmp_path, config, initial) as served:
         yield served
@@ -95,7 +96,7 @@ def coordinator_of(tmp_path: Path) -> Iterator[Callable[..., Coordinator]]:
 
         def make(initial: list[Genome] | None = None, **changes: object) -> Coordinator:
             config = load_profile("smoke").model_copy(
-                update={"eval_top": 0, "eval_tasks": (), **changes}
+                update={"eval_top": 0, "eval_tasks": (), "in_flight": 1, **changes}
             )
             bodies = initial or sample_population(config.population, np.random.default_rng(3))
             served = _serving(run_id(), tmp_path, config, bodies)
@@ -209,7 +210,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
     founder's result and checkpoint, the trainer gets the next child, and a restarted coordinator
     knows it (and links its checkpoint again if the link was lost)."""
     run = run_id()
-    config = load_profile("smoke").model_copy(update={"population": 2, "total": 4})
+    config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 4})
     evolution = Evolution(config, [Genome(head_density=500, limb_density=500)] * 2)
     for founder in evolution.initial:
         evolution.birth(founder.name, 1.0, founder.genome)
@@ -271,13 +272,21 @@ def test_the_state_grows_by_births_not_by_jobs_or_learning_curves(tmp_path: Path
 def _grows_by_births(coordinator: Coordinator, heard: queue.Queue[MessageBase]) -> None:
     curve = Curve(env_steps=tuple(range(1, 1201)), returns=tuple(float(k) for k in range(1200)))
     jobs = {node: _job_for(coordinator, node) for node in ("w1", "w2")}
+    turns = deque(jobs)  # the nodes holding a job, the oldest job first
 
     def births(count: int) -> None:
         for _ in range(count):
-            node = min(jobs, key=lambda name: jobs[name].job)
-            report = _report(jobs[node], b"w").model_copy(update={"curve": curve})
+            node = turns.popleft()
+            report = _report(jobs.pop(node), b"w").model_copy(update={"curve": curve})
             coordinator._handle(decode(encode(report)))  # as it comes off the bus
-            jobs[node] = _job_for(coordinator, node)
+            for idle in ("w1", "w2"):  # a child held behind its twin in training may hold
+                if idle not in jobs:  # the next tournament back: that worker waits
+                    _ready(coordinator, idle)
+                    coordinator.settle()
+                    job = coordinator.state.job_of(idle)
+                    if job is not None:
+                        jobs[idle] = job.order
+                        turns.append(idle)
             while not heard.empty():  # what this test's observer heard is not the coordinator's
                 heard.get()
 
@@ -307,7 +316,7 @@ def _born(run: str, child: str, parent: str | None, genome: Genome, birth: int) 
 def test_a_child_bred_like_one_in_training_waits_for_its_birth() -> None:
     """Two tournaments that draw the same parent and mutation: the second child is held while
     the first trains, goes first in the queue once it is born, and is then its repeat."""
-    config = load_profile("smoke").model_copy(update={"population": 2, "total": 6})
+    config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 6})
     initial = sample_population(2, np.random.default_rng(3))
     state = CoordinatorState.start(config, initial)
     run = "held"
@@ -387,7 +396,7 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
     """A repaired segment (`derl log repair`) kept what came before the damage; a later segment
     still holds the job and the birth of a child whose tournament was lost, and a child of that
     child in training. The replay skips them, says so, and resumes; no name is given twice."""
-    config = load_profile("smoke").model_copy(update={"population": 2, "total": 6})
+    config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 6})
     initial = sample_population(2, np.random.default_rng(3))
     state = CoordinatorState.start(config, initial)
     run = "repaired"
@@ -417,8 +426,9 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
         for msg in [*kept, *later]:  # as a restarted coordinator replays its journal
             if state.known(msg):
                 state.apply(msg)
-        for child in state.by_child:  # what a restarted coordinator does next (`_resume`)
+        for child in state.by_child:  # what a restarted coordinator does next (`start`)
             state.training(child)
+        state.evolution.settle_skipped()
     assert set(state.born) == {"i0000", "i0001"} and not state.jobs
     skipped = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert len(skipped) == 4 and all("c0000" in line for line in skipped), skipped
@@ -429,7 +439,13 @@ def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> 
     """An evaluation whose job fails `max_attempts` times (a body the test task cannot load) is
     given up like a child, not handed out forever: the run finishes with the others' results."""
     config = load_profile("smoke").model_copy(
-        update={"population": 2, "total": 2, "eval_top": 1, "eval_tasks": ("patrol",)}
+        update={
+            "population": 2,
+            "in_flight": 1,
+            "total": 2,
+            "eval_top": 1,
+            "eval_tasks": ("patrol",),
+        }
     )
     initial = sample_population(2, np.random.default_rng(3))
     state = CoordinatorState.start(config, initial)
@@ -519,7 +535,7 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
     asks again only after 1, 2, 4, then every 8 s: 10,000 idle workers asking every second
     drowned the coordinator)."""
     run, endpoint = run_id(), f"tcp/127.0.0.1:{free_port()}"
-    config = load_profile("smoke").model_copy(update={"population": 2, "total": 3})
+    config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 3})
     initial = sample_population(2, np.random.default_rng(3))
     (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
     coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))

@@ -44,6 +44,14 @@ class EvolutionConfig(BaseModel):
     population: int = Field(576, ge=1, description="P: the aging window (most recent births)")
     tournament: int = Field(4, ge=1, description="T: contestants drawn with replacement")
     total: int = Field(4000, ge=1, description="N: bodies trained in all, initial ones included")
+    in_flight: int = Field(
+        288,
+        ge=0,
+        description="W: children in flight: child n is bred from the P latest born of the first "
+        "n - W children (the paper's 288 trainings at once), so the run is the same whatever the "
+        "number of trainers (keep W at 2-4x the trainers); 0: free-running, the P most recently "
+        "born (not reproducible)",
+    )
     train_steps: int = Field(
         5_000_000,
         ge=1,
@@ -106,6 +114,11 @@ class EvolutionConfig(BaseModel):
                 f"tournament ({self.tournament}) > population ({self.population}): a tournament "
                 "draws T of the P most recent births"
             )
+        if self.in_flight >= self.population:
+            raise ValueError(
+                f"in_flight ({self.in_flight}) >= population ({self.population}): child n is bred "
+                "from the first n - W children, so W must be less than P"
+            )
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
         self.training_ppo()  # the budget holds whole rollouts, the minibatch fits, ...
@@ -131,6 +144,7 @@ PROFILES: dict[str, EvolutionConfig] = {
         population=4,
         tournament=2,
         total=8,
+        in_flight=2,
         train_steps=8192,
         num_envs=16,
         lease_s=30.0,
@@ -143,6 +157,7 @@ PROFILES: dict[str, EvolutionConfig] = {
         population=16,
         tournament=4,
         total=128,
+        in_flight=8,
         train_steps=250_000,
         eval_top=2,
         eval_tasks=TEST_TASKS,

@@ -1,24 +1,31 @@
 """Aging (regularized) tournament evolution as a deterministic state machine, with no bus.
 
-The population is the P most recently born agents, in birth order. The initial P bodies come from
-the run's seed; afterwards each tournament draws T members with replacement from the births so
-far (fewer than P while initial bodies are still training), the fittest is the parent (the first
-drawn among equals), and one mutation of its body is the child. Tournament k draws from a hash of
-(seed, k) (`tournament_draws`), so a decision depends only on the state it was made in: replaying
-recorded decisions and births rebuilds the same state, and the next decision is the one the
-crashed run would have made.
+Children are numbered in the order they are bred (`index`): the P initial bodies first, from the
+run's seed, then tournament k's child. A tournament draws T members with replacement from a
+population, the fittest is the parent (the first drawn among equals), and one mutation of its body
+is the child. Which population is the run's `in_flight`, W, the number of children the evolution
+keeps in flight (the paper's 288 trainings at once): the child numbered n is bred from the P latest
+born of the first n - W children (`pool`), once every one of them is born or given up (`ready`),
+whatever order their trainings finished in. So the births depend on the seed alone, not on how
+many trainers ran, how fast, or what crashed and resumed. W = 0 is free-running (the released
+code's rule, not reproducible): the P most recently born, in the order they were born, as soon as
+one is. Tournament k draws from a hash of (seed, k) (`tournament_draws`), so a decision depends
+only on the state it was made in: replaying recorded decisions and births rebuilds the same state,
+and the next decision is the one the crashed run would have made.
 
 A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child
-(a mutation and its full validity check: deterministic, so the same seed gives the same body).
-Whoever holds this state breeds the child (`body`) before it is trained, so every body is
-decided here, recorded once decided (`decided`: a journal that carries it gives it back), and a
-trainer trains the body it is given. Training is deterministic within a run, so a child whose
-body equals one already born (`repeat`, by `body_hash`: the same body whatever its limb
-numbering) is born as a repeat with that body's result instead of being trained again.
+(a mutation and its full validity check: deterministic, so the same seed gives the same body,
+written in its canonical form, `canonical_genome`, so that equal bodies are equal genomes and
+train alike). Whoever holds this state breeds the child (`body`) before it is trained, so every
+body is decided here, recorded once decided (`decided`: a journal that carries it gives it back),
+and a trainer trains the body it is given. Training is deterministic, so a child whose body equals
+one already born (`repeat`, by `body_hash`) is born as a repeat with that body's result instead of
+being trained again.
 """
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import struct
 from dataclasses import dataclass
@@ -31,6 +38,7 @@ from derl.unimal import (
     Mutation,
     MutationFailed,
     body_hash,
+    canonical_genome,
     mutate,
     sample_population,
 )
@@ -51,6 +59,11 @@ def tournament_draws(
     )
     words = struct.unpack(f"<{size + 1}Q", digest)
     return [word % population for word in words[:size]], words[size] >> 1
+
+
+def tournament_child(iteration: int) -> str:
+    """The name of tournament `iteration`'s child."""
+    return f"c{iteration:05d}"
 
 
 @dataclass(frozen=True)
@@ -80,12 +93,14 @@ class Child:
 
 def breed(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
     """The child of a tournament: one valid mutation of `parent`, the same for the same seed
-    (each operator tries up to 50 times, and up to `MAX_DRAWS` operators are drawn)."""
+    (each operator tries up to 50 times, and up to `MAX_DRAWS` operators are drawn), in its
+    canonical form (the limb ids in the mutation's detail are the parent's)."""
     rng = np.random.default_rng(seed)
     reason = ""
     for _ in range(MAX_DRAWS):
         try:
-            return mutate(parent, rng)
+            child, mutation = mutate(parent, rng)
+            return canonical_genome(child), mutation
         except MutationFailed as failure:
             reason = str(failure)
     raise MutationFailed("every drawn operator", MAX_DRAWS, reason)
@@ -103,7 +118,9 @@ class Evolution:
             raise ValueError(
                 f"{len(initial)} initial bodies for a population of {config.population}"
             )
-        self.initial = [Child(f"i{k:04d}", genome) for k, genome in enumerate(initial)]
+        self.initial = [
+            Child(f"i{k:04d}", canonical_genome(genome)) for k, genome in enumerate(initial)
+        ]
         # every child's body once decided (an initial one from the start), and its mutation
         self.genomes: dict[str, Genome] = {c.name: c.genome for c in self.initial}
         self.mutations: dict[str, Mutation | None] = {c.name: None for c in self.initial}
@@ -116,11 +133,38 @@ class Evolution:
         self.hashes: dict[str, str] = {}  # child -> body_hash of its body (computed once)
         self.iterations = 0
         self._best: Member | None = None
+        self.index: dict[str, int] = {c.name: k for k, c in enumerate(self.initial)}
+        self.born_indices: list[int] = []  # the born children's numbers, ascending
+        self.by_index: dict[int, Member] = {}  # a born child's number -> it
+        self.settled_indices: set[int] = set()  # numbers of children born or given up
+        self.prefix = 0  # the first `prefix` children are all born or given up
 
     @property
     def population(self) -> list[Member]:
-        """The P most recently born agents."""
-        return self.born[-self.config.population :]
+        """The P latest born agents: in child order (in the order they were born when
+        free-running)."""
+        if not self.config.in_flight:
+            return self.born[-self.config.population :]
+        latest = self.born_indices[-self.config.population :]
+        return [self.by_index[k] for k in latest]
+
+    def pool(self) -> list[Member] | None:
+        """The population the next tournament draws from, None while it is not known yet: the P
+        latest born of the first n - W children, n the next child's number, once each of them is
+        born or given up (should none of them be born: of the first children up to the first
+        born one). Free-running (W = 0): the P most recently born, once one is."""
+        config = self.config
+        if not config.in_flight:
+            return self.born[-config.population :] or None
+        if not self.born_indices or self.born_indices[0] >= self.prefix:
+            return None  # no child is born among the settled ones yet
+        first = max(len(self.initial) + self.iterations - config.in_flight,
+                    self.born_indices[0] + 1)  # fmt: skip
+        if self.prefix < first:
+            return None
+        end = bisect.bisect_left(self.born_indices, first)
+        latest = self.born_indices[max(0, end - config.population) : end]
+        return [self.by_index[k] for k in latest]
 
     @property
     def settled(self) -> int:
@@ -133,22 +177,22 @@ class Evolution:
         return self.settled >= self.config.total
 
     def best(self) -> Member | None:
-        """The fittest agent born (the first born of equals)."""
+        """The fittest agent born (the first in child order of equals)."""
         return self._best
 
-    def tournament(self) -> Child:
-        """Decide the next child from the births so far (call `record` with it to make it part
-        of the state)."""
-        population = self.population
-        if not population:
-            raise RuntimeError("a tournament needs an agent born")
+    def tournament(self) -> Child | None:
+        """Decide the next child from its `pool` (None while that is not known yet); call
+        `record` with it to make it part of the state."""
+        population = self.pool()
+        if population is None:
+            return None
         positions, mutation_seed = tournament_draws(
             self.config.seed, self.iterations, self.config.tournament, len(population)
         )
         drawn = [population[i] for i in positions]
         parent = max(drawn, key=lambda m: m.fitness)
         return Child(
-            name=f"c{self.iterations:05d}",
+            name=tournament_child(self.iterations),
             genome=None,
             parent=parent.agent,
             contestants=tuple(m.agent for m in drawn),
@@ -163,6 +207,7 @@ class Evolution:
             return
         self.parents[child.name] = child.parent
         self.seeds[child.name] = child.mutation_seed
+        self.index[child.name] = len(self.initial) + child.iteration
         self.iterations = max(self.iterations, child.iteration + 1)
 
     def body(self, child: str) -> tuple[Genome, Mutation | None]:
@@ -193,6 +238,25 @@ class Evolution:
         goes on without it."""
         if child in self.parents and child not in self.fitness:
             self.given_up.add(child)
+            self._settled(self.index[child])
+
+    def skip(self, iteration: int) -> None:
+        """Tournament `iteration` is not in the state (lost with a damaged segment): its name
+        is never given to another child (`settle_skipped` then counts it as given up)."""
+        self.iterations = max(self.iterations, iteration + 1)
+
+    def settle_skipped(self) -> None:
+        """Every tournament before the next one that the state lacks (lost with a damaged
+        segment) counts as given up, so later ones do not wait for it."""
+        for iteration in range(self.iterations):
+            if tournament_child(iteration) not in self.parents:
+                self._settled(len(self.initial) + iteration)
+
+    def _settled(self, index: int) -> None:
+        """The child numbered `index` is born or given up."""
+        self.settled_indices.add(index)
+        while self.prefix in self.settled_indices:
+            self.prefix += 1
 
     def repeat_of(self, genome: Genome) -> str | None:
         """The first agent born with the body `genome` (None: a body not born yet)."""
@@ -214,7 +278,14 @@ class Evolution:
         self.bodies.setdefault(self.body_key(agent), agent)
         member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
         self.born.append(member)
-        if self._best is None or fitness > self._best.fitness:
+        index = self.index[agent]
+        bisect.insort(self.born_indices, index)
+        self.by_index[index] = member
+        self._settled(index)
+        if self._best is None or (fitness, -index) > (
+            self._best.fitness,
+            -self.index[self._best.agent],
+        ):
             self._best = member
         self.fitness[agent] = fitness
         return member

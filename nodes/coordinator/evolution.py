@@ -80,6 +80,7 @@ class EvolutionPolicy:
         checkpoint links of repeats a crash may have lost."""
         self.ledger = ledger
         self.logged_born = self.born
+        self.state.evolution.settle_skipped()
         for child in self.state.by_child:  # children in training hold later equal ones
             self.state.training(child)
         for birth in self.state.births:
@@ -101,8 +102,10 @@ class EvolutionPolicy:
         state, evolution = self.state, self.state.evolution
         while True:
             child = state.next_child_for(node, trainers)
-            if child is None and not state.waiting and state.wants_tournament():
+            if child is None and state.wants_tournament():
                 decided = evolution.tournament()
+                if decided is None:
+                    return None  # its population is not known yet: the trainer waits
                 self.ledger.commit(tournament_message(self.run, decided))
                 child = decided.name
             if child is None:

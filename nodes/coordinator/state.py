@@ -112,8 +112,7 @@ class CoordinatorState(RunHistory):
         if isinstance(msg, Tournament):
             if msg.parent in evolution.genomes:
                 return True
-            # its name is never given to another child
-            evolution.iterations = max(evolution.iterations, msg.iteration + 1)
+            evolution.skip(msg.iteration)
             what = f"Tournament of {msg.child}: its parent {msg.parent} was never born"
         elif isinstance(msg, TrainJob | FitnessReport | Birth | ChildFailed):
             if msg.child in evolution.parents:
@@ -285,12 +284,13 @@ class CoordinatorState(RunHistory):
         return None
 
     def wants_tournament(self) -> bool:
-        """Whether a new child should be decided for an idle trainer now: once no child waits
-        (every initial body is assigned: those still training are born when they finish) and
-        one is born, while fewer than the run's total are started."""
+        """Whether a new child may be decided for an idle trainer now: once no child waits
+        (every initial body is assigned: those still training are born when they finish),
+        while fewer than the run's total are started (`Evolution.tournament` says whether its
+        population is known yet)."""
         evolution = self.evolution
         started = evolution.settled + self.training_in_flight() + len(self.waiting) + len(self.held)
-        return bool(evolution.born) and not self.waiting and started < self.config.total
+        return not self.waiting and started < self.config.total
 
     def next_job_id(self, child: str) -> str:
         return f"{child}.{self.attempts.get(child, 0) + 1}"
@@ -322,8 +322,9 @@ class CoordinatorState(RunHistory):
 
     def best(self) -> list[Member]:
         """The born bodies, fittest first, each once (a repeat is its earlier agent's body)."""
-        trained = (m for m in self.evolution.born if m.repeat_of is None)
-        return sorted(trained, key=lambda m: m.fitness, reverse=True)
+        evolution = self.evolution
+        trained = (m for m in evolution.born if m.repeat_of is None)
+        return sorted(trained, key=lambda m: (-m.fitness, evolution.index[m.agent]))
 
     def next_evaluation(self) -> EvalKey | None:
         self._plan_evaluations()
