@@ -89,6 +89,8 @@ class RunLog(Record):
     checkpoints: Path | None = None
     """The folder of the bodies' trained policies (``<id>.pt``), where the run was read from a
     directory that has one (a log alone has none)."""
+    fingerprint: str | None = None
+    """A hash of its births (`derl.evolution.fingerprint`), where it was read from a journal."""
 
     @model_validator(mode="after")
     def _a_tree_in_birth_order(self) -> RunLog:

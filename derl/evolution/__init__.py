@@ -1,6 +1,17 @@
 """Evolution: run profiles and aging tournament selection, independent of any transport."""
 
 from derl.evolution.config import PROFILES, EvolutionConfig, load_profile
+from derl.evolution.fingerprint import child_order, fingerprint
 from derl.evolution.population import Child, Evolution, Member, breed
 
-__all__ = ["PROFILES", "Child", "Evolution", "EvolutionConfig", "Member", "breed", "load_profile"]
+__all__ = [
+    "PROFILES",
+    "Child",
+    "Evolution",
+    "EvolutionConfig",
+    "Member",
+    "breed",
+    "child_order",
+    "fingerprint",
+    "load_profile",
+]

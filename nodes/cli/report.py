@@ -132,6 +132,10 @@ def _report(args: argparse.Namespace) -> int:
         console.print(f"note: {note}", highlight=False)
     for line in files.headline:
         console.print(line, highlight=False)
+    for run in runs:
+        if run.fingerprint is not None:
+            console.print(f"{run.name}: fingerprint {run.fingerprint} ({len(run.bodies)} births)",
+                          highlight=False)  # fmt: skip
     console.print(
         f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
         f"{len(files.tables)} tables) in "

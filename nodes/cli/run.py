@@ -35,6 +35,7 @@ from derl.nodes.cli.options import (
     set_suffix,
 )
 from derl.nodes.errors import IN_USE
+from derl.nodes.journal.history import load_history
 from derl.nodes.launch.commands import NodeCommand, build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
@@ -109,6 +110,9 @@ def _run(args: argparse.Namespace) -> int:
     if status is not None and status.steps_per_s:
         rate = f", {status.steps_per_s:,.0f} env steps/s on average"
     console.print(f"done: {born} bodies, best {best}{rate}; results in {run_dir}")
+    fingerprint = load_history(run_dir).fingerprint()
+    console.print(f"fingerprint {fingerprint} (a hash of the births: the same profile and seed "
+                  "give the same on any number of trainers)", highlight=False)  # fmt: skip
     return 0
 
 

@@ -299,7 +299,8 @@ class EvolutionPolicy:
 
     def finish(self) -> None:
         write_results(self.run_dir, self.run, self.config, self.state, self.ledger.checkpoints)
-        log.info("run %s finished: %d born, results in %s", self.run, self.born, self.run_dir)
+        log.info("run %s finished: %d born (fingerprint %s), results in %s", self.run, self.born,
+                 self.state.fingerprint(), self.run_dir)  # fmt: skip
 
 
 def _log_failed_link(done: Future[None]) -> None:

@@ -102,6 +102,7 @@ def write_results(
         "run": run,
         "profile": config.model_dump(),
         "born": len(evolution.born),
+        "fingerprint": state.fingerprint(),
         "failed": sorted(state.failed),
         "best": [vars(m) for m in ranked[:10]],
         "evaluations": [r.model_dump(exclude={"curve"}) for r in state.evaluations.values()],

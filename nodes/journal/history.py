@@ -36,6 +36,8 @@ from derl.nodes.journal.segments import (
 )
 from derl.nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
 
+from derl.evolution.fingerprint import child_order, fingerprint
+
 if TYPE_CHECKING:
     from derl.analysis import RunLog
 
@@ -61,6 +63,12 @@ class RunHistory:
         self.evaluations: dict[EvalKey, EvalResult] = {}
         self.other_runs = 0
         self._accepted: dict[str, FitnessReport] = {}  # job -> accepted report, until its Birth
+
+    def fingerprint(self) -> str:
+        """The run's fingerprint (`derl.evolution.fingerprint`) over its births so far."""
+        return fingerprint(
+            (b.child, b.parent, b.generation, b.fitness, b.genome) for b in self.births
+        )
 
     def apply(self, msg: MessageBase) -> None:
         if self.run is None:
@@ -152,18 +160,21 @@ def load_history(path: Path) -> RunHistory:
 
 
 def run_log(path: Path) -> RunLog:
-    """A run's records for `derl.analysis`, from its journal (see `load_history`)."""
+    """A run's records for `derl.analysis`, from its journal (see `load_history`): the bodies
+    in child order (the order they were bred: the same in every run of the seed, whatever
+    order their trainings finished in), `Body.birth` their place in it."""
     from derl.analysis import Body, Evaluation, RunLog
 
     history = load_history(path)
     bodies = []
-    for birth in history.births:
+    in_child_order = sorted(history.births, key=lambda b: child_order(b.child))
+    for place, birth in enumerate(in_child_order):
         report = history.reports.get(birth.child)
         bodies.append(
             Body(
                 id=birth.child,
                 parent=birth.parent,
-                birth=birth.birth,
+                birth=place,
                 fitness=birth.fitness,
                 curve_steps=report.curve.env_steps if report else (),
                 curve_returns=report.curve.returns if report else (),
@@ -199,6 +210,7 @@ def run_log(path: Path) -> RunLog:
         train_steps=first.steps,
         training_seed=first.seed,
         checkpoints=path / CHECKPOINTS if (path / CHECKPOINTS).is_dir() else None,
+        fingerprint=history.fingerprint(),
     )
 
 
