@@ -1,0 +1,207 @@
+"""A run is a function of its profile and seed: the same births on 1 trainer or 3, with a trainer
+SIGKILLed and the coordinator SIGKILLed and resumed, with real processes on real Zenoh (loopback,
+multicast off); and, without a bus, whatever order the trainings finish in."""
+
+from __future__ import annotations
+
+import hashlib
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from derl.messages import Birth
+from derl.nodes.journal.history import load_history
+from nodes_fixtures import REPO, LocalRun, Processes, assert_born_once, journaled, wait_for
+
+from derl.evolution import Evolution, fingerprint, load_profile
+from derl.lifetime import learn, ppo_config
+from derl.unimal import Genome, body_hash, canonical_genome, sample_population
+
+PROFILE = {
+    "population": 4,
+    "in_flight": 2,
+    "tournament": 2,
+    "total": 10,
+    "train_steps": 16384,  # 8 PPO iterations of 16 envs x 128 steps: time to kill one mid-job
+}
+
+Facts = list[tuple[str, str | None, int, str, str]]
+
+
+def _births(run_dir: Path) -> Facts:
+    """(child, parent, generation, the fitness's bits, body) of every birth, in child order."""
+    born = journaled(run_dir, Birth)
+    return sorted(
+        (b.child, b.parent, b.generation, b.fitness.hex(), body_hash(b.genome)) for b in born
+    )
+
+
+def _run(tmp_path: Path, trainers: int, faults: bool = False) -> Path:
+    """A run of PROFILE with `trainers` trainers until it finishes; with `faults`, a trainer is
+    SIGKILLed mid-job (and another started) and then the coordinator (and started again)."""
+    folder = tmp_path / f"{trainers}{'-faults' if faults else ''}"
+    folder.mkdir()
+    local = LocalRun.at(folder, **PROFILE)
+    processes = Processes(local.dir.parent / "logs")
+    try:
+        coordinator = processes.start("coordinator", local.coordinator())
+        for k in range(trainers):
+            processes.start(f"t{k}", local.trainer(f"t{k}"))
+        if faults:
+            wait_for(lambda: len(journaled(local.dir, Birth)) >= 2, 120, "2 births")
+            processes.kill("t0")  # mid-job: the other trainers are busy too
+            processes.start("t9", local.trainer("t9"))
+            wait_for(lambda: len(journaled(local.dir, Birth)) >= 5, 120, "5 births")
+            processes.kill("coordinator")
+            coordinator = processes.start("coordinator", local.coordinator())
+        assert processes.finish(coordinator, timeout=240) == 0, processes.log("coordinator")
+    finally:
+        processes.close()
+    assert_born_once(local.dir, PROFILE["total"])
+    return local.dir
+
+
+@pytest.mark.slow
+def test_the_same_seed_gives_the_same_births_on_any_number_of_trainers_and_after_crashes(
+    tmp_path: Path,
+) -> None:
+    alone = _run(tmp_path, trainers=1)
+    three = _run(tmp_path, trainers=3)
+    crashed = _run(tmp_path, trainers=2, faults=True)
+    expected = _births(alone)
+    assert len(expected) == PROFILE["total"]
+    assert _births(three) == expected
+    assert _births(crashed) == expected
+    prints = {load_history(d).fingerprint() for d in (alone, three, crashed)}
+    assert len(prints) == 1, prints
+
+
+def _evolve(config_changes: dict[str, int], trainers: int, seed: int) -> list[tuple]:
+    """An evolution of 40 children run by `trainers` simulated trainers whose trainings finish in
+    a random order (`seed`); a body's fitness is a function of the body (training is
+    deterministic). The births as (child, parent, fitness), in child order."""
+    config = load_profile("smoke").model_copy(update={"total": 40, **config_changes})
+    evolution = Evolution(config, sample_population(config.population, np.random.default_rng(1)))
+    rng = random.Random(seed)
+    waiting = [child.name for child in evolution.initial]
+    training: list[str] = []
+    while evolution.settled < config.total:
+        while len(training) < trainers:
+            if waiting:
+                training.append(waiting.pop(0))
+                continue
+            started = evolution.settled + len(training)
+            decided = evolution.tournament() if started < config.total else None
+            if decided is None:
+                break
+            evolution.record(decided)
+            evolution.body(decided.name)
+            training.append(decided.name)
+        done = training.pop(rng.randrange(len(training)))
+        genome = evolution.genomes[done]
+        fitness = int(body_hash(genome)[:6], 16) / 1e5
+        evolution.birth(done, fitness, genome)
+    born = sorted(evolution.born, key=lambda m: evolution.index[m.agent])
+    return [(m.agent, m.parent, m.fitness) for m in born]
+
+
+def test_births_do_not_depend_on_the_trainers_or_the_order_trainings_finish_in() -> None:
+    windowed = {"population": 8, "in_flight": 4, "tournament": 3}
+    expected = _evolve(windowed, trainers=1, seed=0)
+    for trainers, seed in [(2, 1), (4, 2), (4, 3), (9, 4)]:
+        assert _evolve(windowed, trainers, seed) == expected, (trainers, seed)
+    free = {**windowed, "in_flight": 0}  # the released code's rule: it depends on both
+    assert _evolve(free, 4, 2) != _evolve(free, 4, 3)
+
+
+def test_the_pool_is_the_latest_born_of_the_first_children_in_child_order() -> None:
+    config = load_profile("smoke").model_copy(
+        update={"population": 3, "in_flight": 2, "tournament": 2, "total": 20}
+    )
+    evolution = Evolution(config, sample_population(3, np.random.default_rng(1)))
+    assert evolution.tournament() is None  # nobody born
+    evolution.birth("i0002", 5.0, evolution.genomes["i0002"])
+    assert evolution.tournament() is None  # child 3 needs child 0 (3 - W) settled first
+    evolution.birth("i0000", 1.0, evolution.genomes["i0000"])
+    first = evolution.tournament()
+    assert first is not None and set(first.contestants) == {"i0000"}  # the first child alone
+    evolution.record(first)
+    assert evolution.tournament() is None  # child 4 needs children 0-1: i0001 trains still
+    evolution.give_up("i0001")
+    second = evolution.tournament()
+    assert second is not None and set(second.contestants) <= {"i0000"}  # i0001 was given up
+    evolution.record(second)
+    evolution.birth(first.name, 3.0, evolution.body(first.name)[0])
+    third = evolution.tournament()  # child 5: the P latest born of children 0-2
+    assert third is not None and set(third.contestants) <= {"i0000", "i0002"}
+    assert [m.agent for m in evolution.population] == ["i0000", "i0002", first.name]
+
+
+def test_a_fingerprint_is_of_the_births_in_child_order_and_sees_every_bit() -> None:
+    body = sample_population(1, np.random.default_rng(1))[0]
+    births = [("i0000", None, 0, 1.5, body), ("c00000", "i0000", 1, 2.0, body)]
+    assert fingerprint(births) == fingerprint(births[::-1])
+    assert len(fingerprint(births)) == 16
+    nudged = [births[0], ("c00000", "i0000", 1, np.nextafter(2.0, 3.0), body)]
+    assert fingerprint(nudged) != fingerprint(births)
+
+
+def test_training_gives_the_same_bits_in_any_process_first_or_last() -> None:
+    """The fitness and the checkpoint's bytes of a training are the same in a fresh process and
+    after another training in the same one (nothing of a training outlives it)."""
+    a, b = sample_population(2, np.random.default_rng(5))
+    config = ppo_config("vt", steps=4096, seed=1409, num_envs=16)
+
+    def bits(genome: Genome) -> tuple[str, str]:
+        summary, result = learn(genome, "vt", config)
+        return summary.fitness.hex(), hashlib.sha256(result.checkpoint.to_bytes()).hexdigest()
+
+    first = bits(a)
+    bits(b)
+    assert bits(a) == first
+    fresh = subprocess.run(
+        [sys.executable, "-c", FRESH, a.model_dump_json()],
+        capture_output=True, text=True, check=True, cwd=REPO,
+    )  # fmt: skip
+    assert fresh.stdout.split() == list(first)
+
+
+FRESH = """
+import hashlib, sys
+from derl.lifetime import learn, ppo_config
+from derl.unimal import Genome
+summary, result = learn(Genome.model_validate_json(sys.argv[1]), "vt",
+                        ppo_config("vt", steps=4096, seed=1409, num_envs=16))
+print(summary.fitness.hex(), hashlib.sha256(result.checkpoint.to_bytes()).hexdigest())
+"""
+
+
+def test_every_body_of_a_run_is_in_canonical_form() -> None:
+    """Equal bodies are equal genomes, so a repeat's result is exactly what training it gives."""
+    config = load_profile("smoke").model_copy(update={"total": 30})
+    initial = sample_population(config.population, np.random.default_rng(2))
+    evolution = Evolution(config, [_renumbered(g) for g in initial])
+    for k, child in enumerate(evolution.initial):
+        assert child.genome == canonical_genome(initial[k])
+        evolution.birth(child.name, float(k), child.genome)
+    for _ in range(10):
+        decided = evolution.tournament()
+        evolution.record(decided)
+        body, _ = evolution.body(decided.name)
+        assert body == canonical_genome(body)
+        evolution.birth(decided.name, 1.0, body)
+
+
+def _renumbered(genome: Genome) -> Genome:
+    """The same body with its limb ids shifted and its entries reversed."""
+    shift = {limb.id: limb.id + 10 for limb in genome.limbs}
+    limbs = tuple(
+        limb.model_copy(update={"id": shift[limb.id], "parent": shift.get(limb.parent)})
+        for limb in reversed(genome.limbs)
+    )
+    return Genome.model_validate(
+        {**genome.model_dump(), "limbs": [limb.model_dump() for limb in limbs]}
+    )
