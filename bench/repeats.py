@@ -3,7 +3,8 @@ training; prints JSON.
 
 Per profile, worker count and fitness model, over seeds: W trainers each train one child at a
 time (a training takes a uniform 0.5-1.5 time units), the P initial bodies first; a free trainer
-gets the next tournament's child, bred as the coordinator breeds it, and a child whose body
+gets the next tournament's child once its population is known (the profile's `in_flight`
+window; free-running at 0), bred as the coordinator breeds it, and a child whose body
 (`body_hash`) is born already is born at once with that body's fitness (a repeat, no training),
 as the coordinator does (`Evolution.body`, then `Evolution.repeat`: their CPU time per child is
 the coordinator's cost of deciding a body, `decide_ms`). With ``hold`` false a body equal to one
@@ -41,38 +42,39 @@ def simulate(
     config: EvolutionConfig, initial: list[Genome], workers: int, model: str, seed: int, hold: bool
 ) -> dict[str, float]:
     """One run: tournament children, repeats born untrained, and equal bodies trained twice;
-    `hold`: a child whose body is that of a child in training waits for its birth."""
+    `hold`: a child whose body is that of a child in training waits for its birth. Also the
+    trainers' `utilisation`: their busy time over `workers` x the run's duration."""
     config = config.model_copy(update={"seed": seed})
     evolution = Evolution(config, initial)
     rng = np.random.default_rng([seed, 7])
     fitness: dict[str, float] = {}  # body hash -> its fitness (the same for the same body)
     for child in evolution.initial:
         fitness[body_hash(child.genome)] = float(rng.normal())
-    order = [child.name for child in evolution.initial]
-    for name in rng.permutation(order):  # the initial bodies finish in random order
-        genome = evolution.genomes[name]
-        evolution.birth(str(name), fitness[body_hash(genome)], genome)
     running: list[tuple[float, str, Genome, str]] = []  # (finish, child, body, hash)
     training: dict[str, int] = {}  # hash -> trainings of it under way
     in_training_with: dict[str, str] = {}  # hash -> the child in training with that body
     held: dict[str, list[str]] = {}  # child in training -> the children held for it
-    waiting: deque[str] = deque()  # children released by a birth: looked up again first
+    # children to train before any tournament (the initial bodies), then those released by a
+    # birth (looked up again first)
+    waiting: deque[str] = deque(child.name for child in evolution.initial)
     repeats = in_training = 0
     costs: list[float] = []  # CPU s to breed and look up a child (the coordinator's, per child)
-    now, idle = 0.0, workers
+    now, idle, busy = 0.0, workers, 0.0
 
     def next_child() -> str | None:
         if waiting:
             return waiting.popleft()
         started = evolution.settled + len(running) + sum(map(len, held.values()))
-        if started >= config.total or not evolution.born:
+        if started >= config.total:
             return None
         decided = evolution.tournament()
+        if decided is None:  # its population is not known yet
+            return None
         evolution.record(decided)
         return decided.name
 
     def assign() -> bool:
-        nonlocal repeats, in_training
+        nonlocal repeats, in_training, busy
         while (name := next_child()) is not None:
             start = time.thread_time()
             body, _ = evolution.body(name)  # as the coordinator breeds it and looks it up
@@ -93,7 +95,9 @@ def simulate(
                 parent = evolution.parents[name]
                 base = evolution.fitness[parent] if model == "inherited" else 0.0
                 fitness[key] = base + float(rng.normal(0.0, 0.5 if model == "inherited" else 1.0))
-            heapq.heappush(running, (now + rng.uniform(0.5, 1.5), name, body, key))
+            duration = rng.uniform(0.5, 1.5)
+            busy += duration
+            heapq.heappush(running, (now + duration, name, body, key))
             return True
         return False
 
@@ -118,6 +122,7 @@ def simulate(
         "repeats": repeats,
         "in_training": in_training,
         "decide_ms": [c * 1e3 for c in costs],
+        "utilisation": busy / (workers * now),
     }
 
 
