@@ -80,6 +80,7 @@ class EvolutionPolicy:
         checkpoint links of repeats a crash may have lost."""
         self.ledger = ledger
         self.logged_born = self.born
+        self.said_window = False  # that more trainers run than children are in flight
         self.state.evolution.settle_skipped()
         for child in self.state.by_child:  # children in training hold later equal ones
             self.state.training(child)
@@ -100,6 +101,12 @@ class EvolutionPolicy:
         """The next child to train for `node`; children whose body is born already are born as
         repeats on the way, without training, and children that cannot be bred are given up."""
         state, evolution = self.state, self.state.evolution
+        window = self.config.in_flight
+        if 0 < window < trainers and not self.said_window:
+            self.said_window = True
+            log.warning("%d trainers for %d children in flight (the profile's in_flight): about "
+                        "%d of them wait; more trainers want a larger in_flight (a new run: it "
+                        "changes the evolution)", trainers, window, trainers - window)  # fmt: skip
         while True:
             child = state.next_child_for(node, trainers)
             if child is None and state.wants_tournament():
