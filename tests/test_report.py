@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -317,10 +318,15 @@ def derl(*args: str) -> subprocess.CompletedProcess[str]:
 @pytest.mark.slow
 def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
     run_dir = tmp_path / "smoke-ft"
-    derl("run", "--profile", "smoke", "--env", "ft", "--run-dir", str(run_dir), "--port", "0")
+    ran = derl("run", "--profile", "smoke", "--env", "ft", "--run-dir", str(run_dir), "--port", "0")
+    printed_print = re.search(r"fingerprint\s+([0-9a-f]{16})", ran.stdout)
+    assert printed_print is not None, ran.stdout
+    fingerprint = printed_print.group(1)
+    assert json.loads((run_dir / "summary.json").read_text())["fingerprint"] == fingerprint
     out = tmp_path / "report"
     printed = derl("report", str(run_dir), "--out", str(out)).stdout
     assert f"wrote {out / 'index.html'}" in printed.replace("\n", "")
+    assert re.search(rf"fingerprint\s+{fingerprint}", printed), printed
     stats = _check_report(out)
     assert stats["runs"][0]["bodies"] == 8 and stats["runs"][0]["world"] == "ft"
     assert (out / "bodies.png").stat().st_size > 50_000  # real pictures, not the placeholder
