@@ -5,6 +5,7 @@ multicast off); and, without a bus, whatever order the trainings finish in."""
 from __future__ import annotations
 
 import hashlib
+import json
 import random
 import subprocess
 import sys
@@ -15,9 +16,11 @@ import pytest
 from derl.messages import Birth
 from derl.nodes.journal.history import load_history
 from nodes_fixtures import REPO, LocalRun, Processes, assert_born_once, journaled, wait_for
+from pydantic import ValidationError
 
-from derl.evolution import Evolution, fingerprint, load_profile
+from derl.evolution import Evolution, EvolutionConfig, fingerprint, load_profile
 from derl.lifetime import learn, ppo_config
+from derl.rl.config import SAVED
 from derl.unimal import Genome, body_hash, canonical_genome, sample_population
 
 PROFILE = {
@@ -172,6 +175,7 @@ def test_training_gives_the_same_bits_in_any_process_first_or_last() -> None:
 FRESH = """
 import hashlib, sys
 from derl.lifetime import learn, ppo_config
+from derl.rl.config import SAVED
 from derl.unimal import Genome
 summary, result = learn(Genome.model_validate_json(sys.argv[1]), "vt",
                         ppo_config("vt", steps=4096, seed=1409, num_envs=16))
@@ -205,3 +209,13 @@ def _renumbered(genome: Genome) -> Genome:
     return Genome.model_validate(
         {**genome.model_dump(), "limbs": [limb.model_dump() for limb in limbs]}
     )
+
+
+def test_a_window_must_be_smaller_than_the_population_and_old_runs_resume_free_running() -> None:
+    with pytest.raises(ValidationError, match=r"in_flight \(16\) >= population \(16\)"):
+        load_profile("demo", [("in_flight", 16)])
+    saved = json.loads(load_profile("demo").model_dump_json())
+    del saved["in_flight"]  # a profile.json written before the window existed
+    assert EvolutionConfig.model_validate(saved, context=SAVED).in_flight == 0
+    with pytest.raises(ValidationError, match="in_flight"):
+        EvolutionConfig.model_validate(saved)  # a profile of the user's gets the default, 288

@@ -14,13 +14,21 @@ from pathlib import Path
 from typing import Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    model_validator,
+)
 
 from derl.envs.batched import EnvConfig
 from derl.envs.registry import TASKS, TEST_TASKS, make_task
 from derl.envs.rewards import CONTROL_DT
 from derl.lifetime import ppo_config
 from derl.rl import PPOConfig, PPOHyperparameters
+from derl.rl.config import SAVED
 from derl.validation import problems
 
 BONUS = 10.0  # the largest per-step bonus of a reward
@@ -101,6 +109,14 @@ class EvolutionConfig(BaseModel):
 
     def _ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
         return job_ppo(task, steps, seed, self.num_envs, self.ppo)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _free_running_if_saved_before_the_window(cls, data: object, info: ValidationInfo) -> object:
+        """A run saved before `in_flight` existed (2026-12-04) was free-running: it resumes so."""
+        if info.context == SAVED and isinstance(data, dict) and "in_flight" not in data:
+            return {**data, "in_flight": 0}
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> EvolutionConfig:
