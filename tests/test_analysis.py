@@ -15,17 +15,29 @@ lineage. The learning criterion is the 75th percentile of {10, 20, 30} = 25.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from body_variants import variants
+from matplotlib.figure import Figure
 from scipy import stats
 
-from derl.analysis import AnalysisConfig, Body, Evaluation, RunLog, analyse, plan, rank_by_mean
+from derl.analysis import (
+    AnalysisConfig,
+    Body,
+    Evaluation,
+    RunLog,
+    analyse,
+    plan,
+    plots,
+    rank_by_mean,
+)
 from derl.analysis.learning import (
     by_generation,
     cost_of_work,
     criterion,
+    generations,
     learning_speed,
     steps_to_reach,
 )
@@ -40,12 +52,14 @@ from derl.analysis.lineage import (
     window,
 )
 from derl.analysis.morphology import Morphology, column, over_time, sample
+from derl.analysis.progress import describe
 from derl.analysis.selection import new_seeds, top_of_surviving_lineages
 from derl.analysis.statistics import (
     BootstrapConfig,
+    Clustered,
     Measure,
     censored_median,
-    difference_of_medians,
+    compare_medians,
     estimate,
     mann_whitney,
     pearson,
@@ -204,18 +218,42 @@ def test_steps_to_the_criterion(run: RunLog) -> None:
 
 def test_by_generation_follows_the_top_agents_ancestors(run: RunLog, tree: Tree) -> None:
     config = BootstrapConfig()
-    top = np.array([5, 3])  # f, d: the two fittest
+    top = np.array([5, 6])  # f, g: both children of d, grandchildren of a
+    layers = generations(tree, top, run.original)
+    assert [ids(layer) for layer in layers] == [["a"], ["d"], ["f", "g"]]  # a and d once each
     mean = lambda m: estimate(m.values, config)  # noqa: E731
-    points = by_generation([(tree, top, Measure.exact(run.fitness))], mean)
+    points = by_generation([(layers, Measure.exact(run.fitness))], mean)
     assert [p.x for p in points] == [0, 1, 2]
-    assert [(p.n, p.value) for p in points] == [(2, 10.0), (2, 350.0), (1, 700.0)]
-    assert (points[0].low, points[0].high) == (10.0, 10.0)  # constant values: CI is the value
-    assert points[2].low is None  # a single value has no CI
+    assert [(p.n, p.value) for p in points] == [(1, 10.0), (1, 350.0), (2, 400.0)]
+    assert points[0].low is None  # a single value has no CI
     median = lambda m: censored_median(m.values, m.censored, 0.95)  # noqa: E731
-    speed = by_generation([(tree, top, learning_speed(run, 25.0))], median)
-    # generation 0 is a (twice): it never reaches the criterion, counted (it was left out)
-    assert [(p.n, p.censored, p.value) for p in speed] == [(2, 2, None), (2, 0, 100.0),
-                                                           (1, 0, 100.0)]  # fmt: skip
+    speed = by_generation([(layers, learning_speed(run, 25.0))], median)
+    # generation 0 is a: it never reaches the criterion, counted (it was left out); f and g
+    # reach it after 100 and 300 steps
+    assert [(p.n, p.censored, p.value) for p in speed] == [(1, 1, None), (1, 0, 100.0),
+                                                           (2, 0, 200.0)]  # fmt: skip
+    two = by_generation([(layers, Measure.exact(run.fitness))] * 2, mean)  # two runs pooled
+    assert [p.n for p in two] == [2, 2, 4]
+
+
+def test_a_shared_ancestor_counts_once_per_generation(
+    quadruped: Genome, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The top 3 agents f, d and g all descend from a, and f and g from d: by generation the
+    ancestors are a, then d, then f and g, each once (a and d were counted 3 times each); fig. 2a
+    (right) writes each generation's n at its point."""
+    config = AnalysisConfig(top=3, time_points=5, stability_sample=1)
+    analysis = analyse([make_run(quadruped)], config)
+    (result,) = analysis.runs
+    assert ids(result.top) == ["f", "d", "g"]
+    fitness = result.series["fitness_by_generation"]
+    assert [(p.n, p.value) for p in fitness] == [(1, 10.0), (1, 350.0), (2, 400.0)]  # n: 3, 3, 2
+    speed = result.series["steps_to_criterion"]
+    assert [(p.n, p.censored) for p in speed] == [(1, 1), (1, 0), (2, 0)]  # was (3, 3), (3, 0)
+    drawn: list[Figure] = []
+    monkeypatch.setattr(plots, "_save", lambda figure, path: drawn.append(figure) or path)
+    plots.fitness(Path("unused.png"), analysis)
+    assert [t.get_text() for t in drawn[0].axes[1].texts] == ["1", "1", "2"]
 
 
 def test_a_censored_median_is_kaplan_meiers() -> None:
@@ -240,6 +278,25 @@ def test_a_censored_median_is_kaplan_meiers() -> None:
     assert censored_median([np.nan, np.inf], [False, True], 0.95).model_dump() == dict(
         n=1, value=None, low=None, high=None, censored=1
     )
+
+
+@pytest.mark.filterwarnings("ignore:The confidence interval is undefined")
+def test_a_censored_value_before_every_measured_one_keeps_the_interval_honest() -> None:
+    """One body censored at 0.5, nine measured at 1..9: the median is 5. Before the first
+    measured value the survival curve is 1 and scipy's log-log band undefined (NaN); read as 0,
+    it put both limits at 0.5 (CI [0.5, 0.5]). The band is 1 there: the limits are where it
+    crosses 1/2 (1 and 8); where it is undefined because the curve is 0, it never crosses (a
+    limit found only there is unbounded)."""
+    values, censored = [0.5, *range(1, 10)], [True] + [False] * 9
+    result = censored_median(values, censored, 0.95)
+    assert (result.n, result.censored, result.value) == (10, 1, 5.0)
+    assert (result.low, result.high) == (1.0, 8.0)  # was (0.5, 0.5)
+    band = stats.ecdf(stats.CensoredData(uncensored=values[1:], right=values[:1])).sf
+    band = band.confidence_interval(0.95, method="log-log")
+    for limit, found in ((band.low, result.low), (band.high, result.high)):
+        assert found == limit.quantiles[np.flatnonzero(limit.probabilities <= 0.5)[0]]
+    few = censored_median([0.5, 1, 2, 3, 4], [True] + [False] * 4, 0.95)
+    assert (few.value, few.low, few.high) == (2.5, 1.0, None)  # was (2.5, 0.5, 0.5)
 
 
 def test_cost_of_work_of_no_positive_reward_is_censored(run: RunLog) -> None:
@@ -271,10 +328,12 @@ def test_bootstrap_ci_is_scipys() -> None:
 
 
 def test_the_difference_of_two_medians_is_bootstrapped_reproducibly() -> None:
+    """With each value its own cluster, the cluster bootstrap is scipy's two-sample one."""
     rng = np.random.default_rng(0)
     first, last = rng.normal(10, 3, 40), rng.normal(14, 3, 40)
     config = BootstrapConfig(n_resamples=1000, seed=5)
-    result = difference_of_medians(first, last, config)
+    alone = Clustered(first, np.arange(40)), Clustered(last, np.arange(40, 80))
+    a, b, result = compare_medians(*alone, config)
     direct = stats.bootstrap(
         (first, last),
         lambda a, b, axis=-1: np.median(b, axis=axis) - np.median(a, axis=axis),
@@ -282,11 +341,12 @@ def test_the_difference_of_two_medians_is_bootstrapped_reproducibly() -> None:
         method="BCa",
         rng=np.random.default_rng(5),
     ).confidence_interval
+    assert (a.value, b.value) == (np.median(first), np.median(last)) and (a.n, b.n) == (40, 40)
     assert result.value == pytest.approx(np.median(last) - np.median(first))
     assert (result.low, result.high) == pytest.approx((direct.low, direct.high))
     assert result.low < result.value < result.high and result.n == 80
-    assert difference_of_medians(first, last, config) == result  # seeded: the same again
-    assert difference_of_medians([1.0], [2.0], config).low is None
+    assert compare_medians(*alone, config)[2] == result  # seeded: the same again
+    assert compare_medians(Clustered([1.0], [0]), Clustered([2.0], [1]), config)[2].low is None
 
 
 def test_pearson_on_known_relations() -> None:
@@ -489,7 +549,66 @@ def test_a_repeat_counts_once_where_bodies_are_counted(quadruped: Genome) -> Non
     assert every[("fitness", 2)].spearman.n == 2  # f and g (h is f)
     rows = body_rows(result)
     assert (rows[-1].same_body_as, rows[-1].counted) == ("f", False)
-    assert result.summary.quarters.last_repeats == 1  # h is a birth of the last quarter
+    q = result.summary.quarters  # the last 2 births: g and h (f's body): one lineage, a's
+    assert (q.last.n, q.last.value, q.last_lineages, q.difference.low) == (2, 400.0, 1, None)
+
+
+def quarters_run(genome: Genome, late: str) -> RunLog:
+    """16 births, quarters of 4: founders a, b, c, d (10, 20, 30, 40); their children; then a4
+    (100), a5 (a4's body again: a repeat), and x and y (200, 210), children of `late`."""
+    rows = (
+        ("a", None, 10.0), ("b", None, 20.0), ("c", None, 30.0), ("d", None, 40.0),
+        ("a1", "a", 50.0), ("b1", "b", 60.0), ("a2", "a1", 70.0), ("b2", "b1", 80.0),
+        ("a3", "a2", 90.0), ("b3", "b2", 95.0), ("c1", "c", 35.0), ("d1", "d", 45.0),
+        ("a4", "a3", 100.0), ("a5", "a3", 100.0), ("x", late, 200.0), ("y", late, 210.0),
+    )  # fmt: skip
+    genomes = variants(genome, len(rows))
+    genomes[13] = genomes[12]
+    return RunLog(
+        name="q",
+        world="ft",
+        bodies=tuple(
+            Body(
+                id=body,
+                parent=parent,
+                birth=k,
+                fitness=fitness,
+                genome=genomes[k],
+                repeat_of="a4" if body == "a5" else None,
+            )
+            for k, (body, parent, fitness) in enumerate(rows)
+        ),
+    )
+
+
+def test_the_quarters_compare_distinct_bodies_resampling_lineages(quadruped: Genome) -> None:
+    """The last quarter is a4, its repeat a5, x and y: 3 bodies (100, 200, 210), median 200 (not
+    150, a4 twice); x and y are b's lineage, a4 a's. Lineages are resampled, not bodies, each
+    bringing its bodies of both quarters: the first quarter's a and b come with the last's
+    bodies of their lineage. A last quarter of one lineage has no interval."""
+    config = AnalysisConfig(stability_sample=1, time_points=5, gaits=0,
+                            bootstrap=BootstrapConfig(method="percentile"))  # fmt: skip
+    analysis = analyse([quarters_run(quadruped, "b3")], config)
+    q = analysis.runs[0].summary.quarters
+    assert (q.first.value, q.last.value, q.difference.value) == (25.0, 200.0, 175.0)
+    assert (q.births, q.first.n, q.last.n, q.first_lineages, q.last_lineages) == (4, 4, 3, 4, 2)
+    # resampled lineages in the last quarter: a twice (100), a and b (200), b twice (205)
+    assert (q.last.low, q.last.high) == (100.0, 205.0)
+    # a, b resampled with c, d: a twice and c twice (20) ... b twice and d twice (30)
+    assert (q.first.low, q.first.high) == (20.0, 30.0)
+    # a twice: the first quarter 20 or 25, the last 100; b twice: 25 or 30 and 205
+    assert (q.difference.low, q.difference.high) == (75.0, 180.0)
+    assert describe("q", q, config.bootstrap) == (
+        "q: median fitness of the first 4 births 25, of the last 4 200, each body once (4 and 3 "
+        "distinct bodies, of 4 and 2 lineages); difference 175, 95% CI [75, 180] (bootstrap of "
+        "lineages, percentile, 2000 resamples, seed 0)"
+    )
+    one = analyse([quarters_run(quadruped, "a3")], config).runs[0].summary.quarters
+    assert (one.last.value, one.last_lineages, one.difference.value) == (200.0, 1, 175.0)
+    assert one.difference.low is one.last.low is None  # a's lineage alone: nothing to resample
+    assert "difference 175, no interval (too few lineages to resample)" in describe(
+        "q", one, config.bootstrap
+    )
 
 
 def test_fig6_correlations_pool_each_world_and_each_generation(quadruped: Genome) -> None:

@@ -13,8 +13,9 @@ seed's result); without them, the fittest bodies of each run in evolution, poole
 What counts once: the population (figs. 2a left, 3, 5b, the Muller diagrams) holds every birth,
 repeats included, as the population did; whatever is about bodies (the top agents, the
 selection, fig. 6's bodies, the test suite, the beneficial mutations, the pictures) counts each
-body once per world, as its first birth (`WorldBodies`). Censored values (never reaching the
-learning criterion, no positive reward) are counted, never dropped (`statistics`).
+body once per world, as its first birth (`WorldBodies`); the quarters of births count each body
+once per quarter, the top agents' ancestors each once per generation. Censored values (never
+reaching the learning criterion, no positive reward) are counted, never dropped (`statistics`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from derl.analysis.learning import (
     by_generation,
     cost_of_work,
     criterion,
+    generations,
     learning_speed,
     lineage_gain,
     summarize_gains,
@@ -110,7 +112,8 @@ class RunSummary(Record):
     stability_simulated: int
     surviving_lineages: int
     quarters: Quarters | None
-    """The median fitness of the first and last quarter of births and its difference."""
+    """The median fitness of the distinct bodies of the first and last quarter of births and its
+    difference (lineages resampled)."""
 
 
 TopRule = Literal["retrained", "evolution"]
@@ -348,7 +351,7 @@ def analyse_run(
         no_positive_reward=int((new & cost.censored).sum()),
         stability_simulated=sum(m.passively_stable is not None for m in morphology),
         surviving_lineages=sum(row.surviving for row in rows),
-        quarters=quarters(run, config.bootstrap),
+        quarters=quarters(run, tree, config.bootstrap),
     )
     result = RunAnalysis(
         run=run,
@@ -375,8 +378,8 @@ def pooled_series(
 ) -> dict[str, list[Point]]:
     """The curves of figs. 2a, 3 and 5a-c over `runs` pooled: at each time, the k fittest of
     each run's population (fig. 2a left) or its every member; at each generation, the ancestors
-    of each run's top agents (fitness: mean; steps to the criterion and cost of work: their
-    Kaplan-Meier median, censored values counted)."""
+    of each run's top agents, each once (fitness: mean; steps to the criterion and cost of work:
+    their Kaplan-Meier median, censored values counted)."""
     boot = config.bootstrap
 
     def mean(values: Measure) -> Estimate:
@@ -386,7 +389,8 @@ def pooled_series(
         return censored_median(values.values, values.censored, boot.confidence)
 
     def ancestors(name: str, statistic: Callable[[Measure], Estimate]) -> list[Point]:
-        return by_generation([(r.tree, r.top, r.measures[name]) for r in runs], statistic)
+        layers = [(generations(r.tree, r.top, r.run.original), r.measures[name]) for r in runs]
+        return by_generation(layers, statistic)
 
     return {
         "fitness_top": [point(int(t), _fittest_of_each(runs, int(t)), boot) for t in times],

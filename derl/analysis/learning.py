@@ -4,10 +4,12 @@ A body's learning speed is the number of env steps at which its learning curve f
 criterion: the 75th percentile of the initial population's fitness. A body that never reaches it
 is censored: it needs more than its whole budget (the last step of its curve), and is counted so
 (`statistics.censored_median`), never left out nor given a made-up value. The top agents'
-ancestors are followed generation by generation: at generation g, each top agent contributes the
-value of its ancestor at depth g (the paper's "as a function of generations"), pooled over the
-runs of a world. Fig. 5d's numbers compare a lineage's founder with its last generation: how
-much more it reaches at the end of learning and how much sooner it learns.
+ancestors are followed generation by generation (the paper's "as a function of generations"):
+at generation g, the top agents' ancestors at depth g, each body once however many top agents
+descend from it (the few founders of the fittest lineages would otherwise count up to once per
+top agent), pooled over the runs of a world. Fig. 5d's numbers compare a lineage's founder with
+its last generation: how much more it reaches at the end of learning and how much sooner it
+learns.
 """
 
 from __future__ import annotations
@@ -67,18 +69,29 @@ def top_agents(run: RunLog, count: int, counted: np.ndarray) -> np.ndarray:
     return order[counted[order]][:count]
 
 
+def generations(tree: Tree, agents: np.ndarray, original: np.ndarray) -> list[np.ndarray]:
+    """Per generation g, the ancestors at depth g of `agents` (an agent of generation g is its
+    own), each body once however many agents descend from it (a repeat as its `original`)."""
+    layers: list[set[int]] = []
+    for agent in agents:
+        for g, body in enumerate(tree.ancestry(int(agent))):
+            if g == len(layers):
+                layers.append(set())
+            layers[g].add(int(original[body]))
+    return [np.array(sorted(layer), dtype=int) for layer in layers]
+
+
 def by_generation(
-    parts: list[tuple[Tree, np.ndarray, Measure]], statistic: Callable[[Measure], Estimate]
+    parts: list[tuple[list[np.ndarray], Measure]], statistic: Callable[[Measure], Estimate]
 ) -> list[Point]:
-    """`statistic` over the agents of every part (tree, agents, measure: one run's) of the
-    measure of their ancestor at each generation."""
-    lines = [values[tree.ancestry(int(a))] for tree, agents, values in parts for a in agents]
-    depth = max((len(line.values) for line in lines), default=0)
+    """`statistic` at each generation g of the measure of the bodies at g, over every part
+    (`generations` and the measure of one run's bodies)."""
+    depth = max((len(layers) for layers, _ in parts), default=0)
     return [
         Point(
             x=g,
             **statistic(
-                Measure.concat([line[g : g + 1] for line in lines if len(line.values) > g])
+                Measure.concat([values[layers[g]] for layers, values in parts if len(layers) > g])
             ).model_dump(),
         )
         for g in range(depth)

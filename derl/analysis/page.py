@@ -50,8 +50,10 @@ QUARTER_COLUMNS = {
     "difference": "difference (last - first)",
     "low": "CI low",
     "high": "CI high",
-    "first_repeats": "repeats in the first",
-    "last_repeats": "repeats in the last",
+    "first_bodies": "distinct bodies in the first",
+    "last_bodies": "distinct bodies in the last",
+    "first_lineages": "their lineages in the first",
+    "last_lineages": "their lineages in the last",
 }
 
 
@@ -106,7 +108,8 @@ def _table(rows: list[dict[str, object]], columns: dict[str, str]) -> str:
 
 
 def _quarters(summaries: list[RunSummary]) -> list[dict[str, object]]:
-    """Each run's first and last quarter of births compared, as rows of `QUARTER_COLUMNS`."""
+    """Each run's first and last quarter of births compared (each body once, the interval
+    resampling lineages), as rows of `QUARTER_COLUMNS`."""
     return [
         {
             "run": s.run,
@@ -116,8 +119,10 @@ def _quarters(summaries: list[RunSummary]) -> list[dict[str, object]]:
             "difference": q.difference.value,
             "low": q.difference.low,
             "high": q.difference.high,
-            "first_repeats": q.first_repeats,
-            "last_repeats": q.last_repeats,
+            "first_bodies": q.first.n,
+            "last_bodies": q.last.n,
+            "first_lineages": q.first_lineages,
+            "last_lineages": q.last_lineages,
         }
         for s in summaries
         if (q := s.quarters) is not None

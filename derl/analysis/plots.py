@@ -138,11 +138,30 @@ def fitness(path: Path, analysis: Analysis) -> Path:
         fontsize=10,
     )
     _curves(right, analysis, "fitness_by_generation", "generation", "fitness")
+    colors = world_colors([w.summary.world for w in analysis.worlds])
+    for w in analysis.worlds:
+        shown = [p for p in w.series["fitness_by_generation"] if p.value is not None]
+        _counts(right, shown, [p.value for p in shown], colors[w.summary.world])
     right.set_title(
-        f"ancestors of the top agents (n={_sizes(analysis, 'top_agents')}), by generation",
+        f"ancestors of the top agents (n={_sizes(analysis, 'top_agents')}), each once: n at each "
+        "point",
         fontsize=10,
     )
     return _save(figure, path)
+
+
+def _counts(axis: Axes, points: list[Point], heights: list[float], color: str) -> None:
+    """Each point's n, written just above it at its height."""
+    for p, height in zip(points, heights, strict=True):
+        axis.annotate(
+            str(p.n),
+            (p.x, height),
+            xytext=(0, 3),
+            textcoords="offset points",
+            ha="center",
+            fontsize=7,
+            color=color,
+        )
 
 
 def lineage_scatter(path: Path, analysis: Analysis) -> Path:
@@ -311,19 +330,24 @@ def baldwin(path: Path, analysis: Analysis) -> Path:
 
 
 def _censored(axis: Axes, analysis: Analysis, name: str, what: str) -> None:
-    """The share of censored values at each point of the world-pooled curve `name`."""
+    """The share of censored values at each point of the world-pooled curve `name`, with the
+    point's n."""
     colors = world_colors([w.summary.world for w in analysis.worlds])
     for w in analysis.worlds:
         shown = [p for p in w.series[name] if p.n]
+        shares = [p.censored / p.n for p in shown]
+        color = colors[w.summary.world]
         axis.plot(
             [p.x for p in shown],
-            [p.censored / p.n for p in shown],
+            shares,
             marker="o" if len(shown) < 12 else None,
             ms=3,
-            color=colors[w.summary.world],
+            color=color,
             label=world_label(w),
         )
-    axis.set(xlabel="generation", ylabel=f"share: {what}", ylim=(-0.05, 1.05))
+        _counts(axis, shown, shares, color)
+    axis.set(xlabel="generation", ylabel=f"share: {what}", ylim=(-0.05, 1.2))
+    axis.set_title("n at each generation above its point", fontsize=8)
     axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axis.grid(alpha=0.3)
 

@@ -1,66 +1,80 @@
 """Does evolution improve what it produces? The statistic `derl report` prints first: the median
-fitness of a run's first and last quarter of births, and the difference (last minus first) with
-its bootstrapped confidence interval.
+fitness of the bodies of a run's first and last quarter of births, and the difference (last minus
+first) with its bootstrapped confidence interval.
 
-Every birth counts in its quarter, repeats included: a repeat is a birth of the population (it
-takes a place in it and competes in its tournaments like any child), and the statistic is about
-what the population was given at the start and at the end. How many births of each quarter are
-repeats is reported beside it.
+Each body counts once per quarter: the births of a quarter that are one body (a repeat and its
+original, by `RunLog.original`) are one value, the original's. The bodies of one lineage (the
+descendants of one initial body) are related: a child is its parent's body but for one mutation.
+So the interval resamples lineages, not bodies (`statistics.cluster_interval`), and there is none
+where a quarter's bodies come from too few lineages.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
+from derl.analysis.lineage import Tree
 from derl.analysis.records import Record, RunLog
-from derl.analysis.statistics import BootstrapConfig, Estimate, difference_of_medians, estimate
+from derl.analysis.statistics import BootstrapConfig, Clustered, Estimate, compare_medians
 
 
 class Quarters(Record):
-    """The median fitness of the first and the last quarter of a run's births (bootstrapped CIs)
-    and `difference`: the last's median minus the first's, with its bootstrapped CI."""
+    """The median fitness of the distinct bodies of the first and the last quarter of a run's
+    births and `difference`: the last's median minus the first's, with bootstrapped CIs
+    (lineages resampled); each estimate's n counts distinct bodies."""
 
     births: int
     """Births in each quarter (a quarter of the run's, rounded down)."""
     first: Estimate
     last: Estimate
     difference: Estimate
-    first_repeats: int
-    last_repeats: int
-    """Births of each quarter whose body was born before in the run (counted as births)."""
+    first_lineages: int
+    last_lineages: int
+    """Lineages (founders) the distinct bodies of each quarter belong to."""
 
 
-def quarters(run: RunLog, config: BootstrapConfig) -> Quarters | None:
+def quarters(run: RunLog, tree: Tree, config: BootstrapConfig) -> Quarters | None:
     """The first and last quarter of `run`'s births compared (None below 4 births)."""
     size = len(run.bodies) // 4
     if size == 0:
         return None
-    first, last = slice(0, size), slice(len(run.bodies) - size, len(run.bodies))
-    repeats = ~run.distinct
+    first = _bodies(run, tree, slice(0, size))
+    last = _bodies(run, tree, slice(len(run.bodies) - size, len(run.bodies)))
+    early, late, difference = compare_medians(first, last, config)
     return Quarters(
         births=size,
-        first=estimate(run.fitness[first], config, "median"),
-        last=estimate(run.fitness[last], config, "median"),
-        difference=difference_of_medians(run.fitness[first], run.fitness[last], config),
-        first_repeats=int(repeats[first].sum()),
-        last_repeats=int(repeats[last].sum()),
+        first=early,
+        last=late,
+        difference=difference,
+        first_lineages=np.unique(first.clusters).size,
+        last_lineages=np.unique(last.clusters).size,
     )
 
 
+def _bodies(run: RunLog, tree: Tree, births: slice) -> Clustered:
+    """The distinct bodies of some births, each as its original: fitness and lineage."""
+    bodies = np.unique(run.original[births])
+    return Clustered(run.fitness[bodies], tree.founder[bodies])
+
+
 def describe(run: str, result: Quarters, config: BootstrapConfig) -> str:
-    """One line: the two medians, their difference and its interval, how it was resampled."""
+    """One line: the two medians (of how many bodies, of how many lineages), their difference and
+    its interval, how it was resampled."""
 
     def number(value: float | None) -> str:
         return "-" if value is None else f"{value:.4g}"
 
     d = result.difference
     interval = (
-        "no interval (too few births)"
+        "no interval (too few lineages to resample)"
         if d.low is None
-        else (f"{config.confidence:.0%} CI [{number(d.low)}, {number(d.high)}]")
+        else f"{config.confidence:.0%} CI [{number(d.low)}, {number(d.high)}]"
     )
     return (
         f"{run}: median fitness of the first {result.births} births {number(result.first.value)}, "
-        f"of the last {result.births} {number(result.last.value)}; difference "
-        f"{number(d.value)}, {interval} (bootstrap, {config.method}, {config.n_resamples} "
-        f"resamples, seed {config.seed}); repeats counted as births: {result.first_repeats} "
-        f"in the first quarter, {result.last_repeats} in the last"
+        f"of the last {result.births} {number(result.last.value)}, each body once "
+        f"({result.first.n} and {result.last.n} distinct bodies, of {result.first_lineages} "
+        f"and {result.last_lineages} lineages); difference {number(d.value)}, {interval} "
+        f"(bootstrap of lineages, {config.method}, {config.n_resamples} resamples, "
+        f"seed {config.seed})"
     )

@@ -170,8 +170,9 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 f"the population holds them) after each number of births, with {ci}, the runs of "
                 "a world pooled (n = runs x k at each point; the axis ends where the world's "
                 "shortest run ends). Right: mean fitness, generation by generation, of the "
-                "ancestors of the world's top agents (n at generation g = top agents whose "
-                "lineage is that deep). "
+                "ancestors of the world's top agents, each ancestor once however many top agents "
+                "descend from it (a repeat as its original; n at generation g = the distinct "
+                "ancestors at that depth, written at each point). "
                 + _worlds_text(
                     analysis,
                     lambda w: (
@@ -272,14 +273,15 @@ def _figures(analysis: Analysis, out: Path, notes: list[str]) -> list[FigureEntr
                 "generation. A body that never reaches it within its budget is censored at its "
                 "budget and counted: the median is Kaplan-Meier's (scipy.stats.ecdf), its 95% CI "
                 "where Greenwood's log-log band of the survival curve crosses 1/2 (no point where "
-                "half or more are censored, no band where the upper limit is unbounded); "
+                "half or more are censored, no band where a limit is unbounded); "
                 "below it, the share censored at each generation. b: share of passively "
                 f"stable bodies in the population over time, a world's runs pooled ({ci}; "
                 "simulated bodies only: n <= runs x P, as in fig. 3). c: median cost of work of "
                 "the same ancestors by generation, a body whose reward is not positive (no work "
                 "for its energy) counted as beyond every measured one (Kaplan-Meier as in a); "
-                "below it, the share with no positive reward. In a and c, n at generation g = top "
-                "agents whose lineage is that deep, at most the world's top agents: "
+                "below it, the share with no positive reward. In a and c, n at generation g = the "
+                "distinct ancestors at that depth of the world's top agents, each once however "
+                "many top agents descend from it (written at each point of the shares below): "
                 + _worlds_text(analysis, lambda w: top_rule(w.summary))
                 + ". "
                 + _runs_text(

@@ -1,6 +1,7 @@
 """The statistics of the paper, from scipy: bootstrapped confidence intervals (95%, of a mean or a
-median, or of the difference of two medians), two-tailed Pearson and Spearman correlations,
-two-tailed Mann-Whitney U tests, and Kaplan-Meier medians of censored values.
+median, or of two medians and their difference resampling clusters of dependent values),
+two-tailed Pearson and Spearman correlations, two-tailed Mann-Whitney U tests, and Kaplan-Meier
+medians of censored values.
 
 Each wrapper takes plain arrays, drops missing values (NaN) and says when there is too little
 data instead of failing: a CI needs two values, a correlation three non-constant pairs, a
@@ -39,8 +40,8 @@ class BootstrapConfig(_Model):
 
 
 class Estimate(_Model):
-    """A statistic of `n` values with its CI (None below two values, or where a censored CI is
-    unbounded)."""
+    """A statistic of `n` values with its CI (None below two values, where a censored CI is
+    unbounded, or with too few clusters to resample)."""
 
     n: int
     value: float | None = None
@@ -132,26 +133,28 @@ def estimate(
         return Estimate(n=1, value=value)
     if np.ptp(data) == 0:  # every resample is the same: the interval is the value itself
         return Estimate(n=data.size, value=value, low=value, high=value)
-    interval = _bootstrap((data,), function, config, config.method)
-    if not np.all(np.isfinite(interval)):  # BCa is undefined for some tiny samples
-        interval = _bootstrap((data,), function, config, "percentile")
+    interval = _bootstrap((data,), function, config)
     return Estimate(n=data.size, value=value, low=float(interval[0]), high=float(interval[1]))
 
 
-def _bootstrap(
-    samples: tuple[np.ndarray, ...], function, config: BootstrapConfig, method: str
-) -> np.ndarray:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # DegenerateDataWarning: handled by the caller
-        result = stats.bootstrap(
-            samples,
-            function,
-            confidence_level=config.confidence,
-            n_resamples=config.n_resamples,
-            method=method,
-            rng=np.random.default_rng(config.seed),
-        )
-    return np.array([result.confidence_interval.low, result.confidence_interval.high])
+def _bootstrap(samples: tuple[np.ndarray, ...], function, config: BootstrapConfig) -> np.ndarray:
+    """scipy's bootstrap interval (low, high) of `function` of the samples, by `config.method`,
+    or by the percentile method where that is undefined (BCa for some tiny samples)."""
+    for method in (config.method, "percentile"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DegenerateDataWarning: handled here
+            result = stats.bootstrap(
+                samples,
+                function,
+                confidence_level=config.confidence,
+                n_resamples=config.n_resamples,
+                method=method,
+                rng=np.random.default_rng(config.seed),
+            )
+        interval = np.array([result.confidence_interval.low, result.confidence_interval.high])
+        if np.all(np.isfinite(interval)):
+            break
+    return interval
 
 
 def point(x: float, values: np.ndarray | list[float], config: BootstrapConfig) -> Point:
@@ -195,8 +198,8 @@ def censored_median(
     larger than its value (its budget; +inf: larger than every measured value), with the
     `confidence` interval found where the survival function's confidence band (scipy's
     log-log Greenwood band) crosses 1/2. The median is None when at least half the values are
-    censored, the upper limit None when the band stays above 1/2 (unbounded). Without censored
-    values it is the plain median."""
+    censored, a limit None when the band does not cross 1/2 where it is defined (unbounded: it
+    is undefined where the curve falls to 0). Without censored values it is the plain median."""
     values, censored = np.asarray(values, dtype=float), np.asarray(censored, dtype=bool)
     keep = ~np.isnan(values)
     values, censored = values[keep], censored[keep]
@@ -211,11 +214,21 @@ def censored_median(
     if n < 2:
         return Estimate(n=n, value=value, censored=lost)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # undefined at the ends of the curve: handled below
+        warnings.simplefilter("ignore")  # undefined where the curve is 1 or 0: handled below
         band = survival.confidence_interval(confidence, method="log-log")
-    low = _halfway(band.low.quantiles, np.nan_to_num(band.low.probabilities, nan=0.0))
-    high = _halfway(band.high.quantiles, np.nan_to_num(band.high.probabilities, nan=0.0))
+    low, high = (
+        _halfway(limit.quantiles, _defined(limit.probabilities, survival.probabilities))
+        for limit in (band.low, band.high)
+    )
     return Estimate(n=n, value=value, low=low, high=high, censored=lost)
+
+
+def _defined(limit: np.ndarray, survival: np.ndarray) -> np.ndarray:
+    """A limit of the log-log band, which is undefined where the survival curve is 1 or 0: 1
+    where the curve is 1 (before the first measured value nothing has fallen and Greenwood's
+    variance is 0: the band is exactly 1); undefined (NaN: never a crossing) where it is 0 (the
+    variance is infinite), so a limit that only the curve's last fall would give is unbounded."""
+    return np.where(np.isnan(limit) & (survival == 1), 1.0, limit)
 
 
 def _halfway(times: np.ndarray, survival: np.ndarray) -> float | None:
@@ -232,26 +245,79 @@ def _halfway(times: np.ndarray, survival: np.ndarray) -> float | None:
     return float((times[k] + times[k + later[0]]) / 2) if later.size else None
 
 
-def difference_of_medians(
-    first: np.ndarray | list[float], last: np.ndarray | list[float], config: BootstrapConfig
-) -> Estimate:
-    """median(last) - median(first) of two independent samples, with its bootstrapped CI
-    (`config`: method, resamples, seed; n counts both samples)."""
-    a, b = present(first), present(last)
-    n = a.size + b.size
-    if a.size == 0 or b.size == 0:
-        return Estimate(n=n)
-    value = float(np.median(b) - np.median(a))
-    if a.size < 2 or b.size < 2:
-        return Estimate(n=n, value=value)
+@dataclass(frozen=True)
+class Clustered:
+    """Values and the cluster of each: values of one cluster are not independent draws (the
+    bodies of one lineage), values of different clusters are taken to be."""
 
-    def difference(x: np.ndarray, y: np.ndarray, axis: int = -1) -> np.ndarray:
-        return np.median(y, axis=axis) - np.median(x, axis=axis)
+    values: np.ndarray
+    clusters: np.ndarray
 
-    interval = _bootstrap((a, b), difference, config, config.method)
-    if not np.all(np.isfinite(interval)):
-        interval = _bootstrap((a, b), difference, config, "percentile")
-    return Estimate(n=n, value=value, low=float(interval[0]), high=float(interval[1]))
+    def present(self) -> Clustered:
+        """The values that are not missing (NaN), with their clusters."""
+        values = np.asarray(self.values, dtype=float)
+        keep = ~np.isnan(values)
+        return Clustered(values[keep], np.asarray(self.clusters)[keep])
+
+
+def compare_medians(
+    first: Clustered, last: Clustered, config: BootstrapConfig
+) -> tuple[Estimate, Estimate, Estimate]:
+    """The median of `first`, of `last`, and median(last) - median(first), each with its
+    confidence interval from one stratified cluster bootstrap (`cluster_interval`); n: the
+    present values of each sample, and of both for the difference."""
+    first, last = first.present(), last.present()
+    a, b = (float(np.median(s.values)) if s.values.size else None for s in (first, last))
+    difference = None if a is None or b is None else b - a
+    values = (a, b, difference)
+    sizes = (first.values.size, last.values.size, first.values.size + last.values.size)
+    interval = None if difference is None else cluster_interval(first, last, config)
+
+    def at(k: int) -> Estimate:
+        if interval is None:
+            return Estimate(n=sizes[k], value=values[k])
+        low, high = float(interval[0, k]), float(interval[1, k])
+        return Estimate(n=sizes[k], value=values[k], low=low, high=high)
+
+    return at(0), at(1), at(2)
+
+
+def cluster_interval(
+    first: Clustered, last: Clustered, config: BootstrapConfig
+) -> np.ndarray | None:
+    """Bootstrap intervals, rows (low, high), of median(first), median(last) and their
+    difference, resampling clusters rather than values (None: too few clusters).
+
+    Clusters are drawn with replacement within three strata: those with values in `first` only,
+    in both, in `last` only; so every resample has as many clusters in each sample as the data
+    (as the two-sample bootstrap keeps each sample's size), and a drawn cluster brings all its
+    values of both samples (their dependence kept). Every stratum present needs two clusters or
+    more: a single one would be in every resample, and the interval would not show how clusters
+    vary. With each value its own cluster this is scipy's two-sample bootstrap."""
+    labels = np.concatenate([first.clusters, last.clusters])
+    names, codes = np.unique(labels, return_inverse=True)
+    in_first, in_last = codes[: first.values.size], codes[first.values.size :]
+    has_first = np.isin(np.arange(names.size), in_first)
+    has_last = np.isin(np.arange(names.size), in_last)
+    strata = tuple(
+        stratum
+        for stratum in (
+            np.flatnonzero(has_first & ~has_last),
+            np.flatnonzero(has_first & has_last),
+            np.flatnonzero(~has_first & has_last),
+        )
+        if stratum.size
+    )
+    if any(stratum.size < 2 for stratum in strata):
+        return None
+
+    def medians(*drawn: np.ndarray) -> np.ndarray:
+        copies = np.bincount(np.concatenate(drawn).astype(int), minlength=names.size)
+        a = np.median(np.repeat(first.values, copies[in_first]))
+        b = np.median(np.repeat(last.values, copies[in_last]))
+        return np.array([a, b, b - a])
+
+    return _bootstrap(strata, medians, config)
 
 
 def mann_whitney(a: np.ndarray | list[float], b: np.ndarray | list[float]) -> Comparison:
