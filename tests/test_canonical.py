@@ -25,7 +25,8 @@ def _hinge(axis: np.ndarray, joint: Joint) -> tuple:
 
 def _physical(genome: Genome) -> tuple:
     """The body as MuJoCo builds it, named by nothing the genome numbers: each physical limb's
-    parent place, place, direction, length and hinges."""
+    parent place, place, direction, length and hinges; and the height it stands at, where its
+    genome keeps one (a `delete_limb` child: the spawn and the fall test)."""
     parts = layout(genome)
     origin = {p.name: p.origin for p in parts} | {"head": np.zeros(3)}
     limbs = sorted(
@@ -38,7 +39,7 @@ def _physical(genome: Genome) -> tuple:
         )
         for p in parts
     )
-    return (genome.head_density, genome.limb_density, tuple(limbs))
+    return (genome.head_density, genome.limb_density, tuple(limbs), genome.stand_height)
 
 
 def _renumbered(genome: Genome, shift: int) -> Genome:
@@ -48,7 +49,12 @@ def _renumbered(genome: Genome, shift: int) -> Genome:
         limb.model_copy(update={"id": new[limb.id], "parent": new.get(limb.parent)})
         for limb in reversed(genome.limbs)
     )
-    return Genome(head_density=genome.head_density, limb_density=genome.limb_density, limbs=limbs)
+    return Genome(
+        head_density=genome.head_density,
+        limb_density=genome.limb_density,
+        limbs=limbs,
+        stand_height=genome.stand_height,
+    )
 
 
 def _swap_twins(genome: Genome, root: int) -> Genome:

@@ -192,7 +192,7 @@ def test_incline_ground_follows_the_slope(quadruped: Genome) -> None:
         ground = env.task.arena.ground(np.array([[x, 4.0]]))[0]
         assert 10.0 - hit == pytest.approx(ground, abs=1e-9)
         assert ground == pytest.approx(x * np.tan(SLOPE))
-    ground = env.task.arena.ground(env.head_pos[:, :2])
+    ground = env.task.arena.fall_ground(env.head_pos[:, :2])  # the released code's staircase
     # The slopes' fall height is 20% of the resting height (50% elsewhere); copy 1 is 2 m above
     # the slope but below z = 0 (fallen, were it flat).
     assert env.fall_height == pytest.approx(0.2 * env.rest_height)
@@ -205,7 +205,11 @@ def test_incline_ground_follows_the_slope(quadruped: Genome) -> None:
 
 
 def test_escape_pays_the_radial_gain_and_the_rim_bonus(quadruped: Genome) -> None:
+    """The score ("escape", the fitness component) is the radial gain alone, as the released
+    ``__reward__forward``; the +100 at the rim is paid in the reward as "rim" (the released
+    `TerminateOnEscape` adds it to the reward only)."""
     env = _env(quadruped, "escape", n=1)
+    assert env.task.fitness_component == "escape"
     env.reset(0)
     rim = env.task.success.rim
     assert rim == pytest.approx(0.84 * 10.0)
@@ -213,14 +217,16 @@ def test_escape_pays_the_radial_gain_and_the_rim_bonus(quadruped: Genome) -> Non
     for _ in range(30):
         before = np.linalg.norm(env.head_pos[0, :2])
         result = _idle(env)
-        escape = result.components["escape"][0]
+        escape, bonus = result.components["escape"][0], result.components["rim"][0]
+        assert result.reward[0] == pytest.approx(escape + bonus + result.components["ctrl"][0])
         if result.terminated[0]:
             break
         assert escape == pytest.approx(np.linalg.norm(env.head_pos[0, :2]) - before, rel=1e-9)
+        assert bonus == 0.0
     else:
         pytest.fail("the rim was never reached")
-    gain = escape - 100.0
-    assert gain == pytest.approx(5.0 * 0.02, rel=0.05) and before < rim <= before + gain
+    assert bonus == 100.0
+    assert escape == pytest.approx(5.0 * 0.02, rel=0.05) and before < rim <= before + escape
 
 
 def _ray_heights(model: mujoco.MjModel, xy: np.ndarray) -> np.ndarray:

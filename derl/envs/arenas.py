@@ -21,6 +21,9 @@ from derl.envs.terrain_stack import TerrainStack, add_hfield
 from derl.envs.view import MAX_SPEED, EnvView
 from derl.unimal.space import HEAD_RADIUS, LIMB_LENGTHS, LIMB_RADIUS, MAX_LIMBS
 
+DIVISIONS = 10
+"""Cells per metre of the released code's terrain grid (`HFIELD.NUM_DIVS`), whose cells its fall
+test reads on the slopes too."""
 BODY_REACH = HEAD_RADIUS + MAX_LIMBS * max(LIMB_LENGTHS) + LIMB_RADIUS
 """m: no point of a body is further than this from its head's centre (a chain of the longest
 limbs)."""
@@ -55,6 +58,16 @@ class Floor(Arena):
         if not self.slope:
             return np.zeros(len(xy))
         return xy[:, 0] * self.tan_slope
+
+    def fall_ground(self, xy: np.ndarray) -> np.ndarray:
+        """On a slope, the released code's heights of it (`Terrain._create_initial_flat_segm`):
+        a staircase of 1 / `DIVISIONS` m treads, each at the plane's height at its lower end, all
+        1 / cos(slope) - 1 below the plane (1.5 cm at 10 degrees: the released floor is a tilted
+        box 1 m thick, whose top face lies that much above the heights it reads)."""
+        if not self.slope:
+            return np.zeros(len(xy))
+        tread = np.floor(xy[:, 0] * DIVISIONS) / DIVISIONS
+        return tread * self.tan_slope - (1 / self.cos_slope - 1)
 
 
 class Heightfield(Arena):
@@ -105,6 +118,9 @@ class Heightfield(Arena):
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.ground(xy, ids)
+
+    def fall_ground(self, xy: np.ndarray) -> np.ndarray:
+        return self.terrains.ground(xy, floored=True)
 
     def top(self, xy: np.ndarray, half: float, ids: np.ndarray | None = None) -> np.ndarray:
         return self.terrains.top(xy, half, ids)

@@ -17,8 +17,9 @@ arena edge, time limit); distances are of the head centre in the ground plane (x
 - exploration: 100 x 100 m floor cut into 1 m cells, spawn at the centre; "explore" = +1 for
   each cell the head is in for the first time in the episode (the spawn cell at the first step).
 - escape: 100 x 100 m bowl of random bumps, new each episode; "escape" = the per-step increase in
-  distance from the centre, +100 and success on reaching 42 m (0.84 of the half size; the
-  released code's half size less 8 m); the bowl is the released code's cubic-spline bumps.
+  distance from the centre, the score; "rim" = +100 and success on reaching 42 m (0.84 of the
+  half size; the released code's half size less 8 m), paid and not scored, as the released
+  code's; the bowl is the released code's cubic-spline bumps.
 - incline: 150 x 40 m plane tilted 10 degrees, +x uphill, spawn 2 m (along the slope) from the
   low end; "forward" = x velocity / cos 10 deg, the speed along the slope; a fall is the head
   below 20% of its resting height.
@@ -53,6 +54,7 @@ from derl.envs.rewards import (
     ReachGoal,
     ReachObject,
     RewardWeights,
+    RimBonus,
 )
 from derl.envs.task import Arena, Task
 
@@ -176,8 +178,9 @@ def escape(
     weights: RewardWeights | None = None,
     grid: HeightmapGrid | None = None,
 ) -> Task:
-    """Climb out of a bumpy bowl from its centre; ``escape = r - r_prev + bonus [r >= rim]``,
-    and reaching the rim ends the episode."""
+    """Climb out of a bumpy bowl from its centre; the score ``escape = r - r_prev`` (the
+    released ``__reward__forward``), the reward that and ``rim = bonus [r >= rim]``; reaching
+    the rim ends the episode."""
     config = config or BowlConfig()
     w = weights or REWARD_WEIGHTS["escape"]
     arena = Heightfield(config.terrain, grid or HeightmapGrid(), Bowl(config).terrain)
@@ -188,7 +191,7 @@ def escape(
         fitness_component="escape",
         arena=arena,
         spawn=(0.0, 0.0),
-        rewards=(Escape(rim, w), Ctrl(w)),
+        rewards=(Escape(), RimBonus(rim, w), Ctrl(w)),
         observations=(Heightmap(arena),),
         success=Escaped(rim),
     )

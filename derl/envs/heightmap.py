@@ -165,6 +165,8 @@ class HeightStack:
         self._terrains = np.arange(count)
         self._strides = np.array([1, row_length], np.int32)  # flat index step per column, row
         self._origin = np.array([layout.x_min, layout.y_min])
+        self._divisions = 1.0 / layout.resolution  # cells per metre
+        self._origin_cells = self._origin * self._divisions
         self._last = np.array([ncol - 1, nrow - 1])
 
     @property
@@ -185,14 +187,20 @@ class HeightStack:
         padded[:, m + ncol :] = padded[:, m + ncol - 1 : m + ncol]
         self.rough[i] = rough_columns(heights, m)
 
-    def vertices(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (clamped to the terrain)
+    def vertices(
+        self, xy: np.ndarray, which: np.ndarray | None = None, floored: bool = False
+    ) -> np.ndarray:
+        """(N,) flat index in `padded` of the vertex nearest ``xy[n]`` (``floored``: at its
+        position floored to whole cells, the corner of the cell it is in; clamped to the terrain)
         on terrain ``which[n]`` (default: terrain n)."""
-        return self._vertices(self._cells(xy), self._which(xy, which))
+        return self._vertices(self._cells(xy, floored), self._which(xy, which))
 
-    def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-        """(N,) height of the vertex nearest each point, as the heightmap reads it, in m."""
-        return self._flat[self.vertices(xy, which)].astype(np.float64)
+    def ground(
+        self, xy: np.ndarray, which: np.ndarray | None = None, floored: bool = False
+    ) -> np.ndarray:
+        """(N,) height of the vertex nearest each point, as the heightmap reads it, in m;
+        ``floored``: of the cell's corner, as the released code's fall test reads it."""
+        return self._flat[self.vertices(xy, which, floored)].astype(np.float64)
 
     def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
         """(N,) the highest vertex within ``half`` (m, rounded to whole cells) along each axis
@@ -230,11 +238,19 @@ class HeightStack:
         heights -= heights[:, self._head, None]  # the head's own vertex: offset (0, 0)
         return heights
 
-    def _cells(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) int32 (column, row) of the vertex nearest each point, clamped to the terrain."""
-        cells = (xy - self._origin) / self.layout.resolution
+    def _cells(self, xy: np.ndarray, floored: bool = False) -> np.ndarray:
+        """(N, 2) int32 (column, row) of the vertex nearest each point (``floored``: at the
+        point's position floored to whole cells, as the released code's `Terrain.pos_to_idx`
+        computes it, floor(x * divisions): x / resolution can fall an ulp short of a whole
+        number), clamped to the terrain."""
+        if floored:
+            cells = xy * self._divisions
+            cells -= self._origin_cells
+        else:
+            cells = (xy - self._origin) / self.layout.resolution
         np.minimum(np.maximum(cells, 0.0, out=cells), self._last, out=cells)  # clip, as ufuncs
-        cells += 0.5
+        if not floored:
+            cells += 0.5
         return cells.astype(np.int32)
 
     def _which(self, xy: np.ndarray, which: np.ndarray | None) -> np.ndarray:

@@ -188,14 +188,26 @@ class Explore(RewardTerm):
 
 
 class Escape(RewardTerm):
-    """The step's gain in distance from the arena's centre, plus ``bonus`` beyond ``rim`` m."""
+    """The step's gain in distance from the arena's centre (the released escape task's
+    ``__reward__forward``, its reported score)."""
 
     name: ClassVar[str] = "escape"
+
+    def __call__(self, env: EnvView) -> np.ndarray:
+        radius = np.linalg.norm(env.head_pos[:, :2], axis=1)
+        return radius - np.linalg.norm(env.prev_head[:, :2], axis=1)
+
+
+class RimBonus(RewardTerm):
+    """``bonus`` at the step the head is ``rim`` m or further from the arena's centre (the
+    released code's `TerminateOnEscape`, which adds it to the reward and to no reported
+    component)."""
+
+    name: ClassVar[str] = "rim"
 
     def __init__(self, rim: float, weights: RewardWeights) -> None:
         self.rim, self.bonus = rim, weights.bonus
 
     def __call__(self, env: EnvView) -> np.ndarray:
         radius = np.linalg.norm(env.head_pos[:, :2], axis=1)
-        gain = radius - np.linalg.norm(env.prev_head[:, :2], axis=1)
-        return gain + self.bonus * (radius >= self.rim)
+        return self.bonus * (radius >= self.rim)

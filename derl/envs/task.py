@@ -67,6 +67,12 @@ class Arena(Part):
         """(len(xy),) ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
         raise NotImplementedError
 
+    def fall_ground(self, xy: np.ndarray) -> np.ndarray:
+        """(len(xy),) the ground under point ``xy[k]`` of copy k as the fall test reads it: the
+        released code's (`UnimalHeightObs`), at the corner of the grid cell the point is in (its
+        position floored to whole cells, `Terrain.pos_to_idx`)."""
+        raise NotImplementedError
+
     def top(self, xy: np.ndarray, half: float, ids: np.ndarray | None = None) -> np.ndarray:
         """(len(xy),) the highest ground under the square of half side ``half`` around point
         ``xy[k]`` of copy ``ids[k]``, where an object of that footprint rests (on a plane: the

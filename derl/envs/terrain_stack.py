@@ -154,9 +154,11 @@ class TerrainStack(HeightStack):
         counts = self._changes_before
         return counts[which, strips[1]] == counts[which, strips[0]]
 
-    def ground(self, xy: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+    def ground(
+        self, xy: np.ndarray, which: np.ndarray | None = None, floored: bool = False
+    ) -> np.ndarray:
         self.reach(xy, which)
-        return super().ground(xy, which)
+        return super().ground(xy, which, floored)
 
     def top(self, xy: np.ndarray, half: float, which: np.ndarray | None = None) -> np.ndarray:
         self.reach(xy, which)  # `ahead` is far more than an object's half size

@@ -67,6 +67,11 @@ class EvolutionConfig(BaseModel):
         "ppo.rollout_steps), as the released code does",
     )
     num_envs: int = Field(32, ge=1, description="environment copies of every training")
+    released_delete_limb: bool = Field(
+        True,
+        description="as the released mutate_delete_limb: a child that lost a limb keeps its "
+        "parent's stand height (spawn height and fall threshold); false: its own (corrected)",
+    )
     training_seed: int = Field(
         1409, ge=0, lt=SEED_LIMIT, description="the same for every lifetime (the paper's)"
     )

@@ -91,15 +91,16 @@ class Child:
     iteration: int = -1
 
 
-def breed(parent: Genome, seed: int) -> tuple[Genome, Mutation]:
+def breed(parent: Genome, seed: int, released_delete: bool = True) -> tuple[Genome, Mutation]:
     """The child of a tournament: one valid mutation of `parent`, the same for the same seed
     (each operator tries up to 50 times, and up to `MAX_DRAWS` operators are drawn), in its
-    canonical form (the limb ids in the mutation's detail are the parent's)."""
+    canonical form (the limb ids in the mutation's detail are the parent's); `released_delete`:
+    as `derl.unimal.mutate`'s."""
     rng = np.random.default_rng(seed)
     reason = ""
     for _ in range(MAX_DRAWS):
         try:
-            child, mutation = mutate(parent, rng)
+            child, mutation = mutate(parent, rng, released_delete=released_delete)
             return canonical_genome(child), mutation
         except MutationFailed as failure:
             reason = str(failure)
@@ -217,7 +218,8 @@ class Evolution:
         if child not in self.genomes:
             seed = self.seeds[child]
             assert seed is not None, child
-            self.decided(child, *breed(self.genomes[self.parents[child]], seed))
+            parent = self.genomes[self.parents[child]]
+            self.decided(child, *breed(parent, seed, self.config.released_delete_limb))
         return self.genomes[child], self.mutations[child]
 
     def decided(self, child: str, genome: Genome, mutation: Mutation | None) -> None:

@@ -6,9 +6,12 @@ and every pair grown on it then store the mirror direction (theta -> 360 - theta
 hinge the negated range, since the mirror image of an x hinge axis is the twin's axis reversed
 (`derl.unimal.geometry`); y hinges keep theirs. Everything else that shapes the body's physics is
 in the form: both densities, and per entry its site, pairing, length, direction and hinges (axis,
-range, gear), with the entries grown on it. `canonical_genome` writes the form back as a genome:
-its limbs numbered in the form's order, each stored twin the form's, so that equal bodies are
-equal genomes and build the same model with its limbs, observations and actions in one order.
+range, gear), with the entries grown on it; and last the stand height where the genome sets one
+(`Genome.stand_height`: it moves the spawn and the fall test), so that the forms and hashes of
+bodies without one are those they had before the field existed. `canonical_genome` writes the
+form back as a genome: its limbs numbered in the form's order, each stored twin the form's, so
+that equal bodies are equal genomes and build the same model with its limbs, observations and
+actions in one order.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ Form = tuple
 
 def canonical_form(genome: Genome) -> Form:
     """The genome as nested sorted tuples, equal exactly for equal bodies."""
-    return (genome.head_density, genome.limb_density, _children(genome, None, mirrored=False))
+    form = (genome.head_density, genome.limb_density, _children(genome, None, mirrored=False))
+    return form if genome.stand_height is None else (*form, genome.stand_height)
 
 
 def body_hash(genome: Genome) -> str:
@@ -33,7 +37,7 @@ def body_hash(genome: Genome) -> str:
 def canonical_genome(genome: Genome) -> Genome:
     """The same body as one genome for all its numberings: `canonical_form` written back, limb
     ids in its depth-first order (`canonical_form` of the result is `genome`'s)."""
-    head_density, limb_density, children = canonical_form(genome)
+    head_density, limb_density, children, *stand = canonical_form(genome)
     limbs: list[Limb] = []
 
     def write(forms: Form, parent: int | None) -> None:
@@ -52,7 +56,12 @@ def canonical_genome(genome: Genome) -> Genome:
             write(grown, limb.id)
 
     write(children, None)
-    return Genome(head_density=head_density, limb_density=limb_density, limbs=tuple(limbs))
+    return Genome(
+        head_density=head_density,
+        limb_density=limb_density,
+        limbs=tuple(limbs),
+        stand_height=stand[0] if stand else None,
+    )
 
 
 def _children(genome: Genome, parent: int | None, mirrored: bool) -> Form:

@@ -105,6 +105,11 @@ class Genome(BaseModel):
     """Density of every limb, kg/m³."""
     limbs: tuple[Limb, ...] = ()
     """The limb entries (at most 10 limbs in all, a pair counting 2)."""
+    stand_height: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    """The head's height (m) above the ground that the environments take as the body's resting
+    height in place of its own (None: its own, `derl.unimal.mjcf.rest_height`): the head spawns
+    that high plus the spawn clearance, and the body has fallen when the head is below a fraction
+    of it. Set where the released code keeps a parent's height (`derl.unimal.mutations`)."""
 
     @model_validator(mode="after")
     def _valid_tree(self) -> Genome:

@@ -100,6 +100,16 @@ def rest_height(parts: list[LimbPart]) -> float:
     return float(-min([-HEAD_RADIUS, *(p.origin[2] + p.tip[2] for p in parts)]))
 
 
+def stand_height(genome: Genome) -> float:
+    """The head's height above the ground that the environments take as the body's resting
+    height (it spawns `FLOOR_OFFSET` higher, and falls below a fraction of it): the genome's
+    `stand_height` where set (the released code's `delete_limb` keeps the parent's), else its
+    own `rest_height`."""
+    if genome.stand_height is not None:
+        return genome.stand_height
+    return rest_height(layout(genome))
+
+
 def excluded_pairs(genome: Genome, parts: list[LimbPart]) -> list[tuple[str, str]]:
     """Body pairs whose contacts are excluded: parent-child, and twins grown on one site."""
     pairs = [(part.parent, part.name) for part in parts]

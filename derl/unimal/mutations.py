@@ -1,6 +1,13 @@
 """The paper's mutation operators. One operator per child, chosen uniformly among those that apply;
 each attempt draws fresh random choices, the child must pass the full validity check, and an
-operator that finds no valid child within `max_attempts` raises `MutationFailed`."""
+operator that finds no valid child within `max_attempts` raises `MutationFailed`.
+
+A child's `Genome.stand_height` follows the released code, whose bodies keep the head height of
+their MJCF until an operator calls `set_head_pos`: `grow_limb` and `limb_params` do (the child
+stands at its own resting height, None), `delete_limb` does not (the child keeps its parent's
+height, `derl.unimal.mjcf.stand_height`), and the operators that change no shape (`density`,
+`dof`, `joint_angle`, `gear`) keep the parent's field. `mutate(..., released_delete=False)`
+gives every child its own resting height instead."""
 
 from __future__ import annotations
 
@@ -12,6 +19,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from derl.unimal.genome import Genome, Joint, Limb
+from derl.unimal.mjcf import stand_height
 from derl.unimal.space import (
     AXIS_SETS,
     DENSITIES,
@@ -26,6 +34,7 @@ from derl.unimal.validity import InvalidBody, check_body
 
 MAX_ATTEMPTS = 50
 MIN_LIMBS_TO_DELETE = 3
+STAND_HEIGHT_DIGITS = 6  # a kept stand height is stored to the micrometre: one number everywhere
 
 Direction = tuple[int, int]
 """(theta, phi) in degrees."""
@@ -74,14 +83,14 @@ def random_joints(rng: np.random.Generator) -> tuple[Joint, ...]:
 
 def _with(genome: Genome, **changes: object) -> Genome:
     """A validated copy of `genome` with some fields changed."""
-    fields = {"head_density": genome.head_density, "limb_density": genome.limb_density}
-    return Genome(**{**fields, "limbs": genome.limbs, **changes})
+    fields = {name: getattr(genome, name) for name in Genome.model_fields}
+    return Genome(**{**fields, **changes})
 
 
-def _replace(genome: Genome, limb: Limb, **changes: object) -> Genome:
-    """A validated copy of `genome` with one limb entry changed."""
+def _replaced(genome: Genome, limb: Limb, **changes: object) -> tuple[Limb, ...]:
+    """`genome`'s limb entries with one entry changed (validated)."""
     new = Limb(**{**dict(limb), **changes})
-    return _with(genome, limbs=tuple(new if item.id == limb.id else item for item in genome.limbs))
+    return tuple(new if item.id == limb.id else item for item in genome.limbs)
 
 
 def grow_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
@@ -113,16 +122,18 @@ def grow_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
         phi=phi,
         joints=random_joints(rng),
     )
-    child = _with(genome, limbs=(*genome.limbs, new))
+    child = _with(genome, limbs=(*genome.limbs, new), stand_height=None)
     where = "head" if parent is None else f"{site} of limb {parent}"
     return child, f"{'pair' if paired else 'limb'} {new.id} at {where}"
 
 
 def delete_limb(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
-    """Remove a leaf limb (or leaf pair)."""
+    """Remove a leaf limb (or leaf pair); the child keeps its parent's stand height (the
+    released code's `mutate_delete_limb` does not call `set_head_pos`)."""
     leaf = _pick(rng, genome.leaves())
     limbs = tuple(limb for limb in genome.limbs if limb.id != leaf.id)
-    return _with(genome, limbs=limbs), f"limb {leaf.id}"
+    height = round(stand_height(genome), STAND_HEIGHT_DIGITS)
+    return _with(genome, limbs=limbs, stand_height=height), f"limb {leaf.id}"
 
 
 def limb_params(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
@@ -130,7 +141,8 @@ def limb_params(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
     its children move with its sites."""
     limb = _pick(rng, genome.limbs)
     length = _pick(rng, LIMB_LENGTHS)
-    return _replace(genome, limb, length=length), f"limb {limb.id} length {length}"
+    child = _with(genome, limbs=_replaced(genome, limb, length=length), stand_height=None)
+    return child, f"limb {limb.id} length {length}"
 
 
 def density(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
@@ -203,9 +215,12 @@ def mutate(
     op: str | None = None,
     max_attempts: int = MAX_ATTEMPTS,
     check: Callable[[Genome], None] = check_body,
+    released_delete: bool = True,
 ) -> tuple[Genome, Mutation]:
     """A valid child of `genome` made by one operator (drawn uniformly if not given); `check`
-    raises `InvalidBody` for a body that cannot exist."""
+    raises `InvalidBody` for a body that cannot exist. ``released_delete``: the child's stand
+    height as the released code leaves it (a `delete_limb` child keeps its parent's; see the
+    module's docstring); False: every child stands at its own resting height."""
     ops = applicable(genome)
     if op is None:
         op = _pick(rng, ops)
@@ -222,5 +237,7 @@ def mutate(
         except InvalidBody as error:  # physically impossible (self-intersection)
             reason = str(error)
             continue
+        if not released_delete and child.stand_height is not None:
+            child = child.model_copy(update={"stand_height": None})
         return child, Mutation(op, detail)
     raise MutationFailed(op, max_attempts, reason)
