@@ -9,8 +9,9 @@ population is not known yet (a child before it still training) waits. Two measur
   trainers x the run's duration, `ratio` a window's utilisation over free-running's, each the
   median over seeds of runs that differ only in the window.
 - ``--real``: real `derl coordinator` and `derl trainer` processes on loopback, a small profile
-  (P 8, 40 bodies of 16,384 FT steps) run free-running and with each window in turn, repeated;
-  the throughput is bodies trained per second between the first job and the last birth, and
+  (P 16, 48 bodies of 16,384 FT steps) run free-running and with each window in turn (the order
+  rotated each round), repeated; the throughput is env steps trained per second (bodies trained,
+  not repeats born from an earlier body's result) between the first job and the last birth, and
   `ratio` the median of each window's throughput over the free-running run of the same round.
 Run: python bench/window.py [--profiles demo paper] [--trainers 2 16 72 144] [--seeds 5]
      python bench/window.py --real [--trainers 2] [--rounds 3]
@@ -37,9 +38,9 @@ REPO = Path(__file__).resolve().parents[1]
 FACTORS = (2, 4)
 REAL_PROFILE = {
     "profile": "smoke",
-    "population": 8,
+    "population": 16,
     "tournament": 4,
-    "total": 40,
+    "total": 48,
     "train_steps": 16384,
     "num_envs": 16,
     "eval_top": 0,
@@ -93,7 +94,7 @@ def ratios(measured: dict[str, list[float]]) -> dict[str, float]:
 
 
 def real_run(folder: Path, trainers: int, in_flight: int, port: int) -> float:
-    """Bodies trained per second of one real run, between its first job and its last birth."""
+    """Env steps trained per second of one real run, between its first job and its last birth."""
     from derl.messages import Birth, TrainJob
     from derl.nodes.journal.segments import read_logged, segments
 
@@ -116,14 +117,16 @@ def real_run(folder: Path, trainers: int, in_flight: int, port: int) -> float:
             node.terminate()
         for node in nodes:
             node.wait(timeout=30)
-    jobs, births = [], []
+    jobs, births, trained = [], [], 0
     for segment in segments(folder / "run"):
         for logged in read_logged(segment):
-            if isinstance(logged.message, TrainJob):
+            msg = logged.message
+            if isinstance(msg, TrainJob):
                 jobs.append(logged.log_time)
-            elif isinstance(logged.message, Birth):
+            elif isinstance(msg, Birth):
                 births.append(logged.log_time)
-    return len(births) / ((max(births) - min(jobs)) / 1e9)
+                trained += msg.repeat_of is None
+    return trained * REAL_PROFILE["train_steps"] / ((max(births) - min(jobs)) / 1e9)
 
 
 def real(trainers: int, rounds: int, port: int) -> None:
@@ -131,7 +134,9 @@ def real(trainers: int, rounds: int, port: int) -> None:
     rates: dict[str, list[float]] = {name: [] for name in chosen}
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(rounds):
-            for name, w in chosen.items():
+            names = list(chosen)
+            for name in names[k % len(names) :] + names[: k % len(names)]:
+                w = chosen[name]
                 folder = Path(tmp) / f"{k}-{name}"
                 folder.mkdir()
                 rates[name].append(real_run(folder, trainers, w, port))
@@ -140,7 +145,7 @@ def real(trainers: int, rounds: int, port: int) -> None:
         "profile": REAL_PROFILE,
         "trainers": trainers,
         "windows": chosen,
-        "bodies_per_s": {k: [round(r, 4) for r in v] for k, v in rates.items()},
+        "steps_per_s": {k: [round(r) for r in v] for k, v in rates.items()},
         "ratio": ratios(rates),
     }
     print(json.dumps(result), flush=True)
