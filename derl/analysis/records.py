@@ -2,7 +2,8 @@
 
 Whoever reads a run builds these (`nodes/journal/history.py` folds the coordinator's journal into
 them); nothing here knows about messages, the bus or MCAP. A body's `birth` is its place in the
-run's birth order (the order in which the coordinator accepted fitness), the analyses' time axis.
+run's birth order, the analyses' time axis: the order children were bred (child order, the same in
+every run of a profile and seed, whatever order their trainings finished in).
 
 A body is identified by `derl.unimal.body_hash` of its genome (the same body whatever its limbs'
 numbering): a birth whose body was born before in the run (a repeat, `Body.repeat_of`) is that
