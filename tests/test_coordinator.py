@@ -30,6 +30,7 @@ from derl.messages import (
     FitnessReport,
     JobFailed,
     MessageBase,
+    Reject,
     Tournament,
     TrainJob,
     WorkerReady,
@@ -599,3 +600,27 @@ def test_a_run_whose_jobs_would_not_be_valid_messages_is_refused(tmp_path: Path)
     with pytest.raises(Refused, match="run 'no spaces' cannot start"):
         EvolutionPolicy("no spaces", tmp_path, load_profile("smoke"))
     assert not (tmp_path / INITIAL_FILE).exists()
+
+
+def test_who_comes_before_what_and_copies_of_a_taken_report_leave_the_journal_as_it_was(
+    coordinator_of: Callable[..., Coordinator],
+) -> None:
+    """A report for a job never given to its sender is rejected even when its child is born
+    already (it got an Ack before); copies of a taken report are acknowledged again without a
+    journal write each (a flood of them grew the journal by an Ack each)."""
+    coordinator = coordinator_of(population=2, total=3)
+    job = _job_for(coordinator, "w1")
+    coordinator._handle(decode(encode(_report(job, b"w"))))
+    coordinator.settle()
+    assert job.child in coordinator.state.born
+    forged = _report(job, b"x").model_copy(update={"node": "w2"})
+    coordinator._handle(decode(encode(forged)))
+    coordinator.settle()
+    answers = [m for m in _journaled(coordinator) if isinstance(m, Ack | Reject)]
+    assert isinstance(answers[-1], Reject) and answers[-1].node == "w2", answers
+    assert "never issued to w2" in answers[-1].reason
+    before = len(_journaled(coordinator))
+    for _ in range(300):
+        coordinator._handle(decode(encode(_report(job, b"w"))))
+    coordinator.settle()
+    assert len(_journaled(coordinator)) == before

@@ -43,12 +43,12 @@ def on_evaluation(ledger: Ledger, result: EvalResult) -> None:
     state = ledger.state
     order = state.orders.get(result.job)
     key = (result.agent, result.task, result.seed, result.steps)
-    if key in state.evaluations:
-        ledger.ack(result, result.agent)
+    if not state.issued_to(result.job, result.node, result.agent):
+        ledger.never_issued(result, result.agent, f" in {result.task}")  # whatever its state
+    elif key in state.evaluations:
+        ledger.answer_again(result, result.agent)
     elif (
-        not isinstance(order, EvalJob)
-        or order.node != result.node
-        or (order.agent, order.task, order.seed, order.steps) != key
+        not isinstance(order, EvalJob) or (order.agent, order.task, order.seed, order.steps) != key
     ):
         ledger.never_issued(result, result.agent, f" in {result.task}")
     elif not math.isfinite(result.reward):

@@ -190,21 +190,17 @@ class EvolutionPolicy:
     def on_fitness(self, report: FitnessReport) -> None:
         state, ledger = self.state, self.ledger
         order = state.orders.get(report.job)
-        if report.child in state.born:
-            log.info("%s already born: repeated report acknowledged", report.child)
+        if not state.issued_to(report.job, report.node, report.child):
+            ledger.never_issued(report, report.child)  # whatever the child's state
+        elif report.child in state.born:
             saved = None  # a crash (or a failed write) may have lost its checkpoint file
             born_from = state.born[report.child].job
             if born_from == report.job and not ledger.checkpoints.path(report.child).exists():
                 saved = ledger.save(report.child, report.checkpoint)
-            ledger.ack(report, report.child, after=saved)
+            ledger.answer_again(report, report.child, after=saved)
         elif report.child in state.failed:
             ledger.reject(report, report.child, "the child was given up")
-        elif (
-            order is None
-            or not isinstance(order, TrainJob)
-            or order.node != report.node
-            or order.child != report.child
-        ):
+        elif not isinstance(order, TrainJob):
             ledger.never_issued(report, report.child)
         elif wrong := self._wrong_report(report, order):
             ledger.reject(report, report.child, wrong)

@@ -40,6 +40,7 @@ from derl.nodes.coordinator.state import CoordinatorState
 from derl.nodes.errors import Refused
 from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segments
 from derl.nodes.runtime.checkpoints import CheckpointFiles
+from derl.nodes.runtime.ratelimit import FLOOD
 
 log = logging.getLogger("derl.coordinator")
 
@@ -140,10 +141,10 @@ class Ledger:
         if publish:
             self.replies.append((msg, data, after))
 
-    def send(self, msg: MessageBase) -> None:
+    def send(self, msg: MessageBase, after: Future[None] | None = None) -> None:
         """Publish a message that is not journaled (status, a job order sent again) in order
-        after the group before it."""
-        self.replies.append((msg, encode(msg), None))
+        after the group before it (and once `after` is done, and not if it failed)."""
+        self.replies.append((msg, encode(msg), after))
 
     def flush(self) -> None:
         """The group's messages into the journal file; its replies are released once the file
@@ -159,6 +160,16 @@ class Ledger:
     ) -> None:
         ack = Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node)
         self.commit(ack, after=after)
+
+    def answer_again(
+        self, msg: FitnessReport | EvalResult, subject: str, after: Future[None] | None = None
+    ) -> None:
+        """Acknowledge once more a result taken already (its sender missed the Ack, or floods
+        copies of it): published, not journaled, so copies do not grow the journal; its log
+        line is rate-limited as warnings are."""
+        log.info("%s already taken: a repeated %s from %s acknowledged", subject, msg.type,
+                 msg.node, extra=FLOOD)  # fmt: skip
+        self.send(Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node), after)
 
     def reject(self, msg: FitnessReport | EvalResult, subject: str, reason: str) -> None:
         """Refuse a result for good: journaled, counted, and the sender told to drop it."""

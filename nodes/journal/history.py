@@ -52,7 +52,7 @@ class RunHistory:
     def __init__(self) -> None:
         self.run: str | None = None
         self.first_job: TrainJob | None = None  # the run's first (its world and budget)
-        self.issued: dict[str, str] = {}  # every job ever sent -> its node
+        self.issued: dict[str, tuple[str, str]] = {}  # every job ever sent -> (node, subject)
         self.births: list[Birth] = []  # in birth order
         self.born: dict[str, Birth] = {}
         self.repeats = 0  # births with the result of an earlier body's (`Birth.repeat_of`)
@@ -82,13 +82,17 @@ class RunHistory:
 
     # --- handlers, one per message type, named after it (the coordinator extends them) ----
 
+    def issued_to(self, job: str, node: str, subject: str) -> bool:
+        """Whether `job` was given to `node` for `subject` (a child, or an evaluated agent)."""
+        return self.issued.get(job) == (node, subject)
+
     def on_TrainJob(self, msg: TrainJob) -> None:
-        self.issued[msg.job] = msg.node
+        self.issued[msg.job] = (msg.node, msg.child)
         if self.first_job is None:
             self.first_job = msg
 
     def on_EvalJob(self, msg: EvalJob) -> None:
-        self.issued[msg.job] = msg.node
+        self.issued[msg.job] = (msg.node, msg.agent)
 
     def on_FitnessReport(self, msg: FitnessReport) -> None:
         self._accepted[msg.job] = msg

@@ -7,8 +7,9 @@ records of level WARNING and above with the same logger and message template (th
 not its arguments: `rejected (%s) %s: %s` is one kind) pass `burst` at a time per `interval_s`;
 the rest are counted, and when the interval is over one line says how many were not shown and
 gives the last of them. Lower levels pass untouched (the coordinator's births line is a line a
-second on purpose). The count of an interval is written by a timer thread when the interval ends,
-or when the process exits.
+second on purpose), except records logged with ``extra=FLOOD``: INFO lines that a sender can
+repeat at will (a duplicate report acknowledged again). The count of an interval is written by a
+timer thread when the interval ends, or when the process exits.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from dataclasses import dataclass
 
 BURST = 5
 INTERVAL_S = 10.0
+FLOOD = {"flood": True}
+"""``extra`` of a record below WARNING that is rate-limited all the same."""
 
 Kind = tuple[str, int, object]  # logger, level, message template
 
@@ -50,7 +53,9 @@ class RepeatedWarnings(logging.Filter):
         atexit.register(self.flush)
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno < logging.WARNING or getattr(record, "count_of_repeats", False):
+        if getattr(record, "count_of_repeats", False) or (
+            record.levelno < logging.WARNING and not getattr(record, "flood", False)
+        ):
             return True
         kind: Kind = (record.name, record.levelno, record.msg)
         now = self.clock()
