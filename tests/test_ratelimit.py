@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import time
 
-from derl.nodes.runtime.ratelimit import RepeatedWarnings
+from derl.nodes.runtime.ratelimit import FLOOD, RepeatedWarnings
 
 
 class Kept(logging.Handler):
@@ -29,14 +29,18 @@ def test_a_flood_is_cut_to_a_burst_and_a_count_per_interval() -> None:
         for k in range(50):
             log.warning("rejected %d", k)
             log.info("born %d", k)  # below WARNING: never limited
+            log.info("copy %d acknowledged", k, extra=FLOOD)  # ... unless a sender floods it
         log.error("another kind")
         time.sleep(0.6)  # the timer writes the count once the interval is over
-        assert kept.lines[:4] == ["WARNING rejected 0", "INFO born 0", "WARNING rejected 1",
-                                  "INFO born 1"]  # fmt: skip
+        assert kept.lines[:6] == ["WARNING rejected 0", "INFO born 0", "INFO copy 0 acknowledged",
+                                  "WARNING rejected 1", "INFO born 1",
+                                  "INFO copy 1 acknowledged"]  # fmt: skip
         assert sum(line.startswith("INFO born") for line in kept.lines) == 50
+        assert sum(line.startswith("INFO copy") for line in kept.lines) == 2
         assert "ERROR another kind" in kept.lines
-        assert kept.lines[-1] == (
+        assert (
             "WARNING ... and 48 more like it in 0.3 s, not shown (the last: rejected 49)"
+            in kept.lines[-2:]
         )
         log.warning("rejected %d", 50)  # a new interval
         assert kept.lines[-1] == "WARNING rejected 50"
