@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import errno
 import logging
+import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import Future
 from pathlib import Path
 
+import msgpack
 import pytest
 from derl.messages import Ack, RunStatus
 from derl.nodes.coordinator.disk_faults import DiskFaults
@@ -203,3 +206,18 @@ def test_what_cannot_be_written_is_said_at_once_then_once_a_minute(
         "it waits (60 writes failed in the last 60 s)",
         "writing works again, after 129 s: the journal goes on",
     ]
+
+
+def test_the_checkpoint_writer_ends_quietly_when_its_coordinator_is_gone(tmp_path: Path) -> None:
+    """A writer whose coordinator died (nobody reads its answers) ends without a traceback (it
+    printed a BrokenPipeError's)."""
+    writer = subprocess.Popen(
+        [sys.executable, "-m", "derl.nodes.runtime.checkpoint_writer", str(tmp_path)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    writer.stdout.close()  # the coordinator is gone
+    writer.stdin.write(msgpack.packb({"c00001": b"weights"}, use_bin_type=True))
+    writer.stdin.close()
+    assert writer.wait(timeout=30) == 0
+    assert writer.stderr.read() == b""
+    assert (tmp_path / "c00001.pt").read_bytes() == b"weights"  # written all the same

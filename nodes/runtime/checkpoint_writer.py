@@ -15,7 +15,8 @@ with `bench/bus.py`, 1,000 simulated workers).
 Its input is a msgpack stream of batches, each a map agent -> the checkpoint (bytes) or the
 agent whose file it shares (str); for each batch it answers agent -> None (written) or
 [errno, message]. It ignores SIGINT and SIGTERM (a terminal's Ctrl-C reaches the whole process
-group) and ends at the end of its input: when the coordinator closes it or dies."""
+group) and ends at the end of its input: when the coordinator closes it or dies (an answer
+that finds the coordinator gone ends it too, quietly: nobody waits for it)."""
 
 from __future__ import annotations
 
@@ -152,12 +153,15 @@ def main() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     folder = Path(sys.argv[1])
-    for batch in messages(sys.stdin.fileno()):
-        failures = write_batch(folder, batch)
-        send(sys.stdout.fileno(), {
-            agent: None if error is None else [error.errno, str(error)]
-            for agent, error in failures.items()
-        })  # fmt: skip
+    try:
+        for batch in messages(sys.stdin.fileno()):
+            failures = write_batch(folder, batch)
+            send(sys.stdout.fileno(), {
+                agent: None if error is None else [error.errno, str(error)]
+                for agent, error in failures.items()
+            })  # fmt: skip
+    except BrokenPipeError:
+        return
 
 
 if __name__ == "__main__":
