@@ -17,7 +17,12 @@ ID_PATTERN: Final = r"^[A-Za-z0-9_.-]{1,128}$"
 
 MAX_STEPS: Final = 10**13
 MAX_ITEMS: Final = 1_000_000
-MAX_CHECKPOINT_BYTES: Final = 256 * 2**20
+MAX_CHECKPOINT_BYTES: Final = 8 * 2**20
+"""A checkpoint's bound: the largest real one, a 10-limb body's network in VT, is about 1 MB."""
+MAX_MESSAGE_BYTES: Final = 16 * 2**20
+"""The largest message a derl session takes (Zenoh's `transport/link/rx/max_message_size`, 1 GiB
+by default): a margin above the largest real one (a FitnessReport with its checkpoint), so a
+larger sample is dropped by the transport before it is assembled in memory."""
 
 
 def _missing_or_non_negative(value: float) -> float:

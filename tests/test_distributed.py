@@ -6,6 +6,7 @@ grow by the sessions that come and go."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import msgpack
 import pytest
 from derl.messages import Birth, FitnessReport, JobLost, encode
 from derl.messages.examples import examples
+from derl.messages.types import MAX_MESSAGE_BYTES
 from derl.nodes.journal.segments import replay, segments
 from derl.nodes.runtime.bus import ZenohOptions, open_session, zenoh_config
 from nodes_fixtures import (
@@ -63,6 +65,11 @@ def test_smoke_run_end_to_end(tmp_path: Path) -> None:
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
     assert "done: 8 bodies" in result.stdout
+    lines = result.stdout.splitlines()
+    # stdout is no terminal (a log file): plain timestamped progress lines, nothing wrapped
+    stamp = r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d"
+    assert any(re.match(rf"{stamp} evolution: \d/8 born, best ", line) for line in lines)
+    assert any(line.startswith("run ") and f"logs in {run_dir / 'logs'}" in line for line in lines)
     births = [m for m in replay(run_dir) if isinstance(m, Birth)]
     assert len({m.child for m in births}) == len(births) == 8
     assert len(list((run_dir / "checkpoints").glob("*.pt"))) == 8
@@ -171,14 +178,16 @@ def test_garbage_on_every_key_is_rejected(
 # A client of the user's own (Zenoh's default config: shared memory on; multicast off) sending
 # large samples, as a trainer sends its checkpoints
 OWN_CLIENT = """
-import json, sys, zenoh
+import json, sys, time, zenoh
 config = zenoh.Config()
 for key, value in (("mode", "client"), ("connect/endpoints", [sys.argv[1]]),
                    ("scouting/multicast/enabled", False), ("connect/timeout_ms", 30000)):
     config.insert_json5(key, json.dumps(value))
+count, size = (int(a) for a in sys.argv[2:4]) if len(sys.argv) > 2 else (20, 10_000)
 with zenoh.open(config) as session:
-    for _ in range(20):  # over the size Zenoh moves by shared memory, as a checkpoint is
-        session.put("derl/churn/x", bytes(10_000))
+    for _ in range(count):  # over the size Zenoh moves by shared memory, as a checkpoint is
+        session.put("derl/churn/x", bytes(size), congestion_control=zenoh.CongestionControl.BLOCK)
+    time.sleep(size / 1e7)  # a large sample goes out in fragments after `put` returns
 """
 
 
@@ -206,8 +215,38 @@ def test_a_node_does_not_grow_by_the_sessions_that_come_and_go(procs: Processes)
     assert grown < 20, f"the router grew by {grown:.1f} MB over 8 sessions"
 
 
+def test_an_oversized_sample_stops_at_the_transport(procs: Processes) -> None:
+    """Zenoh takes messages of up to 1 GiB by default: a 40 MB sample from a client of Zenoh's
+    default config reached every subscriber (which then had to decode it). derl's sessions take
+    none larger than `MAX_MESSAGE_BYTES` (a margin above a checkpoint's report): the router
+    drops them before assembling them, stays flat over them, and goes on forwarding the
+    others."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    process = procs.start("router", derl_argv("router", "--listen", router))
+
+    def client(count: int, size: int) -> None:
+        argv = [sys.executable, "-c", OWN_CLIENT, router, str(count), str(size)]
+        subprocess.run(argv, check=True, timeout=120)
+
+    heard: list[int] = []
+    with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
+        session.declare_subscriber("derl/churn/**", lambda s: heard.append(len(s.payload)))
+        client(1, 1000)  # the router's own warm-up
+        wait_for(lambda: heard, 10, "a small sample")
+        client(2, 40_000_000)  # the transport's buffers, once
+        before = sample(process.pid)["rss_mb"]
+        for _ in range(3):
+            client(2, 40_000_000)
+        grown = sample(process.pid)["rss_mb"] - before
+        client(1, 1000)
+        wait_for(lambda: len(heard) >= 2, 10, "a small sample after the large ones")
+    assert heard == [1000, 1000]
+    assert grown < 10, f"the router grew by {grown:.1f} MB over six more 40 MB samples"
+
+
 def test_worker_defaults_keep_multicast_and_shared_memory_off() -> None:
     config = zenoh_config(ZenohOptions())
     assert '"enabled":false' in config.get_json("scouting/multicast").replace(" ", "")
     assert config.get_json("transport/shared_memory/enabled") == "false"
+    assert config.get_json("transport/link/rx/max_message_size") == str(MAX_MESSAGE_BYTES)
     assert encode(examples("r", 0, 0)[0])

@@ -27,6 +27,7 @@ from typing import Final, Literal
 
 import zenoh
 from derl.messages import DecodeError, InvalidKey, KeySpace, MessageBase, decode, encode, parse
+from derl.messages.types import MAX_MESSAGE_BYTES
 from pydantic import BaseModel, ConfigDict, Field
 
 log = logging.getLogger("derl.bus")
@@ -93,6 +94,9 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     # derl sends no shared-memory buffers, and with Zenoh's shared memory on, a router or peer
     # kept ~19 MB for every same-host session that ever sent it large samples (docs/bus.md)
     put("transport/shared_memory/enabled", False)
+    # a larger sample than any derl message is dropped before it is assembled (Zenoh's default
+    # 1 GiB let a 50 MB one raise a router's memory for good)
+    put("transport/link/rx/max_message_size", MAX_MESSAGE_BYTES)
     put("transport/link/tx/lease", options.lease_ms)
     if options.mode == "client":
         put("connect/timeout_ms", 30_000)  # wait for a router that starts a little later
