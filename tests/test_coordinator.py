@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from derl.messages import (
     Ack,
     Birth,
@@ -48,8 +49,13 @@ from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 
 from derl.evolution import Evolution, EvolutionConfig, breed, load_profile, population
+from derl.lifetime import ppo_config
+from derl.policy_check import expected_spaces
 from derl.rl import PPOConfig, PPOHyperparameters
-from derl.unimal import Genome, Joint, Limb, sample_population
+from derl.rl.checkpoint import Checkpoint
+from derl.rl.network import ActorCritic
+from derl.rl.normalize import ObsNormalizer
+from derl.unimal import Genome, Joint, Limb, body_hash, sample_population
 from tests.nodes_fixtures import free_port, run_id
 
 QUIET_S = 0.5  # how long "nothing was published" is watched for
@@ -130,7 +136,25 @@ def _job_for(coordinator: Coordinator, node: str) -> TrainJob:
     return job.order
 
 
-def _report(job: TrainJob, checkpoint: bytes) -> FitnessReport:
+def _policy(genome: Genome, world: str, seed: int) -> bytes:
+    """A policy of `genome` in `world` (untrained: initial weights drawn with `seed`), as a
+    trainer's checkpoint: what the coordinator checks a report's checkpoint against (the same
+    bytes for the same arguments)."""
+    spaces, actions = expected_spaces(genome, world)
+    torch.manual_seed(seed)
+    net = ActorCritic(spaces, actions)
+    config = ppo_config(world, 4096, seed, num_envs=16)
+    return Checkpoint.capture(net, ObsNormalizer(spaces, config.obs_clip), config).to_bytes()
+
+
+def _weights(job: TrainJob, seed: int) -> bytes:
+    return _policy(job.genome, job.task, seed)
+
+
+def _report(job: TrainJob, checkpoint: bytes | int) -> FitnessReport:
+    """`job`'s report; `checkpoint`: its bytes, or the seed of a policy of its body."""
+    if isinstance(checkpoint, int):
+        checkpoint = _weights(job, checkpoint)
     return FitnessReport(
         run=job.run, child=job.child, job=job.job, node=job.node, genome=job.genome,
         fitness=1.0, fitness_source="window", fitness_episodes=1,
@@ -163,18 +187,18 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(heard.get(timeout=10), TrainJob)
 
     # accepted: the Ack comes, and the checkpoint file is whole by then
-    coordinator._handle(_report(first, b"weights-1"))
+    coordinator._handle(_report(first, 1))
     coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)  # the birth stream: journaled, published
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == first.child
-    assert coordinator.ledger.checkpoints.path(first.child).read_bytes() == b"weights-1"
+    assert coordinator.ledger.checkpoints.path(first.child).read_bytes() == _weights(first, 1)
 
     # the write fails (the folder is gone, a file in its place): born, but not acknowledged
     folder = coordinator.ledger.checkpoints.folder
     shutil.rmtree(folder)
     folder.write_text("not a folder")
-    report = _report(second, b"weights-2")
+    report = _report(second, 2)
     with caplog.at_level(logging.ERROR, logger="derl.coordinator"):
         coordinator._handle(report)
         coordinator.settle()
@@ -192,7 +216,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     coordinator.settle()
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == second.child
-    assert coordinator.ledger.checkpoints.path(second.child).read_bytes() == b"weights-2"
+    assert coordinator.ledger.checkpoints.path(second.child).read_bytes() == _weights(second, 2)
     assert coordinator.policy.born == 2
     assert not coordinator.ledger.stalled
 
@@ -222,7 +246,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
     twin = "i0001" if decided.parent == "i0000" else "i0000"
 
     with _serving(run, tmp_path, config, initial) as (coordinator, heard):
-        for node, weights in (("w1", b"weights-1"), ("w2", b"weights-2")):
+        for node, weights in (("w1", 1), ("w2", 2)):
             coordinator._handle(_report(_job_for(coordinator, node), weights))
         _ready(coordinator, "w1")
         coordinator.settle()
@@ -278,7 +302,7 @@ def _grows_by_births(coordinator: Coordinator, heard: queue.Queue[MessageBase]) 
     def births(count: int) -> None:
         for _ in range(count):
             node = turns.popleft()
-            report = _report(jobs.pop(node), b"w").model_copy(update={"curve": curve})
+            report = _report(jobs.pop(node), 0).model_copy(update={"curve": curve})
             coordinator._handle(decode(encode(report)))  # as it comes off the bus
             for idle in ("w1", "w2"):  # a child held behind its twin in training may hold
                 if idle not in jobs:  # the next tournament back: that worker waits
@@ -349,7 +373,7 @@ def test_tournaments_start_once_every_initial_body_is_assigned(
     coordinator = coordinator_of(population=4, total=8, tournament=2)
     jobs = {w: _job_for(coordinator, w) for w in ("w1", "w2")}  # i0000, i0001
     for worker in ("w1", "w2", "w1"):  # i0000, i0001, i0002 born; i0003 is given to w2
-        coordinator._handle(_report(jobs[worker], b"weights"))
+        coordinator._handle(_report(jobs[worker], 0))
         jobs[worker] = _job_for(coordinator, worker)
     child = jobs["w1"].child
     assert child.startswith("c") and jobs["w2"].child == "i0003"
@@ -357,7 +381,7 @@ def test_tournaments_start_once_every_initial_body_is_assigned(
     assert all("i0003" not in t.contestants for t in tournaments.values())  # not born yet
     assert jobs["w1"].parent == tournaments[child].parent and jobs["w1"].mutation is not None
     for worker in ("w2", "w1"):  # the initial body is born first, then the child
-        coordinator._handle(_report(jobs[worker], b"weights"))
+        coordinator._handle(_report(jobs[worker], 0))
     coordinator.settle()
     births = [m for m in _journaled(coordinator) if isinstance(m, Birth)]
     births = [m.child for m in births]
@@ -380,7 +404,7 @@ def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
         for length in (0.3, 0.4)]  # fmt: skip
     coordinator = coordinator_of(population=2, total=3, initial=stacked)
     for worker in ("w1", "w2"):
-        coordinator._handle(_report(_job_for(coordinator, worker), b"weights"))
+        coordinator._handle(_report(_job_for(coordinator, worker), 0))
     _ready(coordinator, "w1")
     coordinator.settle()
     assert coordinator.state.job_of("w1") is None
@@ -555,7 +579,7 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
             with pytest.raises(queue.Empty):  # no tournament before the initial bodies are born
                 jobs.get(timeout=QUIET_S)
             for job in (first, second):
-                bus.publish(_report(job, b"weights"))
+                bus.publish(_report(job, 0))
             third = jobs.get(timeout=10)
             assert (third.node, third.child) == ("w3", "c00000")
     finally:
@@ -610,10 +634,10 @@ def test_who_comes_before_what_and_copies_of_a_taken_report_leave_the_journal_as
     journal write each (a flood of them grew the journal by an Ack each)."""
     coordinator = coordinator_of(population=2, total=3)
     job = _job_for(coordinator, "w1")
-    coordinator._handle(decode(encode(_report(job, b"w"))))
+    coordinator._handle(decode(encode(_report(job, 0))))
     coordinator.settle()
     assert job.child in coordinator.state.born
-    forged = _report(job, b"x").model_copy(update={"node": "w2"})
+    forged = _report(job, b"forged").model_copy(update={"node": "w2"})
     coordinator._handle(decode(encode(forged)))
     coordinator.settle()
     answers = [m for m in _journaled(coordinator) if isinstance(m, Ack | Reject)]
@@ -621,6 +645,30 @@ def test_who_comes_before_what_and_copies_of_a_taken_report_leave_the_journal_as
     assert "never issued to w2" in answers[-1].reason
     before = len(_journaled(coordinator))
     for _ in range(300):
-        coordinator._handle(decode(encode(_report(job, b"w"))))
+        coordinator._handle(decode(encode(_report(job, 0))))
     coordinator.settle()
     assert len(_journaled(coordinator)) == before
+
+
+def test_a_checkpoint_that_is_not_a_policy_of_its_body_is_never_born(
+    coordinator_of: Callable[..., Coordinator],
+) -> None:
+    """A report whose checkpoint does not load, or is another body's network, is rejected and
+    journaled: a 17-byte `FORGED-CHECKPOINT` was born, became the run's best and went to
+    `best/`, where nothing could read it."""
+    coordinator = coordinator_of(population=2, total=3)
+    first, second = _job_for(coordinator, "w1"), _job_for(coordinator, "w2")
+    assert body_hash(first.genome) != body_hash(second.genome)
+    for job, checkpoint, why in (
+        (first, b"FORGED-CHECKPOINT", "does not load"),
+        (first, _weights(second, 0), "the body in ft"),
+    ):
+        coordinator._handle(_report(job, checkpoint))
+        coordinator.settle()
+        rejects = [m for m in _journaled(coordinator) if isinstance(m, Reject)]
+        assert why in rejects[-1].reason, rejects[-1].reason
+    assert not coordinator.state.born
+    assert not coordinator.ledger.checkpoints.path(first.child).exists()
+    coordinator._handle(_report(second, 3))
+    coordinator.settle()
+    assert list(coordinator.state.born) == [second.child]

@@ -52,6 +52,7 @@ from derl.nodes.errors import Refused
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
+from derl.policy_check import policy_problem
 from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
 
@@ -239,8 +240,9 @@ class EvolutionPolicy:
 
     def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
         """Why `report` cannot be accepted for `order` ("" if it can): the body is the job's
-        (the coordinator decided it), so a report can misstate only the fitness, within the
-        world's bound, and the env steps, within the job's budget."""
+        (the coordinator decided it), the fitness within the world's bound, the env steps within
+        the job's budget, and the checkpoint a policy of the body in the world (`policy_check`):
+        a report can misstate only the fitness within its bound."""
         if report.genome != order.genome:
             return "not the body of its job"
         bound = self.fitness_bound
@@ -248,7 +250,7 @@ class EvolutionPolicy:
             return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
         if report.env_steps > order.steps:
             return f"{report.env_steps} env steps trained, the job allowed {order.steps}"
-        return ""
+        return policy_problem(report.checkpoint, order.genome, order.task)
 
     def on_evaluation(self, result: EvalResult) -> None:
         on_evaluation(self.ledger, result)
