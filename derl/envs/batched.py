@@ -58,11 +58,13 @@ class EnvConfig(BaseModel):
     reset_noise: float = Field(0.005, ge=0)
     spawn_clearance: float = Field(FLOOR_OFFSET, ge=0)
     fall_ratio: float = Field(0.5, ge=0, le=1)
-    sleep: bool = True
+    sleep: bool = False
     """MuJoCo's sleeping for the bodies allowed to sleep (those no actuator moves: MVT's box): a
     body whose speed stays under ``sleep_tolerance`` for 10 physics steps freezes, its contacts
-    with the ground skipped, until the agent touches it or a reset moves it. False simulates it
-    throughout, as the released code did."""
+    with the ground skipped, until the agent touches it or a reset moves it (MVT's physics 2-3x
+    faster). Off by default: the released code simulated the box throughout, and an effect of
+    sleeping on fitness at the paper's budget is not ruled out (docs/fidelity.md, "Objects at
+    rest"); an opt-in speed switch."""
 
 
 @dataclass(frozen=True)
