@@ -93,6 +93,7 @@ from derl.nodes.worker.node import ready_wait
 
 from derl.evolution import EvolutionConfig, load_profile
 from derl.evolution.population import breed
+from derl.policy_check import untrained_policy
 from derl.unimal import Genome, sample_population
 
 SCALE_PROFILE = {
@@ -168,11 +169,11 @@ class LoadGenerator:
     training: it announces WorkerReady, re-sends it while idle (`ready_wait`), answers each new
     TrainJob with a fake FitnessReport on its own key
     (``fitness/<node>/<child>``: a tournament child's first draft, random fitness, a two-point
-    curve within the job's budget, no checkpoint), and asks for work again once the report is
-    acknowledged, or rejected (counted: the coordinator must accept every report of this
-    generator). With `cycle_s` set, a worker's cycle (ask, job, report, Ack) lasts `cycle_s`
-    times a jitter of 0.5-1.5, its round trips included, so W workers offer W / `cycle_s`
-    assignments a second; else (0) it answers at once."""
+    curve within the job's budget, an untrained policy of the body), and asks for work again
+    once the report is acknowledged, or rejected (counted: the coordinator must accept every
+    report of this generator). With `cycle_s` set, a worker's cycle (ask, job, report, Ack)
+    lasts `cycle_s` times a jitter of 0.5-1.5, its round trips included, so W workers offer
+    W / `cycle_s` assignments a second; else (0) it answers at once."""
 
     def __init__(self, run: str, endpoint: str, workers: int) -> None:
         self.run, self.keys = run, KeySpace(run)
@@ -207,6 +208,10 @@ class LoadGenerator:
         self.due: list[tuple[float, int, tuple]] = []  # heap of (when, order, answer)
         self.stop = threading.Event()
         self.sequence = 0
+        self.tokens = [  # a worker without one gets no job
+            self.session.liveliness().declare_token(self.keys.alive("trainer", node))
+            for node in self.nodes
+        ]
         self.subscribers = [
             self.session.declare_subscriber(self.keys.all("job"), self._on_job),
             self.session.declare_subscriber(self.keys.all("ack"), self._on_ack),
@@ -299,8 +304,9 @@ class LoadGenerator:
                 self._ready(node, time.perf_counter())
                 continue
             fitness = self.jitter.uniform(0, 100)
+            policy = untrained_policy(Genome.model_validate(genome), "ft")
             report = dict(self.report, child=child, job=job, node=node, genome=genome,
-                          fitness=fitness, env_steps=min(2, budget))  # fmt: skip
+                          fitness=fitness, env_steps=min(2, budget), checkpoint=policy)  # fmt: skip
             with self.lock:
                 self.unacked[job] = (node, time.perf_counter())
             self._put(self.keys.fitness(node, child), msgpack.packb(report, use_bin_type=True))
@@ -319,7 +325,7 @@ class LoadGenerator:
                 self.acked.append((now, now - sent))
                 self.ack_wait[node] = now - sent
         if node is not None:
-            self.answers.put((node, "", "", None, None, 0))
+            self.answers.put((node, "", "", None, 0))
 
     def _resend(self) -> None:
         """Idle simulated workers repeat WorkerReady as real ones do (`ready_wait`)."""
@@ -487,7 +493,7 @@ def _report(run: str, job: TrainJob, fitness: float, points: int = 100) -> Fitne
         curve=Curve(env_steps=tuple(range(4096, 4096 * (points + 1), 4096)),
                     returns=tuple(float(k) for k in range(points))),
         energy=1.0, cost_of_work=1.0, mass=1.0, episodes=10, env_steps=409600, wall_s=1.0,
-        steps_per_s=1.0, checkpoint=b"",
+        steps_per_s=1.0, checkpoint=untrained_policy(job.genome, job.task),
     )  # fmt: skip
 
 
@@ -509,6 +515,8 @@ class Driver:
     def _ready(self, node: str) -> TrainJob | None:
         coordinator, state = self.coordinator, self.coordinator.state
         ready = WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
+        if node not in coordinator.tokens:  # a worker holds a liveliness token
+            coordinator._liveliness("trainer", node, True)
         coordinator._ready(ready)
         coordinator.ledger.flush()  # as the serve loop does after each group (here: each message)
         coordinator._publish_released()

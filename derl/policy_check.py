@@ -15,7 +15,10 @@ import numpy as np
 import torch
 
 from derl.envs import EnvConfig, UnimalEnv, make_task
+from derl.lifetime import ppo_config
 from derl.rl.checkpoint import Checkpoint, Policy
+from derl.rl.network import ActorCritic
+from derl.rl.normalize import ObsNormalizer
 from derl.unimal import Genome, body_hash
 
 BODY_WORLD = "ft"  # where a body's own spaces are read (a plane: the cheapest world to build)
@@ -69,3 +72,14 @@ def _world_spaces(world: str, genome: Genome) -> dict[str, int]:
         spaces = UnimalEnv(genome, make_task(world), EnvConfig(num_envs=1)).obs_spaces
         _WORLDS[world] = {k: v for k, v in spaces.items() if k != "proprioception"}
     return _WORLDS[world]
+
+
+def untrained_policy(genome: Genome, world: str, seed: int = 0) -> bytes:
+    """A checkpoint of `genome`'s network in `world` with initial weights drawn from `seed`
+    (the same bytes for the same arguments): a policy that passes `policy_problem`, for tests
+    and benchmarks that stand in for a trainer."""
+    spaces, actions = expected_spaces(genome, world)
+    torch.manual_seed(seed)
+    net = ActorCritic(spaces, actions)
+    config = ppo_config(world, 4096, seed, num_envs=16)
+    return Checkpoint.capture(net, ObsNormalizer(spaces, config.obs_clip), config).to_bytes()

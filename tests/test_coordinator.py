@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from derl.messages import (
     Ack,
     Birth,
@@ -32,6 +31,7 @@ from derl.messages import (
     JobFailed,
     MessageBase,
     Reject,
+    Rejection,
     Tournament,
     TrainJob,
     WorkerReady,
@@ -49,12 +49,8 @@ from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 
 from derl.evolution import Evolution, EvolutionConfig, breed, load_profile, population
-from derl.lifetime import ppo_config
-from derl.policy_check import expected_spaces
+from derl.policy_check import untrained_policy
 from derl.rl import PPOConfig, PPOHyperparameters
-from derl.rl.checkpoint import Checkpoint
-from derl.rl.network import ActorCritic
-from derl.rl.normalize import ObsNormalizer
 from derl.unimal import Genome, Joint, Limb, body_hash, sample_population
 from tests.nodes_fixtures import free_port, run_id
 
@@ -125,6 +121,9 @@ def _journaled(coordinator: Coordinator) -> list[MessageBase]:
 
 
 def _ready(coordinator: Coordinator, node: str) -> None:
+    """`node` asks for work, its liveliness token up (a worker without one gets none)."""
+    if node not in coordinator.tokens:
+        coordinator._liveliness("trainer", node, True)
     coordinator._ready(WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1))
 
 
@@ -136,19 +135,8 @@ def _job_for(coordinator: Coordinator, node: str) -> TrainJob:
     return job.order
 
 
-def _policy(genome: Genome, world: str, seed: int) -> bytes:
-    """A policy of `genome` in `world` (untrained: initial weights drawn with `seed`), as a
-    trainer's checkpoint: what the coordinator checks a report's checkpoint against (the same
-    bytes for the same arguments)."""
-    spaces, actions = expected_spaces(genome, world)
-    torch.manual_seed(seed)
-    net = ActorCritic(spaces, actions)
-    config = ppo_config(world, 4096, seed, num_envs=16)
-    return Checkpoint.capture(net, ObsNormalizer(spaces, config.obs_clip), config).to_bytes()
-
-
 def _weights(job: TrainJob, seed: int) -> bytes:
-    return _policy(job.genome, job.task, seed)
+    return untrained_policy(job.genome, job.task, seed)
 
 
 def _report(job: TrainJob, checkpoint: bytes | int) -> FitnessReport:
@@ -571,7 +559,8 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
         with open_session(ZenohOptions(connect=(endpoint,))) as session:
             bus = Bus(session, run)
             bus.subscribe(bus.keys.all("job"), jobs.put, (TrainJob,))
-            time.sleep(1.0)  # the subscriptions are known on both sides
+            tokens = [bus.token("trainer", worker) for worker in ("w1", "w2", "w3")]
+            time.sleep(1.0)  # the subscriptions and tokens are known on both sides
             for worker in ("w1", "w2", "w3"):
                 bus.publish(WorkerReady(run=run, node=worker, role="trainer", host="h", pid=1))
             first, second = jobs.get(timeout=10), jobs.get(timeout=10)
@@ -582,6 +571,7 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
                 bus.publish(_report(job, 0))
             third = jobs.get(timeout=10)
             assert (third.node, third.child) == ("w3", "c00000")
+            assert len(tokens) == 3
     finally:
         coordinator.stop.set()
         serving.join(timeout=30)
@@ -672,3 +662,27 @@ def test_a_checkpoint_that_is_not_a_policy_of_its_body_is_never_born(
     coordinator._handle(_report(second, 3))
     coordinator.settle()
     assert list(coordinator.state.born) == [second.child]
+
+
+def test_one_worker_per_identity_and_none_without_a_liveliness_token(
+    coordinator_of: Callable[..., Coordinator],
+) -> None:
+    """One trainer certificate posed as `<node>.r901`, `.r902` and `.rX-evil` without a token
+    and got a job each: a worker gets work only with its liveliness token up, and one identity
+    (`<id>` and its restarts `<id>.r<n>`) has one live worker: a later restart ends the earlier
+    one's job, an earlier one is refused (journaled once)."""
+    coordinator = coordinator_of(population=4, total=8)
+    coordinator._ready(WorkerReady(run=coordinator.run, node="t.r901", role="trainer", host="h",
+                                   pid=1))  # fmt: skip
+    coordinator.settle()
+    assert coordinator.state.job_of("t.r901") is None  # no token
+    first = _job_for(coordinator, "t")
+    later = _job_for(coordinator, "t.r1")  # its restart: the first one's job goes back
+    assert coordinator.state.job_of("t") is None and later.child == first.child
+    for _ in range(3):
+        _ready(coordinator, "t")  # the earlier incarnation, back: refused
+    coordinator.settle()
+    assert coordinator.state.job_of("t") is None
+    refused = [m for m in _journaled(coordinator) if isinstance(m, Rejection)]
+    assert len(refused) == 1 and "t.r1 is alive" in refused[0].reason
+    assert coordinator._status().workers_alive == 1

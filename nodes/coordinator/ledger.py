@@ -186,16 +186,19 @@ class Ledger:
         self.reject(msg, subject, f"job {msg.job} was never issued to {msg.node} for "
                     f"{subject}{also}")  # fmt: skip
 
-    def rejection(self, why: str, key: str, msg: MessageBase) -> None:
-        """Journal (unpublished) and count a message refused before any handler took it."""
+    def rejection(
+        self, why: str, key: str, msg: MessageBase | None = None, sender: str | None = None
+    ) -> None:
+        """Journal (unpublished) and count a message refused before any handler took it (or,
+        without `msg`, what `sender` did on `key`)."""
         self.rejected += 1
         self.commit(
             Rejection(
                 run=self.run,
                 reason=why,
                 key=key[:1000],
-                sender=getattr(msg, "node", None),
-                of=msg.type,
+                sender=getattr(msg, "node", sender),
+                of="" if msg is None else msg.type,
                 job=getattr(msg, "job", None),
             ),
             publish=False,

@@ -26,6 +26,7 @@ from __future__ import annotations
 import gc
 import logging
 import queue
+import re
 import signal
 import threading
 import time
@@ -94,6 +95,9 @@ class Coordinator:
         self.ready_inlet: Inlet | None = None  # where WorkerReady comes in (None: handlers
         # called directly, each message just arrived)
         self.alive: dict[str, str] = {}  # node -> role
+        self.tokens: set[str] = set()  # nodes whose liveliness token is up
+        self.incarnations: dict[str, str] = {}  # identity -> its one live node (`incarnation`)
+        self.refused: set[str] = set()  # nodes refused as another incarnation of a live one
         # role -> the workers that asked and got no work, first asked first (`_assign_idle`)
         self.idle: dict[str, dict[str, None]] = {"trainer": {}, "evaluator": {}}
         self.trainers = 0  # of them, trainers (counted, not scanned: one count per assignment)
@@ -276,8 +280,11 @@ class Coordinator:
     # --- assignments -------------------------------------------------------------------------
 
     def _ready(self, ready: WorkerReady) -> None:
-        if ready.node not in self.alive:
-            self._join(ready.node, ready.role)
+        if ready.node not in self.tokens:  # no work without a liveliness token (it asks again)
+            log.debug("%s asked for work before its liveliness token came", ready.node)
+            return
+        if ready.node not in self.alive and not self._join(ready.node, ready.role):
+            return
         current = self.state.job_of(ready.node)
         if current is not None:  # it missed its job (e.g. the coordinator restarted) ...
             # ... or asked before the job reached it: sent again only if the ask came in at
@@ -336,27 +343,50 @@ class Coordinator:
 
     # --- workers and leases ------------------------------------------------------------------
 
-    def _join(self, node: str, role: str) -> None:
+    def _join(self, node: str, role: str) -> bool:
+        """`node` is alive (whether it may work): one live node per identity (`incarnation`), a
+        later restart's ending the earlier one's job; an earlier or equal one is refused."""
+        identity, number = incarnation(node)
+        current = self.incarnations.get(identity)
+        if current is not None and current != node:
+            if number <= incarnation(current)[1]:
+                if node not in self.refused:  # journaled once: it may ask every second
+                    self.refused.add(node)
+                    why = f"{current} is alive: one worker per identity"
+                    self.ledger.rejection(why, self.keys.alive(role, node), sender=node)
+                return False
+            self._lost(current, f"{node} came after it")
         self._leave(node)
         self.alive[node] = role
         self.trainers += role == "trainer"
+        self.incarnations[identity] = node
+        return True
 
     def _leave(self, node: str) -> None:
         role = self.alive.pop(node, None)
         self.trainers -= role == "trainer"
         if role is not None:
             self.idle[role].pop(node, None)
+            identity = incarnation(node)[0]
+            if self.incarnations.get(identity) == node:
+                del self.incarnations[identity]
 
     def _liveliness(self, role: str, node: str, up: bool) -> None:
         if up:
+            self.tokens.add(node)
             self._join(node, role)
             return
+        self.tokens.discard(node)
+        self._lost(node, "node left")
+
+    def _lost(self, node: str, reason: str) -> None:
+        """`node` is gone: its job, if any, goes back to the queue."""
         self._leave(node)
         self.rates.pop(node, None)
         job = self.state.job_of(node)
         if job is not None:
-            log.warning("%s left: %s goes back to the queue", node, job.subject)
-            self.ledger.commit(JobLost(run=self.run, job=job.id, node=node, reason="node left"))
+            log.warning("%s: %s; %s goes back to the queue", node, reason, job.subject)
+            self.ledger.commit(JobLost(run=self.run, job=job.id, node=node, reason=reason))
 
     def _check_leases(self, now: float) -> None:
         for job in list(self.state.jobs.values()):
@@ -402,6 +432,12 @@ class Coordinator:
             steps_per_s=sum(self.rates.values()),
             done=state.finished,
         )
+
+
+def incarnation(node: str) -> tuple[str, int]:
+    """A worker's identity and incarnation: ``<id>.r<n>`` is restart n of ``<id>`` (0: itself)."""
+    restart = re.fullmatch(r"(.+)\.r(\d+)", node)
+    return (node, 0) if restart is None else (restart[1], int(restart[2]))
 
 
 def serve(run: str, run_dir: Path, policy: Callable[[], Policy], options: ZenohOptions) -> bool:
