@@ -12,6 +12,7 @@ torque|, M the body's mass, r its selection reward (undefined, NaN, when r <= 0)
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -24,6 +25,9 @@ from derl.unimal import Genome
 
 if TYPE_CHECKING:
     from derl.rl.ppo import Progress, TrainResult
+
+Saved = Callable[["LifetimeResult", "TrainResult", bytes], None]
+"""Called with the summary and the result so far and the training's state (`learn`'s `save`)."""
 
 GRAVITY = 9.81
 FITNESS_ITERATIONS = 100
@@ -78,9 +82,17 @@ def learn(
     config: PPOConfig,
     callback: Callable[[Progress], None] | None = None,
     nthread: int = 1,
+    *,
+    save: Saved | None = None,
+    every: int = 0,
+    stop: threading.Event | None = None,
+    resume: bytes | None = None,
 ) -> tuple[LifetimeResult, TrainResult]:
-    """Train a fresh controller for `genome` in `task`; returns the summary and the full result."""
-    from derl.rl.ppo import train  # torch: imported by trainings only, not by every config user
+    """Train a fresh controller for `genome` in `task`; returns the summary and the full result.
+    With `save`, the training's state is saved every `every` iterations (0: never) and once
+    `stop` is set, after which it returns what it did (`derl.rl.ppo.Saver`); `resume` (such a
+    state) goes on from it, bit for bit."""
+    from derl.rl.ppo import Saver, train  # torch: imported by trainings only, not by config users
 
     env = UnimalEnv(
         genome,
@@ -88,7 +100,19 @@ def learn(
         EnvConfig(num_envs=config.num_envs, nthread=nthread),
         seed=config.seed,
     )
-    result = train(env, config, callback)
+    saver = None
+    if save is not None:
+
+        def saved(result: TrainResult, state: bytes) -> None:
+            save(summarize(env, task, config, result), result, state)
+
+        saver = Saver(saved, every, stop or threading.Event())
+    result = train(env, config, callback, saver=saver, resume=resume)
+    return summarize(env, task, config, result), result
+
+
+def summarize(env: UnimalEnv, task: str, config: PPOConfig, result: TrainResult) -> LifetimeResult:
+    """What evolution and the analyses keep of a training (so far) of `env`'s body."""
     mass = float(env.model.body_subtreemass[env.head])
     log = result.episodes
     final = log.finish_step > result.env_steps - config.fitness_window_steps
@@ -98,7 +122,7 @@ def learn(
     reward = result.fitness
     cost = energy / (mass * GRAVITY * reward) if reward > 0 else float("nan")
     steps, returns = zip(*result.curve, strict=True) if result.curve else ((), ())
-    summary = LifetimeResult(
+    return LifetimeResult(
         task=task,
         fitness=result.fitness,
         fitness_source=result.fitness_source,
@@ -115,4 +139,3 @@ def learn(
         unstable_steps=env.unstable_count,
         time_split={k: round(v, 3) for k, v in vars(result.time_split).items() if v is not None},
     )
-    return summary, result

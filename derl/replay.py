@@ -1,9 +1,19 @@
 """A trained body acting again: loaded from a folder (genome, checkpoint, task), its episodes
-played with the deterministic policy, the first one filmed if asked.
+played with the deterministic policy, the first one filmed if asked (`derl rollout`).
 
 Two kinds of folder hold a trained body: the output of `derl train` (the task in its
 ``result.json``) and a run's ``best/NN-agent`` folder (the task in its ``training.json``, the
-run's training settings). Both carry ``genome.json`` and ``checkpoint.pt``.
+run's training settings). Both carry ``genome.json`` and ``checkpoint.pt``. From Python::
+
+    import derl
+
+    agent = derl.load_trained("runs/body-ft")      # NotTrained says what the folder lacks
+    env = agent.gym_env(render_mode="rgb_array")   # its body in its task, as a gymnasium env
+    obs, _ = env.reset(seed=0)
+    for _ in range(1000):
+        obs, reward, terminated, truncated, info = env.step(agent.act(obs))
+        if terminated or truncated:
+            break
 """
 
 from __future__ import annotations
@@ -21,6 +31,7 @@ from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
 from derl.unimal import Genome
 
 if TYPE_CHECKING:
+    from derl.envs.gym_env import UnimalGymEnv
     from derl.rl import Policy
 
 GENOME, CHECKPOINT = "genome.json", "checkpoint.pt"
@@ -73,6 +84,27 @@ class Trained:
         except (OSError, ValueError, KeyError) as error:
             raise NotTrained(f"{folder}: cannot read its trained body: {error}") from None
 
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The policy's mean action, clipped to [-1, 1]: for one observation (a dict of
+        (dim,) arrays, as `gym_env`'s) an (A,) array, for a batch of them ((N, dim) arrays, as
+        a `derl.envs.UnimalEnv`'s) (N, A)."""
+        one = next(iter(obs.values())).ndim == 1
+        actions = self.policy({key: value[None] if one else value for key, value in obs.items()})
+        return actions[0] if one else actions
+
+    def gym_env(self, render_mode: str | None = None, **options: object) -> UnimalGymEnv:
+        """The body in the task it learnt, as a gymnasium environment (`UnimalGymEnv`'s
+        `render_mode`, frame size and task options)."""
+        from derl.envs.gym_env import UnimalGymEnv
+
+        return UnimalGymEnv(self.genome, self.task, render_mode, **options)  # type: ignore[arg-type]
+
+
+def load_trained(folder: str | Path) -> Trained:
+    """The trained body of `folder` (`Trained.load`): `derl train`'s output or a run's
+    best/NN-agent folder."""
+    return Trained.load(Path(folder))
+
 
 @dataclass(frozen=True)
 class Episode:
@@ -113,7 +145,7 @@ def play(
                         frames.append(recorder.frame())
                     else:
                         recorder.follow()
-                step = env.step(trained.policy(obs))
+                step = env.step(trained.act(obs))
                 obs, steps = step.obs, steps + 1
                 total += float(step.components[component][0])
                 if step.terminated[0] or step.truncated[0]:

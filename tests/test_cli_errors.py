@@ -8,7 +8,11 @@ type, a folder with no trained body, a study with no runs, of a missing run or n
 run directory of another run id, a monitor or a topic that hears nothing (the line says how it
 joined the bus: by default the local run's endpoint, $DERL_LOCAL_PORT here) or is asked to
 listen a negative time, a report of a file that is no log, an export with nothing to write, a
-missing or misspelt Zenoh config, an argument no option takes)."""
+missing or misspelt Zenoh config, an argument no option takes; a training's folder that is a
+file or cannot be made, a resume with a new training's flags or of no stopped training, a
+report into a folder that cannot be made, a video of a format derl does not write or in no
+folder (said before the episode is filmed), an endpoint without a port or with one out of
+range). A mistake in a command's own flags (--set included) exits 2, as argparse's do."""
 
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from derl.messages import WorkerReady
@@ -39,8 +44,24 @@ def busy_port() -> Iterator[int]:
         yield taken.getsockname()[1]
 
 
-def _files(tmp: Path, genome: Genome) -> None:
+@pytest.fixture(scope="module")
+def trained() -> dict[str, bytes]:
+    """The files of a finished `derl train` folder (a body trained one short iteration)."""
+    from derl.lifetime import learn, ppo_config
+    from derl.unimal import sample_population
+
+    (genome,) = sample_population(1, np.random.default_rng(0))
+    _, result = learn(genome, "ft", ppo_config("ft", 1024, seed=0, num_envs=8))
+    return {"genome.json": genome.model_dump_json().encode(),
+            "checkpoint.pt": result.checkpoint.to_bytes(),
+            "result.json": json.dumps({"task": "ft", "config": {}}).encode()}  # fmt: skip
+
+
+def _files(tmp: Path, genome: Genome, trained: dict[str, bytes]) -> None:
     (tmp / GENOME).write_text(genome.model_dump_json())
+    (tmp / "trained").mkdir()
+    for name, data in trained.items():
+        (tmp / "trained" / name).write_bytes(data)
     (tmp / "typo.yaml").write_text(yaml.safe_dump({"profile": "smoke", "populaton": 3}))
     # a job's own setting under `ppo`: each job's copies come from the profile's `num_envs`
     (tmp / "job-key.yaml").write_text(yaml.safe_dump({"profile": "smoke", "ppo": {"num_envs": 64}}))
@@ -63,7 +84,33 @@ def _files(tmp: Path, genome: Genome) -> None:
 
 CASES = {  # name: (arguments, exit status, what its last line says)
     "budget below one rollout": (["train", "--genome", GENOME, "--out", "t", "--steps", "100"],
-                                 1, "total_steps 100 < one rollout"),
+                                 2, "--steps: 100 is less than one rollout, 4,096 env steps (32 "
+                                 "copies x 128 steps)"),
+    "no budget": (["train", "--genome", GENOME, "--out", "t", "--steps", "0"], 2,
+                  "--steps: 0 is less than one rollout, 4,096 env steps"),
+    "a training's folder that is a file": (["train", "--genome", GENOME, "--out", "a-file"], 1,
+                                           "--out a-file is a file, not a directory"),
+    "a training's folder that cannot be made": (["train", "--genome", GENOME, "--out",
+                                                 "/proc/x"], 1, "cannot make --out /proc/x"),
+    "a training without a body": (["train", "--out", "t"], 2, "--genome required (or --resume"),
+    "a resume with a new training's flag": (["train", "--resume", "trained", "--steps", "100"],
+                                            2, "--resume takes the training's settings from its "
+                                            "folder: drop --steps"),
+    "a resume of no stopped training": (["train", "--resume", "trained"], 1,
+                                        "--resume trained: no training-state.pt (its training "
+                                        "finished)"),
+    "a report into a folder that cannot be made": (["report", "missing", "--out", "/proc/x"], 1,
+                                                   "cannot make --out /proc/x"),
+    "a video format derl does not write": (["rollout", "trained", "--video", "x.avi"], 2,
+                                           "--video x.avi: write a .gif, or an .mp4"),
+    "a video in no folder": (["rollout", "trained", "--video", "missing/v.gif"], 1,
+                             "--video missing/v.gif: no folder missing"),
+    "an endpoint without a port": (["monitor", "--connect", "tcp/nonsense", "--once", "1"], 2,
+                                   "argument --connect: 'tcp/nonsense' is not an endpoint: give "
+                                   "tcp/HOST:PORT"),
+    "an endpoint's port out of range": (["topic", "echo", "status", "--connect",
+                                         "tcp/127.0.0.1:99999"], 2,
+                                        "'tcp/127.0.0.1:99999': 99999 is not a port number"),
     "an impossible genome": (["train", "--genome", "no-joints.json", "--out", "t"], 1,
                              "no-joints.json is not a valid genome: limbs.0: limb 0: joints must"),
     "zero copies": (["train", "--genome", GENOME, "--out", "t", "--envs", "0"], 2,
@@ -86,13 +133,16 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                 "--once: must be more than 0 seconds, not -1"),
     "a report of a file that is no log": (["report", "page.html", "--out", "r"], 1,
                                           "page.html is not an MCAP log"),
-    "a misspelt key in --set": (["run", "--set", "ppo.lrr=1e-4"], 1,
+    "a misspelt key in --set": (["run", "--set", "ppo.lrr=1e-4"], 2,
                                 "profile smoke with --set ppo.lrr=1e-4: unknown key 'ppo.lrr'; "
                                 "valid keys: rollout_steps, gamma"),
     "a --set without a value": (["study", "--study-dir", "s", "--set", "seeds"], 2,
                                 "argument --set: 'seeds' is not KEY=VALUE (e.g. ppo.lr=1e-4)"),
-    "a --set of a wrong value": (["coordinator", "--run", "r", "--run-dir", "c", "--set",
-                                  "total=many"], 78,
+    "a --set of a wrong value": (["run", "--set", "total=many"], 2,
+                                 "profile smoke with --set total=many: total: Input should be a "
+                                 "valid integer"),
+    "a node's --set of a wrong value": (["coordinator", "--run", "r", "--run-dir", "c", "--set",
+                                         "total=many"], 78,
                                  "profile smoke with --set total=many: total: Input should be a "
                                  "valid integer"),
     "a job's setting under ppo": (["run", "--profile", "job-key.yaml"], 1,
@@ -148,10 +198,10 @@ CASES = {  # name: (arguments, exit status, what its last line says)
 
 @pytest.mark.parametrize("name", CASES)
 def test_bad_input_gets_one_line_and_an_exit_status(
-    name: str, tmp_path: Path, busy_port: int, quadruped: Genome
+    name: str, tmp_path: Path, busy_port: int, quadruped: Genome, trained: dict[str, bytes]
 ) -> None:
     arguments, status, says = CASES[name]
-    _files(tmp_path, quadruped)
+    _files(tmp_path, quadruped, trained)
     local = free_port()  # the local run's port ($DERL_LOCAL_PORT), where nothing listens
 
     def filled(text: str) -> str:

@@ -1,16 +1,14 @@
-"""Launch files: validation, the exact commands `derl launch` builds (dry run), the Slurm
-script's trainer command, and real launches on loopback: a run to the end with a killed
-trainer restarted by its policy, and SIGTERM stopping every node."""
+"""Launch files: validation, the exact commands `derl launch` builds (dry run), and real
+launches on loopback: a run to the end with a killed trainer restarted by its policy, and SIGTERM
+stopping every node. (The Slurm job: tests/test_slurm.py.)"""
 
 from __future__ import annotations
 
 import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -36,7 +34,6 @@ from derl.evolution import load_profile
 
 LOCAL = REPO / "launch" / "local.yaml"
 CLUSTER = REPO / "launch" / "cluster.example.yaml"
-SBATCH = REPO / "launch" / "slurm" / "derl-trainers.sbatch"
 
 
 def _derl(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
@@ -338,46 +335,6 @@ def test_default_hosts_are_this_machine_or_those_without_ssh(tmp_path: Path) -> 
     data["hosts"].append({"name": "local", "nodes": [{"role": "trainer"}]})
     only_local = plan(LaunchFile.model_validate(data), Path("x.yaml"), ssh=False)
     assert {c.host for c in only_local} == {"local"}  # the host named `local` is this machine
-
-
-# --- the Slurm script ----------------------------------------------------------------------
-
-
-@pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
-def test_slurm_script_starts_one_trainer_per_task(tmp_path: Path) -> None:
-    """`srun` is replaced by a stub that runs the task's command once, as task 3 (local id 1);
-    the trainer command it builds must be accepted by the real `derl` parser."""
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "srun").write_text(
-        '#!/bin/bash\nwhile [[ "$1" == --* ]]; do shift; done\n'
-        'SLURM_PROCID=3 SLURM_LOCALID=1 SLURM_CPUS_PER_TASK=2 exec "$@"\n'
-    )
-    fake = bin_dir / "derl"
-    fake.write_text(  # the real parser, printing what it was given
-        f"#!{sys.executable}\nimport json, sys\nsys.path.insert(0, {str(REPO)!r})\n"
-        "from nodes.cli.main import build_parser\n"
-        "build_parser().parse_args(sys.argv[1:])\nprint(json.dumps(sys.argv[1:]))\n"
-    )
-    for stub in (bin_dir / "srun", fake):
-        stub.chmod(0o755)
-    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "SLURM_JOB_ID": "77",
-           "DERL_RUN": "r9", "DERL_SEED": "tls/10.0.0.5:7447", "DERL_ADDRESS": "10.0.0.31",
-           "DERL_CERTS": "/srv/certs", "DERL_HOST": "hpc"}  # fmt: skip
-    result = subprocess.run(["bash", str(SBATCH)], capture_output=True, text=True, env=env,
-                            timeout=60)  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    assert yaml.safe_load(result.stdout.strip().splitlines()[-1]) == [
-        "trainer", "--run", "r9", "--connect", "tls/10.0.0.5:7447", "--name", "hpc-trainer-3",
-        "--threads", "2", "--listen", "tls/10.0.0.31:7448",
-        "--zenoh-config", "/srv/certs/hpc-trainer-3/zenoh.json5",
-    ]  # fmt: skip
-    plain = subprocess.run(["bash", str(SBATCH)], capture_output=True, text=True,
-                           env={**env, "DERL_CERTS": ""}, timeout=60)  # fmt: skip
-    assert "--zenoh-config" not in plain.stdout and '"slurm77-3"' in plain.stdout
-    missing = subprocess.run(["bash", str(SBATCH)], capture_output=True, text=True,
-                             env={**env, "DERL_RUN": ""}, timeout=60)  # fmt: skip
-    assert missing.returncode != 0 and "DERL_RUN" in missing.stderr
 
 
 # --- real launches -------------------------------------------------------------------------

@@ -86,9 +86,14 @@ def test_network_shapes_and_init() -> None:
 
 
 def _released_loss(
-    net: ActorCritic, obs: dict[str, torch.Tensor], aux: torch.Tensor, coef: PPOCoefficients
+    net: ActorCritic,
+    obs: dict[str, torch.Tensor],
+    aux: torch.Tensor,
+    coef: PPOCoefficients,
+    terms: dict[str, float] | None = None,
 ) -> torch.Tensor:
-    """The released code's PPO loss, with torch.distributions and autograd."""
+    """The released code's PPO loss, with torch.distributions and autograd; its terms as PPO
+    libraries log them into `terms` where given."""
     a = net.action_dim
     actions, old_log_prob, adv, old_value, ret = (
         aux[:, :a],
@@ -105,6 +110,14 @@ def _released_loss(
     clipped = old_value + (value - old_value).clamp(-coef.value_clip, coef.value_clip)
     value_loss = 0.5 * torch.max((value - ret).square(), (clipped - ret).square()).mean()
     entropy = pi.entropy().mean()  # over batch and action dimensions (released code)
+    if terms is not None:
+        log_ratio = pi.log_prob(actions).sum(-1) - old_log_prob
+        terms.update(
+            policy_loss=float(pi_loss.detach()),
+            value_loss=float(value_loss.detach()),
+            approx_kl=float(-log_ratio.detach().mean()),
+            clip_fraction=float(((ratio.detach() - 1.0).abs() > coef.clip).float().mean()),
+        )
     return pi_loss + coef.value_coef * value_loss - coef.entropy_coef * entropy
 
 
@@ -167,7 +180,8 @@ def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: 
         clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9, kl_stop=1e9
     )
     net.zero_grad()
-    _released_loss(net, obs, aux, coef).backward()
+    terms: dict[str, float] = {}
+    _released_loss(net, obs, aux, coef, terms).backward()
     mb = fused.minibatch(rows, [spaces[k] for k in fused.keys], aux.shape[1])
     sources = [obs[k] for k in fused.keys]
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.randperm(rows, generator=gen))
@@ -176,6 +190,13 @@ def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: 
     assert [None if at is None else len(at) for at in mb.at] == expected_at
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.arange(rows))
     assert fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
+    # the diagnostics: the loss's terms as the step computed them on the way to its gradient
+    assert fused.losses.steps == 1 and 0 < terms["clip_fraction"] < 1
+    policy, value, kl, clipped = fused.losses.means()
+    assert policy == pytest.approx(terms["policy_loss"], rel=1e-4, abs=1e-6)
+    assert value == pytest.approx(terms["value_loss"], rel=1e-4)
+    assert kl == pytest.approx(terms["approx_kl"], rel=1e-4, abs=1e-6)
+    assert clipped == terms["clip_fraction"]
     flat = torch.cat(
         [
             g

@@ -99,22 +99,24 @@ def test_the_rate_shown_once_the_run_is_done_is_the_mean_while_it_trained() -> N
 @pytest.mark.slow
 def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> None:
     """Ctrl-C: `derl run` stops every node and prints the command that resumes the run, with
-    its --set changes (a profile file's run refuses to resume under another profile); that
-    command finishes it with the same settings."""
-    run_dir = tmp_path / "my run"
+    its --set changes (a profile file's run refuses to resume under another profile) and its
+    port; that command finishes it with the same settings. The run id comes from a folder name
+    of any characters (`über run`: `uber-run`)."""
+    run_dir = tmp_path / "über run"
     processes = Processes(tmp_path / "test-logs")
     try:
-        board = tmp_path / "tb"
+        board, port = tmp_path / "tb", free_port()
         argv = ["run", "--profile", "smoke", "--set", "total=6", "--set", "ppo.lr=1e-4", "--seed",
                 "3", "--run-dir", str(run_dir), "--tensorboard", str(board)]  # fmt: skip
-        run = processes.start("run", derl_argv(*argv, "--port", str(free_port())))
+        run = processes.start("run", derl_argv(*argv, "--port", str(port)))
         wait_for(lambda: births(run_dir), 120, "a birth")
         run.send_signal(signal.SIGINT)
         assert run.wait(timeout=30) == 130
         said = re.search(r"stopped; `(derl run .+)` resumes the run", processes.log("run"))
         assert said is not None, processes.log("run")
         assert said[1] == (f"derl run --profile smoke --set total=6 --set ppo.lr=1e-4 --seed 3 "
-                           f"--run-dir '{run_dir}' --tensorboard {board}")  # fmt: skip
+                           f"--run-dir '{run_dir}' --port {port} "
+                           f"--tensorboard {board}")  # fmt: skip
         again = processes.start("again", derl_argv(*shlex.split(said[1])[1:], "--port",
                                                    str(free_port())))  # fmt: skip
         assert again.wait(timeout=240) == 0, processes.log("again")
@@ -124,7 +126,7 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         resumed = (run_dir / "logs" / f"{COORDINATOR}.log").read_text().split("start 0:")[-1]
         assert "saved settings" not in resumed  # the resume asked for the run's own settings
         # the run's curves in TensorBoard, each birth once across the two watchers
-        events = EventAccumulator(str(board / "my-run"), size_guidance={"scalars": 0})
+        events = EventAccumulator(str(board / "uber-run"), size_guidance={"scalars": 0})
         events.Reload()
         assert [e.step for e in events.Scalars("birth/fitness")] == list(range(6))
         assert events.Scalars("run/born")[-1].value == 6

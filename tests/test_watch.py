@@ -246,6 +246,17 @@ def test_topic_echo_prints_json_lines_through_a_router(procs: Processes) -> None
     assert "rejected (malformed)" in procs.log("echo")
 
 
+def test_topic_echo_ends_when_the_run_does(
+    procs: Processes, bus: Bus, repeater: Repeater, endpoint: str
+) -> None:
+    status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
+    repeater.start([status.model_copy(update={"done": True})], 0.2)
+    echo = procs.start("echo", derl_argv("topic", "echo", "fitness", "--run", bus.run,
+                                         "--connect", endpoint))  # fmt: skip
+    assert procs.finish(echo) == 0, procs.log("echo")
+    assert f"derl topic echo: run {bus.run} is done; 0 messages shown" in procs.log("echo")
+
+
 def test_topic_hz_and_list(procs: Processes, bus: Bus, repeater: Repeater, endpoint: str) -> None:
     status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
     repeater.start([status], 0.05, raw=((bus.keys.fitness("n", "x"), b"\xffjunk"),))

@@ -20,6 +20,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis, pooled
+from derl.analysis.learning import LineageGain
 from derl.analysis.morphology import DESCRIPTORS
 from derl.analysis.statistics import Correlation, Point
 from derl.analysis.testsuite import budget_label, budgets, tasks_and_worlds
@@ -74,9 +75,10 @@ def _save(figure: Figure, path: Path) -> Path:
     return path
 
 
-def _note(axis: Axes, text: str) -> None:
+def _note(axis: Axes, text: str, y: float = 0.5) -> None:
+    """`text` across the panel, at height `y` (axes fraction: 0.5 its middle)."""
     axis.text(
-        0.5, 0.5, text, transform=axis.transAxes, ha="center", va="center", color="0.35", wrap=True
+        0.5, y, text, transform=axis.transAxes, ha="center", va="center", color="0.35", wrap=True
     )
 
 
@@ -111,10 +113,13 @@ def _curves(axis: Axes, analysis: Analysis, name: str, xlabel: str, ylabel: str)
     axis.set(xlabel=xlabel, ylabel=ylabel)
     axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axis.grid(alpha=0.3)
-    if any(drawn):
-        axis.legend(fontsize=7)
-    else:
+    if not any(drawn):
         _note(axis, "no values to show")
+        return
+    axis.legend(fontsize=7)
+    points = max(sum(p.value is not None for p in w.series[name]) for w in analysis.worlds)
+    if points == 1:  # e.g. a smoke run: the top agents' ancestors with a value in one generation
+        _note(axis, "a single point: too few bodies for a curve", y=0.9)
 
 
 def _sizes(analysis: Analysis, field: str) -> str:
@@ -381,13 +386,34 @@ def illustrative_curves(path: Path, analysis: Analysis) -> Path:
         gain = w.summary.illustrative
         axis.set_title(
             f"{w.summary.world.upper()}, {r.run.name}: lineage of {gain.last}, {len(chain)} "
-            f"generations; final return x{number(gain.return_ratio)}, criterion reached "
-            f"x{number(gain.speedup)} sooner",
+            f"generation{'s' if len(chain) != 1 else ''}\n{_gains(gain)}",
             fontsize=10,
         )
         axis.grid(alpha=0.3)
         axis.legend(fontsize=7)
     return _save(figure, path)
+
+
+def _gains(gain: LineageGain) -> str:
+    """What the lineage's last generation gained over its founder, in words, each part as far
+    as it is known (a ratio needs a positive founder's value)."""
+    if gain.return_ratio is not None:
+        returns = f"final return x{number(gain.return_ratio)}"
+    elif gain.first_return is not None and gain.last_return is not None:
+        returns = f"final return {gain.first_return:.1f} -> {gain.last_return:.1f}"
+    else:
+        returns = "no final returns to compare"
+    if gain.speedup is not None:
+        speed = f"criterion reached x{number(gain.speedup)} sooner"
+    elif gain.last_steps is not None:
+        speed = (
+            f"criterion reached by {gain.last} (at {gain.last_steps:,.0f} steps), not its founder"
+        )
+    elif gain.first_steps is not None:
+        speed = f"criterion reached by the founder {gain.first} only"
+    else:
+        speed = "criterion reached by neither"
+    return f"{returns}; {speed}"
 
 
 def energy(path: Path, analysis: Analysis) -> Path:
@@ -557,7 +583,13 @@ def _test_bars(axis: Axes, analysis: Analysis, budget: int | None, metric: str) 
                 fontsize=7,
             )
     axis.margins(y=0.2)  # room for the marks
+    axis.set_xlim(-0.5, len(tasks) - 0.5)  # each task's label under its bars, not at an edge
     axis.set_xticks(range(len(tasks)), tasks, rotation=20, fontsize=8)
+    why = " (reward <= 0)" if metric == "cost_of_work" else ""
+    for t, task in enumerate(tasks):  # a task without a value says so, not an empty slot
+        if all(getattr(row, metric).value is None for row in summary if row.task == task):
+            axis.annotate(f"no value{why}", (t, 0.5), xycoords=("data", "axes fraction"),
+                          ha="center", color="0.35", fontsize=8)  # fmt: skip
     axis.set_ylabel(f"median {metric.replace('_', ' ')}")
     axis.set_title(f"{metric.replace('_', ' ')}, {budget_label(budget)}", fontsize=10)
     axis.grid(alpha=0.3, axis="y")

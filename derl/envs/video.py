@@ -3,6 +3,8 @@ seen by a camera that follows it, and the frames written as a video."""
 
 from __future__ import annotations
 
+import importlib.util
+import os
 from pathlib import Path
 
 import mujoco
@@ -66,6 +68,29 @@ class FrameRecorder:
 
     def close(self) -> None:
         self.renderer.close()
+
+
+class VideoError(ValueError):
+    """A video that cannot be written there, with the reason, and the exit status it means:
+    2 for a format derl does not write, 1 for a folder or a missing extra."""
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def check_video_path(path: Path) -> None:
+    """`VideoError` unless `write_video` can write `path`: a .gif, or an .mp4 with
+    imageio-ffmpeg installed, in a folder that exists and can be written in."""
+    if path.suffix not in (".gif", ".mp4"):
+        raise VideoError(f"{path}: write a .gif, or an .mp4 (pip install 'derl[video]')", 2)
+    if path.suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise VideoError(f"{path}: an .mp4 needs imageio-ffmpeg (pip install 'derl[video]')", 1)
+    folder = path.parent
+    if not folder.is_dir():
+        raise VideoError(f"{path}: no folder {folder}", 1)
+    if not os.access(folder, os.W_OK | os.X_OK) or (path.exists() and not path.is_file()):
+        raise VideoError(f"{path}: cannot write there (permission denied)", 1)
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: int = FPS) -> None:

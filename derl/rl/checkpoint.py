@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -110,3 +111,24 @@ class Policy:
         with torch.inference_mode():
             mean = self.net.action_mean({k: torch.from_numpy(v) for k, v in normalized.items()})
         return np.clip(mean.numpy(), -1.0, 1.0)
+
+
+STATE_FORMAT = 1
+"""Version of a training state's layout (`state_to_bytes`)."""
+
+
+def state_to_bytes(state: dict[str, Any]) -> bytes:
+    """A training's state (`derl.rl.ppo`: tensors, numbers, strings, lists and dicts) as the
+    bytes of `torch.save`, readable with ``weights_only=True``."""
+    buffer = io.BytesIO()
+    torch.save({"format": STATE_FORMAT, **state}, buffer)
+    return buffer.getvalue()
+
+
+def state_from_bytes(data: bytes) -> dict[str, Any]:
+    """`state_to_bytes` undone; `ValueError` for another format."""
+    state = torch.load(io.BytesIO(data), weights_only=True)
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        found = state.get("format") if isinstance(state, dict) else None
+        raise ValueError(f"training state format {found}, this derl reads {STATE_FORMAT}")
+    return state

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -126,6 +126,40 @@ class EpisodeTracker:
             length=cat(self._length, np.int64),
             components={k: cat(v, np.float64) for k, v in self._components.items()},
         )
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything recorded and running, as arrays and lists (a training resumed goes on
+        from it: `load_state_dict`)."""
+        log = self.log()
+        return {
+            "ret": self.ret.copy(),
+            "length": self.length.copy(),
+            "sums": {key: value.copy() for key, value in self.sums.items()},
+            "recent": [float(value) for value in self.recent],
+            "finish": log.finish_step,
+            "returns": log.ret,
+            "lengths": log.length,
+            "components": log.components,
+            "curve": [list(point) for point in self.curve],
+            "finished": list(self._finished),
+            "count": self.count,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.ret = np.array(state["ret"], np.float64)
+        self.length = np.array(state["length"], np.int64)
+        self.sums = {key: np.array(value, np.float64) for key, value in state["sums"].items()}
+        self.recent.clear()
+        self.recent.extend(state["recent"])
+        self._finish = [np.array(state["finish"], np.int64)]
+        self._ret = [np.array(state["returns"], np.float64)]
+        self._length = [np.array(state["lengths"], np.int64)]
+        self._components = {
+            key: [np.array(value, np.float64)] for key, value in state["components"].items()
+        }
+        self.curve = [(int(steps), float(value)) for steps, value in state["curve"]]
+        self._finished = list(state["finished"])
+        self.count = int(state["count"])
 
     def fitness(self, env_steps: int, window: int) -> Fitness:
         """Mean of the curve's values of the iterations that ended in the last `window` steps

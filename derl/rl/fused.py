@@ -302,6 +302,31 @@ class Minibatch:
         torch.index_select(aux, 0, idx, out=self.aux)
 
 
+class Losses:
+    """The sums, over the minibatch steps taken since `reset`, of what `FusedActorCritic.step`
+    computed on the way to its gradient: the clipped surrogate loss, the clipped value loss
+    (before `value_coef`), the approximate KL (the early stop's) and the share of ratios outside
+    the clip."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.steps = 0
+        self.sums = [0.0, 0.0, 0.0, 0.0]
+
+    def add(self, policy: float, value: float, kl: float, clipped: float) -> None:
+        self.steps += 1
+        for i, term in enumerate((policy, value, kl, clipped)):
+            self.sums[i] += term
+
+    def means(self) -> tuple[float, float, float, float]:
+        """(policy loss, value loss, approximate KL, clip fraction), NaN without a step."""
+        n = self.steps or math.nan
+        policy, value, kl, clipped = (total / n for total in self.sums)
+        return policy, value, kl, clipped
+
+
 class FusedActorCritic:
     """An `ActorCritic`'s parameters in one flat vector, trained by `step` with Adam."""
 
@@ -316,6 +341,7 @@ class FusedActorCritic:
         self.theta, self.grad = slab.theta, slab.grad
         self.load_from_net()
         self.adam = _Adam(self.theta, self.grad, lr, adam_eps)
+        self.losses = Losses()
         self._acting: _Activations[np.ndarray] | None = None
         self._valuing: _Activations[torch.Tensor] | None = None
         self._minibatch: Minibatch | None = None
@@ -405,12 +431,15 @@ class FusedActorCritic:
         log_prob *= -0.5
         log_prob -= np.float32(np.add.reduce(log_std) + a_dim * _HALF_LOG_2PI)
         log_ratio = np.subtract(log_prob, old_log_prob, out=log_prob)
-        if -float(np.add.reduce(log_ratio)) / rows > coef.kl_stop:
+        approx_kl = -float(np.add.reduce(log_ratio)) / rows
+        if approx_kl > coef.kl_stop:
             return False
         ratio = np.exp(log_ratio, out=log_ratio)
+        outside = int(np.count_nonzero(np.abs(ratio - 1.0) > coef.clip))
         surr = ratio * adv
         clipped = np.minimum(np.maximum(ratio, 1.0 - coef.clip), 1.0 + coef.clip, out=ratio)
         clipped *= adv
+        policy_loss = -float(np.add.reduce(np.minimum(surr, clipped))) / rows
         # d(-mean(min(surr, clipped)))/d log_prob: the min passes the unclipped term's gradient
         # (ratio * adv) where it is the smaller or the two are equal (ratio inside the clip).
         g_log_prob = np.multiply(surr, surr <= clipped, out=surr)
@@ -431,7 +460,9 @@ class FusedActorCritic:
         np.minimum(np.maximum(clipped_err, -coef.value_clip), coef.value_clip, out=clipped_err)
         clipped_err += old_value
         clipped_err -= ret
-        keep = np.square(err) >= np.square(clipped_err)
+        square, clipped_square = np.square(err), np.square(clipped_err)
+        keep = square >= clipped_square
+        value_loss = 0.5 * float(np.add.reduce(np.maximum(square, clipped_square))) / rows
         g_value = mb.g_value.numpy()[:, 0]
         np.copyto(g_value, np.where(keep, err, np.multiply(clipped_err, inside)))
         g_value *= coef.value_coef / rows
@@ -444,6 +475,7 @@ class FusedActorCritic:
         if scale < 1.0:
             self.grad.mul_(scale)
         self.adam.step()
+        self.losses.add(policy_loss, value_loss, approx_kl, outside / rows)
         return True
 
     def set_lr(self, lr: float) -> None:

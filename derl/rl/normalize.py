@@ -122,7 +122,10 @@ class RewardScaler:
         return np.minimum(np.maximum(scaled, -self.clip, out=scaled), self.clip, out=scaled)
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        return self.stats.state_dict()
+        """The return statistics and each copy's running discounted return (a training resumed
+        goes on with both)."""
+        return {**self.stats.state_dict(), "returns": self.returns.copy()}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.stats.load_state_dict(state)
+        self.returns = np.array(state["returns"], np.float64).reshape(self.returns.shape)

@@ -7,19 +7,32 @@ stop). The step that ends an episode at its time limit gets advantage 0 and its 
 as the return, and the steps before it bootstrap from that step's value (the released code's
 `Buffer.compute_returns`); a termination bootstraps from nothing. The fitness and the learning
 curve come from raw (unscaled) reward components.
+
+Every iteration reports what PPO libraries log (`Diagnostics`: the losses, entropy, approximate
+KL, clip fraction, explained variance, learning rate), from values the update computes anyway.
+A training can be stopped at the end of an iteration and resumed bit for bit (`Saver`,
+`train(..., resume=...)`): its state holds the network and Adam's moments, the normalisers, the
+random generators, the episode bookkeeping, the next observation and the environment's whole
+state (`derl.rl.snapshot`), taken at the end of an iteration where the environment can be
+restored exactly.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from derl.rl.checkpoint import Checkpoint
+from derl.rl import snapshot
+from derl.rl.checkpoint import Checkpoint, state_from_bytes, state_to_bytes
 from derl.rl.config import PPOConfig
 from derl.rl.env_api import BatchedEnv
 from derl.rl.episodes import EpisodeLog, EpisodeTracker, FitnessSource
@@ -29,8 +42,30 @@ from derl.rl.normalize import ObsNormalizer, RewardScaler
 
 
 @dataclass(frozen=True)
+class Diagnostics:
+    """One iteration's update, as PPO libraries log it: means over its minibatch steps (NaN
+    where the approximate KL stopped it before its first)."""
+
+    policy_loss: float
+    """The clipped surrogate loss, -mean(min(ratio A, clip(ratio) A))."""
+    value_loss: float
+    """0.5 mean(max((V - R)^2, (V_clipped - R)^2)), before `value_coef`."""
+    entropy: float
+    """The policy's entropy per action dimension after the update (nats; the bonus's term)."""
+    approx_kl: float
+    """mean(old log-prob - log-prob), the estimate the early stop compares with `kl_stop`."""
+    clip_fraction: float
+    """Share of ratios outside [1 - clip, 1 + clip]."""
+    explained_variance: float
+    """1 - Var(R - V) / Var(R) of the rollout's value targets R and values V before the update."""
+    learning_rate: float
+    minibatches: int
+    """Minibatch steps taken."""
+
+
+@dataclass(frozen=True)
 class Progress:
-    """Handed to the callback once per iteration."""
+    """Handed to the callback once per iteration (and kept: `TrainResult.progress`)."""
 
     iteration: int
     """Iterations done (1-based)."""
@@ -39,6 +74,21 @@ class Progress:
     recent_return: float | None
     """Mean fitness-component sum of the last finished episodes (None before two finished)."""
     steps_per_second: float
+    """Env steps per second of this process's part of the training so far."""
+    diagnostics: Diagnostics | None = None
+
+
+@dataclass
+class Saver:
+    """When a training saves the state it can resume from: every `every` iterations (0: never)
+    and when `stop` is set, at the end of the first iteration from then on where the
+    environment can be restored exactly (`derl.rl.snapshot.capturable`: not while a body about
+    to fall asleep touches another). `save` gets the result so far and the state's bytes;
+    after a save that `stop` asked for, `train` returns that result."""
+
+    save: Callable[[TrainResult, bytes], None]
+    every: int = 0
+    stop: threading.Event = field(default_factory=threading.Event)
 
 
 @dataclass(frozen=True)
@@ -83,6 +133,10 @@ class TrainResult:
     the update and the values skipped; None without a heightmap."""
     kl_stops: int
     """Updates that the approximate KL stopped before their last minibatch (`kl_stop`)."""
+    progress: list[Progress] = field(default_factory=list)
+    """Every iteration's `Progress`, diagnostics included."""
+    iterations: int = 0
+    """Iterations done: `config.iterations`, or fewer where a `Saver` stopped the training."""
 
     @property
     def num_episodes(self) -> int:
@@ -169,9 +223,13 @@ class _Trainer:
         )
         self.buf = _Rollout(config.rollout_steps, env.num_envs, env.obs_spaces, env.action_dim)
         self.env_steps = 0
+        self.iteration = 0  # done
         self.env_s = self.inference_s = self.update_s = 0.0
+        self.earlier_s = self.earlier_physics_s = 0.0  # of the processes before a resume
         self.sparse_rows = self.sparse_nonzero = 0
         self.kl_stops = 0
+        self.progress: list[Progress] = []
+        self.diagnostics: Diagnostics | None = None
 
     def reset(self) -> None:
         raw = self.env.reset(self.config.seed)
@@ -221,7 +279,8 @@ class _Trainer:
                 self.sparse_nonzero += int(flags.sum())
         self._values(obs, nonzero)
         t0 = time.perf_counter()
-        fused.set_lr(config.lr * (1.0 - iteration / config.iterations))
+        lr = config.lr * (1.0 - iteration / config.iterations)
+        fused.set_lr(lr)
         advantages, returns = compute_gae(
             buf.rewards,
             buf.values,
@@ -239,11 +298,30 @@ class _Trainer:
         sources = [obs[k][:n] for k in fused.keys]
         aux = torch.from_numpy(buf.aux.reshape(n, -1))
         mb = fused.minibatch(size, [s.shape[1] for s in sources], aux.shape[1])
+        fused.losses.reset()
         if not self._epochs(mb, sources, nonzero, aux):
             self.kl_stops += 1
         for rows in buf.obs.values():
             rows[0] = rows[-1]  # the last observation starts the next rollout
+        self.diagnostics = self._diagnostics(returns, lr)
         self.update_s += time.perf_counter() - t0
+
+    def _diagnostics(self, returns: np.ndarray, lr: float) -> Diagnostics:
+        """The update's `Diagnostics`, from what it computed (the losses: `fused.losses`)."""
+        policy_loss, value_loss, approx_kl, clip_fraction = self.fused.losses.means()
+        variance = float(np.var(returns))
+        unexplained = float(np.var(returns - self.buf.values[:-1]))
+        log_std = self.fused.log_std.numpy()
+        return Diagnostics(
+            policy_loss=policy_loss,
+            value_loss=value_loss,
+            entropy=float(np.mean(log_std)) + 0.5 * math.log(2.0 * math.pi * math.e),
+            approx_kl=approx_kl,
+            clip_fraction=clip_fraction,
+            explained_variance=1.0 - unexplained / variance if variance > 0 else math.nan,
+            learning_rate=lr,
+            minibatches=self.fused.losses.steps,
+        )
 
     def _epochs(
         self,
@@ -267,56 +345,175 @@ class _Trainer:
         self.fused.store_into_net()
         return Checkpoint.capture(self.net, self.obs_norm, self.config)
 
+    def result(self, wall_s: float, physics_s: float | None) -> TrainResult:
+        """The result so far (`wall_s`, `physics_s`: this process's seconds of the training,
+        its physics' part, where the environment counts it)."""
+        wall = self.earlier_s + wall_s
+        physics = None if physics_s is None else self.earlier_physics_s + physics_s
+        fitness = self.episodes.fitness(self.env_steps, self.config.fitness_window_steps)
+        spent = self.env_s + self.inference_s + self.update_s
+        return TrainResult(
+            fitness=fitness.value,
+            fitness_source=fitness.source,
+            fitness_episodes=fitness.episodes,
+            curve=list(self.episodes.curve),
+            episodes=self.episodes.log(),
+            env_steps=self.env_steps,
+            wall_time_s=wall,
+            steps_per_second=self.env_steps / wall,
+            time_split=TimeSplit(
+                env_s=self.env_s,
+                inference_s=self.inference_s,
+                update_s=self.update_s,
+                other_s=wall - spent,
+                physics_s=physics,
+            ),
+            checkpoint=self.checkpoint(),
+            flat_rows=1.0 - self.sparse_nonzero / self.sparse_rows if self.sparse_rows else None,
+            kl_stops=self.kl_stops,
+            progress=list(self.progress),
+            iterations=self.iteration,
+        )
+
+    def state(self, wall_s: float, physics_s: float) -> dict[str, Any]:
+        """Everything `load` needs to go on from here (`wall_s`, `physics_s`: the training's
+        seconds so far, its physics' part)."""
+        adam = self.fused.adam
+        return {
+            "config": self.config.model_dump_json(),
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "theta": self.fused.theta.clone(),
+            "adam": [adam.exp_avgs[0].clone(), adam.exp_avg_sqs[0].clone(), adam.steps[0].clone()],
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "obs_norm": _tensors(self.obs_norm.state_dict()),
+            "reward_scaler": _tensors(self.reward_scaler.state_dict()),
+            "episodes": _tensors(self.episodes.state_dict()),
+            "obs": _tensors({key: rows[0] for key, rows in self.buf.obs.items()}),
+            "seconds": [self.env_s, self.inference_s, self.update_s, wall_s, physics_s],
+            "sparse": [self.sparse_rows, self.sparse_nonzero],
+            "kl_stops": self.kl_stops,
+            "progress": _tensors([dataclasses.asdict(point) for point in self.progress]),
+            "env": snapshot.capture(self.env),
+        }
+
+    def load(self, state: dict[str, Any]) -> None:
+        """Go on from `state` (`state`'s), instead of `reset`; `ValueError` where it is of
+        another configuration."""
+        if state["config"] != self.config.model_dump_json():
+            raise ValueError("the training state is of another configuration")
+        self.iteration, self.env_steps = state["iteration"], state["env_steps"]
+        self.fused.theta.copy_(state["theta"])
+        adam = self.fused.adam
+        for mine, saved in zip(
+            (adam.exp_avgs[0], adam.exp_avg_sqs[0], adam.steps[0]), state["adam"], strict=True
+        ):
+            mine.copy_(saved)
+        self.rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        self.obs_norm.load_state_dict(_arrays(state["obs_norm"]))
+        self.reward_scaler.load_state_dict(_arrays(state["reward_scaler"]))
+        self.episodes.load_state_dict(_arrays(state["episodes"]))
+        for key, rows in _arrays(state["obs"]).items():
+            self.buf.obs[key][0] = rows
+        self.env_s, self.inference_s, self.update_s, self.earlier_s, self.earlier_physics_s = state[
+            "seconds"
+        ]
+        self.sparse_rows, self.sparse_nonzero = state["sparse"]
+        self.kl_stops = state["kl_stops"]
+        self.progress = [_progress(point) for point in state["progress"]]
+        self.env.reset(self.config.seed)
+        snapshot.restore(self.env, state["env"])
+
+
+def _tensors(tree: Any) -> Any:
+    """`tree` with numpy arrays as tensors and numpy scalars as Python's (`torch.load`'s
+    ``weights_only`` reads them)."""
+    if isinstance(tree, dict):
+        return {key: _tensors(value) for key, value in tree.items()}
+    if isinstance(tree, list | tuple):
+        return [_tensors(value) for value in tree]
+    if isinstance(tree, np.ndarray):
+        return torch.from_numpy(np.array(tree))
+    if isinstance(tree, np.generic):
+        return tree.item()
+    return tree
+
+
+def _arrays(tree: Any) -> Any:
+    """`_tensors` undone: tensors as numpy arrays."""
+    if isinstance(tree, dict):
+        return {key: _arrays(value) for key, value in tree.items()}
+    if isinstance(tree, list):
+        return [_arrays(value) for value in tree]
+    if isinstance(tree, torch.Tensor):
+        return tree.numpy()
+    return tree
+
+
+def _progress(point: dict[str, Any]) -> Progress:
+    diagnostics = point["diagnostics"]
+    return Progress(**{**point, "diagnostics": diagnostics and Diagnostics(**diagnostics)})
+
 
 def train(
     env: BatchedEnv,
     config: PPOConfig,
     callback: Callable[[Progress], None] | None = None,
+    *,
+    saver: Saver | None = None,
+    resume: bytes | None = None,
 ) -> TrainResult:
-    """Train a fresh actor-critic on `env` with PPO; same env, config and seed give the same run."""
+    """Train a fresh actor-critic on `env` with PPO; same env, config and seed give the same run.
+    With `saver`, its state is saved as it says (and it may stop the training); with `resume`
+    (a state `saver` was given), the training goes on from there, `env` being built as the one
+    that saved it was (any seed): it ends with the bits an unstopped one ends with."""
     start = time.perf_counter()
     physics_before = getattr(env, "physics_s", 0.0)
     trainer = _Trainer(env, config)
-    trainer.reset()
+    if resume is None:
+        trainer.reset()
+    else:
+        trainer.load(state_from_bytes(resume))
+        physics_before = getattr(env, "physics_s", 0.0)  # restored: the earlier's are kept
+    steps_before, last_saved = trainer.env_steps, trainer.iteration
+
+    def result() -> TrainResult:
+        wall = time.perf_counter() - start
+        physics = getattr(env, "physics_s", None)
+        physics_s = None if physics is None else physics - physics_before
+        return trainer.result(wall, physics_s)
+
     # numpy's BLAS (the sampling's products) on as many threads as torch's
     with threadpool_limits(config.torch_threads, user_api="blas"):
-        for iteration in range(config.iterations):
+        while trainer.iteration < config.iterations:
             trainer.collect()
-            trainer.update(iteration)
+            trainer.update(trainer.iteration)
+            trainer.iteration += 1
             recent = trainer.episodes.end_iteration(trainer.env_steps)
+            elapsed = time.perf_counter() - start
+            progress = Progress(
+                iteration=trainer.iteration,
+                iterations=config.iterations,
+                env_steps=trainer.env_steps,
+                recent_return=recent,
+                steps_per_second=(trainer.env_steps - steps_before) / elapsed,
+                diagnostics=trainer.diagnostics,
+            )
+            trainer.progress.append(progress)
             if callback is not None:
-                elapsed = time.perf_counter() - start
-                callback(
-                    Progress(
-                        iteration=iteration + 1,
-                        iterations=config.iterations,
-                        env_steps=trainer.env_steps,
-                        recent_return=recent,
-                        steps_per_second=trainer.env_steps / elapsed,
-                    )
-                )
-    wall = time.perf_counter() - start
-    physics_s = getattr(env, "physics_s", None)
-    fitness = trainer.episodes.fitness(trainer.env_steps, config.fitness_window_steps)
-    return TrainResult(
-        fitness=fitness.value,
-        fitness_source=fitness.source,
-        fitness_episodes=fitness.episodes,
-        curve=trainer.episodes.curve,
-        episodes=trainer.episodes.log(),
-        env_steps=trainer.env_steps,
-        wall_time_s=wall,
-        steps_per_second=trainer.env_steps / wall,
-        time_split=TimeSplit(
-            env_s=trainer.env_s,
-            inference_s=trainer.inference_s,
-            update_s=trainer.update_s,
-            other_s=wall - trainer.env_s - trainer.inference_s - trainer.update_s,
-            physics_s=None if physics_s is None else physics_s - physics_before,
-        ),
-        checkpoint=trainer.checkpoint(),
-        flat_rows=(
-            1.0 - trainer.sparse_nonzero / trainer.sparse_rows if trainer.sparse_rows else None
-        ),
-        kl_stops=trainer.kl_stops,
-    )
+                callback(progress)
+            if saver is None or trainer.iteration == config.iterations:
+                continue
+            due = saver.stop.is_set() or (
+                saver.every > 0 and trainer.iteration - last_saved >= saver.every
+            )
+            if due and snapshot.capturable(env):
+                done = result()
+                physics_s = done.time_split.physics_s or 0.0
+                saver.save(done, state_to_bytes(trainer.state(done.wall_time_s, physics_s)))
+                last_saved = trainer.iteration
+                if saver.stop.is_set():
+                    return done
+    return result()

@@ -14,6 +14,7 @@ from derl.nodes.cli import (
     report,
     run,
     schema,
+    slurm,
     study,
     train,
     unimal,
@@ -21,6 +22,8 @@ from derl.nodes.cli import (
 )
 from derl.nodes.errors import DerlError
 from derl.nodes.runtime import ratelimit
+
+import derl
 
 
 class Parser(argparse.ArgumentParser):
@@ -48,12 +51,14 @@ def build_parser() -> argparse.ArgumentParser:
         prog="derl",
         description="Deep Evolutionary Reinforcement Learning: evolve and train UNIMAL bodies.",
     )
+    parser.add_argument("--version", action="version", version=f"derl {derl.__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     unimal.register(commands)
     train.register(commands)
     run.register(commands)
     nodes.register(commands)
     launch.register(commands)
+    slurm.register(commands)
     certs.register(commands)
     report.register(commands)
     study.register(commands)

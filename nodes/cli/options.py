@@ -44,6 +44,28 @@ def at_least_one(text: str) -> int:
     return value
 
 
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+"""Zenoh's link protocols whose address is HOST:PORT (the others, e.g. unixsock-stream, a path)."""
+
+
+def endpoint(text: str) -> str:
+    """An argparse type: a Zenoh endpoint, PROTOCOL/ADDRESS; HOST:PORT (a port 0-65535) for
+    the IP protocols, optionally followed by Zenoh's ?config or #metadata."""
+    protocol, slash, address = text.partition("/")
+    if not slash or not protocol or not address:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an endpoint: give e.g. tcp/HOST:7447")
+    if protocol not in IP_PROTOCOLS:
+        return text
+    match = re.fullmatch(r"(\[[^\]]+\]|[^:\[\]?#]+):(\d+)([?#].*)?", address)
+    if match is None:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not an endpoint: give {protocol}/HOST:PORT, e.g. {protocol}/10.0.0.5:7447"
+        )
+    if int(match[2]) > 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: {match[2]} is not a port number (0-65535)")
+    return text
+
+
 def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True) -> None:
     group = parser.add_argument_group("bus")
     group.add_argument("--run", required=run_required, help="run id (keys live under derl/<run>/)")
@@ -51,6 +73,7 @@ def add_bus_arguments(parser: argparse.ArgumentParser, run_required: bool = True
         group.add_argument(
             flag,
             action="append",
+            type=endpoint,
             default=[],
             metavar="EP",
             help=f"endpoint to {flag[2:]} {'to' if flag == '--connect' else 'on'}, "
@@ -87,15 +110,20 @@ def add_port_argument(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument(
         "--port",
         type=port,
-        default=os.environ.get(PORT_ENV) or str(DEFAULT_PORT),
+        default=default_port(),
         help=f"{what} (default ${PORT_ENV}, else {DEFAULT_PORT}: where `derl monitor`, "
         "`topic` ... connect when given no endpoint; 0: a free one)",
     )
 
 
+def default_port() -> str:
+    """`--port`'s default: $DERL_LOCAL_PORT, else `DEFAULT_PORT`."""
+    return os.environ.get(PORT_ENV) or str(DEFAULT_PORT)
+
+
 def local_endpoint() -> str:
     """The local run's endpoint: 127.0.0.1 at $DERL_LOCAL_PORT, else 7447 (`derl run`'s)."""
-    text = os.environ.get(PORT_ENV) or str(DEFAULT_PORT)
+    text = default_port()
     try:
         port = port_number(text)
     except argparse.ArgumentTypeError as error:
@@ -253,6 +281,7 @@ def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
         _described(args, "profile"),
         EvolutionConfig,
         lambda: load_profile(args.profile, _changes(args), world=args.env, seed=args.seed),
+        args.set,
     )
 
 
@@ -264,15 +293,22 @@ def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
         _described(args, "study profile"),
         StudyConfig,
         lambda: load_study_profile(args.profile, _changes(args)),
+        args.set,
     )
 
 
-def _profile_or_exit(what: str, model: type[BaseModel], load: Callable[[], BaseModel]):
-    """`load()`, or exit with one line saying why `what` is not a valid `model`."""
+def _profile_or_exit(
+    what: str, model: type[BaseModel], load: Callable[[], BaseModel], changes: list[Setting]
+):
+    """`load()`, or exit with one line saying why `what` is not a valid `model`: a usage error
+    (exit status 2) where a setting of `changes` (--set) is at fault."""
     try:
         return load()
     except ValidationError as error:
-        fail_invalid(what, error, model, top=(PROFILE_KEY,))
+        keys = [change.key for change in changes]
+        at = [".".join(map(str, e["loc"])) for e in error.errors()]
+        ours = any(loc == key or loc.startswith(f"{key}.") for loc in at for key in keys)
+        fail_invalid(what, error, model, top=(PROFILE_KEY,), code=2 if ours else 1)
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -282,16 +318,21 @@ def _profile_or_exit(what: str, model: type[BaseModel], load: Callable[[], BaseM
 
 
 def fail_invalid(
-    what: str, error: ValidationError, model: type[BaseModel], top: tuple[str, ...] = ()
+    what: str,
+    error: ValidationError,
+    model: type[BaseModel],
+    top: tuple[str, ...] = (),
+    code: int = 1,
 ) -> NoReturn:
-    """Exit saying why a file does not fit `model`: its first unknown key with the keys valid
-    there (at the top, also `top`), else every problem, in one line."""
+    """Exit (status `code`) saying why a file does not fit `model`: its first unknown key with
+    the keys valid there (at the top, also `top`), else every problem, in one line."""
     unknown = [e["loc"] for e in error.errors() if e["type"] == "extra_forbidden"]
     if unknown:
         key = unknown[0]
         valid = [*valid_keys(model, key[:-1]), *(top if len(key) == 1 else ())]
-        fail(f"{what}: unknown key {'.'.join(map(str, key))!r}; valid keys: {', '.join(valid)}")
-    fail(f"{what}: {problems(error)}")
+        fail(f"{what}: unknown key {'.'.join(map(str, key))!r}; valid keys: {', '.join(valid)}",
+             code)  # fmt: skip
+    fail(f"{what}: {problems(error)}", code)
 
 
 def valid_keys(model: type[BaseModel], path: tuple[object, ...]) -> list[str]:
@@ -324,10 +365,18 @@ def _is_model(annotation: object) -> TypeGuard[type[BaseModel]]:
 
 def run_directory(path: Path) -> Path:
     """`path` as a run directory (created if missing), or exit saying why it cannot be one."""
+    return output_directory(path, "run directory")
+
+
+def output_directory(path: Path, what: str = "--out") -> Path:
+    """`path` as a folder to write in (created if missing), or exit, before any work, saying why
+    it cannot be one (`what`: how the message names it)."""
     if path.exists() and not path.is_dir():
-        fail(f"run directory {path} is a file, not a directory")
+        fail(f"{what} {path} is a file, not a directory")
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        fail(f"cannot make run directory {path}: {error.strerror}")
+        fail(f"cannot make {what} {path}: {error.strerror}")
+    if not os.access(path, os.W_OK | os.X_OK):
+        fail(f"cannot write in {what} {path}: permission denied")
     return path

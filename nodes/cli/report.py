@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from derl.nodes.cli.options import fail
+from derl.nodes.cli.options import fail, output_directory
 from derl.nodes.journal.history import load_runs
 from rich.console import Console
 
@@ -122,6 +122,7 @@ def _report(args: argparse.Namespace) -> int:
         )
     except ValueError as error:
         fail(str(error))
+    output_directory(args.out)  # before the runs are read
     start = time.monotonic()
     runs = _runs_or_study(args.runs)
     try:

@@ -15,18 +15,22 @@ run directory resumes the run from its journal.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import re
 import shlex
 import signal
 import socket
 import statistics
+import unicodedata
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from derl.messages import RunStatus
 from derl.nodes.cli.options import (
     add_port_argument,
     add_profile_arguments,
     at_least_one,
+    default_port,
     fail,
     local_endpoint,
     profile_from,
@@ -34,6 +38,7 @@ from derl.nodes.cli.options import (
     set_arguments,
     set_suffix,
 )
+from derl.nodes.cli.progress import Shown, output_console
 from derl.nodes.errors import IN_USE
 from derl.nodes.journal.history import load_history
 from derl.nodes.launch.commands import NodeCommand, build_commands
@@ -41,10 +46,12 @@ from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.rundir import lock_run_dir
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import TextColumn
 
-console = Console()
+if TYPE_CHECKING:
+    from derl.evolution import EvolutionConfig
+
+console = output_console()  # no wrapping, and progress lines, in a log file
 
 MAX_RESTARTS = 10  # of a node beside the graph's (the TensorBoard watcher)
 
@@ -69,38 +76,68 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     config = profile_from(args)
+    run_dir = run_directory_of(args, config)
+    port = listenable(args.port)
+    run = local_run_id(run_dir)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
+    graph = local_launch(run, endpoint, workers, **coordinator_settings(args, run_dir))
+    nodes = build_commands(graph)
+    board = ("--tensorboard", str(args.tensorboard)) if args.tensorboard else ()
+    if args.tensorboard:
+        nodes.append(tensorboard_node(run, endpoint, args.tensorboard))
+    env = ("--env", args.env) if args.env else ()
+    seed = ("--seed", str(args.seed)) if args.seed is not None else ()
+    port_flag = ("--port", str(args.port)) if str(args.port) != default_port() else ()
+    again = shlex.join(["derl", "run", "--profile", args.profile, *set_arguments(args.set),
+                        *env, *seed, "--run-dir", str(run_dir), *port_flag, *board])  # fmt: skip
+    return run_nodes(nodes, run, endpoint, config, run_dir, run_dir / "logs", f"`{again}`")
+
+
+def run_directory_of(args: argparse.Namespace, config: EvolutionConfig) -> Path:
+    """The run directory of `--run-dir` or the default one of the profile (created), or exit
+    saying that another coordinator holds it."""
     replicate = "" if args.seed is None else f"-s{args.seed}"
     default = f"{config.name}-{config.world}{replicate}{set_suffix(args.set)}"
     run_dir = run_directory(args.run_dir or Path("runs") / default)
     with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
         pass
-    port = listenable(args.port)
-    run = local_run_id(run_dir)
-    endpoint = f"tcp/127.0.0.1:{port}"
-    workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
-    settings = [change.text for change in args.set]
-    graph = local_launch(run, endpoint, workers, run_dir=run_dir, profile=args.profile,
-                         env=args.env, seed=args.seed, settings=settings)  # fmt: skip
-    nodes = build_commands(graph)
-    board = ("--tensorboard", str(args.tensorboard)) if args.tensorboard else ()
-    if args.tensorboard:
-        nodes.append(tensorboard_node(run, endpoint, args.tensorboard))
-    supervisor = Supervisor(nodes, run_dir / "logs")
+    return run_dir
+
+
+def coordinator_settings(args: argparse.Namespace, run_dir: Path) -> dict[str, object]:
+    """The coordinator's settings in a launch graph (`local_launch`) from `derl run`'s flags."""
+    return {"run_dir": run_dir, "profile": args.profile, "env": args.env, "seed": args.seed,
+            "settings": [change.text for change in args.set]}  # fmt: skip
+
+
+def run_nodes(
+    nodes: list[NodeCommand],
+    run: str,
+    endpoint: str,
+    config: EvolutionConfig,
+    run_dir: Path,
+    log_dir: Path,
+    resume: str,
+    zenoh_config: Path | None = None,
+) -> int:
+    """Supervise the nodes of run `run` (its coordinator on `endpoint`) until it is over,
+    showing its progress; stopped on SIGTERM or SIGINT, then saying that `resume` resumes it;
+    once done, its best body and fingerprint. The exit status: 0 only when the run finished."""
+    supervisor = Supervisor(nodes, log_dir)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
+    trainers = sum(node.role == "trainer" for node in nodes)
     console.print(
         f"run [bold]{run}[/] ({config.name}, {config.world}): {config.total} bodies, "
-        f"{args.workers} trainers; coordinator on {endpoint} ({watch_command(endpoint, run)}); "
+        f"{trainers} trainers; coordinator on {endpoint} "
+        f"({watch_command(endpoint, run, zenoh_config)}); "
         f"logs in {supervisor.log_dir}",
         highlight=False,
     )
-    code, status = supervise(supervisor, run, endpoint, config.total)
+    code, status = supervise(supervisor, run, endpoint, config.total, zenoh_config)
     if code != 0:
-        env = ("--env", args.env) if args.env else ()
-        seed = ("--seed", str(args.seed)) if args.seed is not None else ()
-        again = shlex.join(["derl", "run", "--profile", args.profile, *set_arguments(args.set),
-                            *env, *seed, "--run-dir", str(run_dir), *board])  # fmt: skip
-        console.print(f"stopped; `{again}` resumes the run", highlight=False, soft_wrap=True)
+        console.print(f"stopped; {resume} resumes the run", highlight=False, soft_wrap=True)
         return code
     best = "-"
     if status is not None and status.best_agent:
@@ -116,21 +153,24 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def watch_command(endpoint: str, run: str) -> str:
-    """The monitor's command line for the run at `endpoint`: bare on the local run's endpoint."""
-    if endpoint == local_endpoint():
+def watch_command(endpoint: str, run: str, zenoh_config: Path | None = None) -> str:
+    """The monitor's command line for the run at `endpoint` (with the identity in
+    `zenoh_config`): bare on the local run's endpoint."""
+    if endpoint == local_endpoint() and zenoh_config is None:
         return "derl monitor"
-    return f"derl monitor --connect {endpoint} --run {run}"
+    identity = ("--zenoh-config", str(zenoh_config)) if zenoh_config else ()
+    return shlex.join(["derl", "monitor", "--connect", endpoint, "--run", run, *identity])
 
 
-def listenable(port: int) -> int:
-    """`port` (a free one for 0) if the coordinator can listen on it, else exit saying so."""
+def listenable(port: int, host: str = "127.0.0.1") -> int:
+    """`port` (a free one for 0) if the coordinator can listen on it at `host`, else exit
+    saying so."""
     with socket.socket() as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener
         try:
-            probe.bind(("127.0.0.1", port))
+            probe.bind((host, port))
         except OSError as error:
-            fail(f"cannot listen on 127.0.0.1:{port}: {error.strerror} (another run, node or "
+            fail(f"cannot listen on {host}:{port}: {error.strerror} (another run, node or "
                  "router?); choose another port with --port", IN_USE)  # fmt: skip
         return probe.getsockname()[1]
 
@@ -140,7 +180,16 @@ def local_run_id(run_dir: Path) -> str:
     have been started by `derl coordinator --run ID`), else the directory's name."""
     from derl.nodes.journal.history import journal_run
 
-    return journal_run(run_dir) or re.sub(r"[^A-Za-z0-9_.-]", "-", run_dir.resolve().name)[:128]
+    return journal_run(run_dir) or run_id_of(run_dir.resolve().name)
+
+
+def run_id_of(name: str) -> str:
+    """A run id (a key segment, `ID_PATTERN`, that no command line reads as an option) made of
+    a folder's name: accents dropped (`über`: `uber`), any other character a hyphen, none
+    leading; a hash of the name where nothing is left."""
+    plain = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode()
+    text = re.sub(r"[^A-Za-z0-9_.-]+", "-", plain).lstrip("-.")[:128].rstrip("-")
+    return text or f"run-{hashlib.sha1(name.encode()).hexdigest()[:8]}"
 
 
 def tensorboard_node(run: str, endpoint: str, logdir: Path) -> NodeCommand:
@@ -157,38 +206,42 @@ def tensorboard_node(run: str, endpoint: str, logdir: Path) -> NodeCommand:
 
 
 def supervise(
-    supervisor: Supervisor, run: str, endpoint: str, total: int
+    supervisor: Supervisor, run: str, endpoint: str, total: int, zenoh_config: Path | None = None
 ) -> tuple[int, RunStatus | None]:
-    """Supervise the nodes until the run is over, showing its status; the supervisor's exit
-    code and the last status seen (once the run is done, its rate is `TrainingRate`'s mean)."""
+    """Supervise the nodes until the run is over, showing its status (heard on `endpoint`, with
+    `zenoh_config`'s identity where given); the supervisor's exit code and the last status seen
+    (once the run is done, its rate is `TrainingRate`'s mean)."""
     latest: list[RunStatus] = []
     rate = TrainingRate()
     columns = (
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
         TextColumn("{task.completed:.0f}/{task.total:.0f} {task.fields[unit]}"),
         TextColumn("best {task.fields[best]}"),
         TextColumn("{task.fields[sps]:,.0f} steps/s"),
         TextColumn("eval {task.fields[evaluated]}"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
     )
+
+    def line(state: dict[str, object]) -> str:  # in a log file (`Shown`)
+        return (f"{state['description']}: {state['completed']}/{state['total']} {state['unit']}, "
+                f"best {state['best']}, {state['sps']:,.0f} steps/s, "
+                f"eval {state['evaluated']}")  # fmt: skip
+
+    fields = {"best": "-", "sps": 0.0, "evaluated": "-", "unit": "born"}
     with (
-        open_session(ZenohOptions(connect=(endpoint,))) as session,
-        Progress(*columns, console=console) as bar,
+        open_session(ZenohOptions(connect=(endpoint,), config_file=zenoh_config)) as session,
+        Shown(console, "evolution", total, columns, line, **fields) as shown,
     ):
         bus = Bus(session, run)
         bus.subscribe(bus.keys.status(), latest.append, (RunStatus,))
-        task = bar.add_task("evolution", total=total, best="-", sps=0.0, evaluated="-", unit="born")
 
         def show() -> None:
             if not latest:
                 return
             s = rate.shown(latest[-1])
             del latest[:-1]
+            if s.done:
+                supervisor.over.set()
             study = s.target == 0  # a study's progress is its evaluations
-            bar.update(
-                task,
+            shown.update(
                 description="study" if study else "evolution",
                 total=s.eval_target if study else s.target,
                 completed=s.evaluated if study else s.born,

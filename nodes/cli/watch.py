@@ -275,15 +275,74 @@ def _topic_list(args: argparse.Namespace) -> int:
     return 0
 
 
+RUN_QUIET_S = 10.0
+"""A run whose status, once heard, has not come for this long (it comes every second) is over."""
+
+
 def _echo(args: argparse.Namespace) -> int:
     from derl.nodes.tools.topic import NothingHeard, echo
 
     stop = _stop_on_signals()
-    if not echo(watch_options(args), args.key, args.run, args.count, args.duration, args.raw,
-                stop):  # fmt: skip
+    options = watch_options(args)
+    with _RunEnd(options, args.run, stop) as end:
+        shown = echo(options, args.key, args.run, args.count, args.duration, args.raw, stop)
+    if end.why is not None:
+        print(f"derl topic echo: {end.why}; {shown} messages shown", file=sys.stderr)
+    elif not shown:
         within = f"in {args.duration:g} s" if args.duration else "before it was stopped"
         raise NothingHeard(f"nothing heard on {args.key} {within}")
     return 0
+
+
+class _RunEnd:
+    """Sets `stop` when the run (`run`, or any where None) says it is done, or its status,
+    once heard, stops coming for `RUN_QUIET_S` (its coordinator stopped); `why` then says so."""
+
+    def __init__(self, options: ZenohOptions, run: str | None, stop: threading.Event) -> None:
+        self.options, self.run, self.stop = options, run, stop
+        self.why: str | None = None
+        self.heard: float | None = None
+
+    def __enter__(self) -> _RunEnd:
+        import time
+
+        from derl.messages import RunStatus
+        from derl.nodes.runtime.bus import open_session
+        from derl.nodes.tools.topic import Checker
+
+        self.opened = open_session(self.options)
+        session = self.opened.__enter__()
+        checker = Checker(session)
+
+        def on_status(sample) -> None:  # zenoh.Sample
+            status = checker.check(str(sample.key_expr), sample.payload.to_bytes())
+            if isinstance(status, RunStatus):
+                self.heard = time.monotonic()
+                if status.done:
+                    self._end(f"run {status.run} is done")
+
+        self.subscriber = session.declare_subscriber(f"derl/{self.run or '*'}/status", on_status)
+        self.watching = threading.Thread(target=self._watch, name="run end", daemon=True)
+        self.watching.start()
+        return self
+
+    def _watch(self) -> None:
+        import time
+
+        while not self.stop.wait(1.0):
+            if self.heard is not None and time.monotonic() - self.heard > RUN_QUIET_S:
+                self._end(f"the run's status stopped coming ({RUN_QUIET_S:g} s): it is over")
+
+    def _end(self, why: str) -> None:
+        if not self.stop.is_set():
+            self.why = why
+            self.stop.set()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.watching.join()
+        self.subscriber.undeclare()
+        self.opened.__exit__(*exc)
 
 
 def _hz(args: argparse.Namespace) -> int:

@@ -52,6 +52,7 @@ class NodeCommand:
     max_restarts: int = 3
     order: int = 0  # start order: router, coordinator, trainers, evaluators
     runs: tuple[NodeCommand, ...] = ()  # what an ssh launcher starts there
+    launcher: tuple[str, ...] = ()  # what the node runs under (`srun ...`: a Slurm job step)
 
     def derl_args(self, restarts: int = 0) -> list[str]:
         """The arguments of the `restarts`-th start: a restarted worker gets a new node id."""
@@ -62,8 +63,8 @@ class NodeCommand:
         return args
 
     def argv(self, restarts: int = 0) -> list[str]:
-        """What the launcher executes: the derl line, or ssh with it."""
-        line = [self.derl, *self.derl_args(restarts)]
+        """What the launcher executes: the derl line, under `launcher` (srun), or ssh with it."""
+        line = [*self.launcher, self.derl, *self.derl_args(restarts)]
         if self.remote is None:
             return line
         workdir = self.workdir or os.getcwd()

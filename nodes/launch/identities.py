@@ -1,6 +1,7 @@
 """A run's identities on a shared network (`derl certs`): a CA, one certificate per node of a
 launch file (common name = its node id) and each node's Zenoh config: mutual TLS, and access
-control that lets each certificate publish only on its own node's keys.
+control that lets each certificate publish only on its own node's keys. A Slurm job issues its
+nodes' identities at each start with the user's CA (`load_ca`, `issue_identities`).
 
 The rules come from the key layout (`messages.keys`): a worker's keys carry its node id
 (``fitness/<node>/<child>``), so the certificate of ``gpu1-trainer-3`` may put on
@@ -34,10 +35,20 @@ DELIVER = [*TAKE_PART, "put", "delete", "liveliness_token", "declare_queryable",
 
 
 def write_identities(launch: LaunchFile, out: Path) -> list[Path]:
-    """The CA (``ca.pem``, ``ca.key``), and for every node of `launch` and for a monitor, a
-    folder ``<name>/`` with ``node.pem``, ``node.key`` and its Zenoh config; the configs."""
+    """A new CA (``ca.pem``, ``ca.key``) and the identities `issue_identities` writes with it;
+    the configs."""
     out.mkdir(parents=True, exist_ok=True)
-    ca_key, ca = make_ca(out, f"derl {launch.run} CA")
+    return issue_identities(launch, out, *make_ca(out, f"derl {launch.run} CA"))
+
+
+def issue_identities(
+    launch: LaunchFile, out: Path, ca_key: ec.EllipticCurvePrivateKey, ca: x509.Certificate
+) -> list[Path]:
+    """The CA's certificate (``ca.pem``) and, for every node of `launch` and for a monitor, a
+    folder ``<name>/`` with ``node.pem``, ``node.key`` (signed by the CA) and its Zenoh config;
+    the configs."""
+    out.mkdir(parents=True, exist_ok=True)
+    _write(out / "ca.pem", ca.public_bytes(serialization.Encoding.PEM))
     nodes = [c for c in build_commands(launch) if c.role != "ssh"]
     access = access_control(launch.run, nodes)
     configs = []
@@ -62,6 +73,19 @@ def make_ca(out: Path, name: str) -> tuple[ec.EllipticCurvePrivateKey, x509.Cert
     )
     _write(out / "ca.pem", cert.public_bytes(serialization.Encoding.PEM))
     _write(out / "ca.key", _private(key), secret=True)
+    return key, cert
+
+
+def load_ca(folder: Path) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """The CA that `make_ca` wrote in `folder` (``ca.key``, ``ca.pem``); ValueError saying what
+    is missing or not an EC key."""
+    try:
+        key = serialization.load_pem_private_key((folder / "ca.key").read_bytes(), None)
+        cert = x509.load_pem_x509_certificate((folder / "ca.pem").read_bytes())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{folder} holds no `derl certs` CA (ca.key, ca.pem): {error}") from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise ValueError(f"{folder / 'ca.key'} is not the EC key of a `derl certs` CA")
     return key, cert
 
 
@@ -126,7 +150,7 @@ def access_control(run: str, nodes: list[NodeCommand]) -> dict[str, object]:
 
 def own_keys(run: str, node: NodeCommand) -> list[str]:
     """The key expressions `node` may publish on: a worker, its role's kinds (`PUBLISHERS`)
-    where the first id segment is its node id (or a restart's ``<id>.r<n>``); the coordinator
+    where the first id segment is one of its ids (`_me`); the coordinator
     and a router, the whole run: they forward what their clients (monitors, nodes behind a
     router) publish, which passed their own check when it came in."""
     if node.role in ("coordinator", "router"):
@@ -144,7 +168,9 @@ def own_keys(run: str, node: NodeCommand) -> list[str]:
 
 
 def _me(node: NodeCommand) -> list[str]:
-    return [node.name, f"{node.name}.r$*"]
+    """`node`'s ids: its own and its restarts' (``<id>.r1`` ... up to its `max_restarts`), no
+    other (a wildcard let one certificate name itself ``<id>.r901`` or ``<id>.rX-evil``)."""
+    return [node.name, *(f"{node.name}.r{n}" for n in range(1, node.max_restarts + 1))]
 
 
 def _messages(role: str) -> list[str]:

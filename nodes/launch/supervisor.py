@@ -6,9 +6,11 @@ status (it refused to start: another run's directory, a damaged journal, a port 
 restarted, since no restart would change that; when it is the coordinator (or an ssh host's
 launcher) everything stops at once and `run` raises a `DerlError` with that status and the
 node's own reason (its last ``derl: ...`` line). Any other exit is a failure, restarted by its
-policy (the coordinator alone: it resumes from its journal while the workers go on). Everything
-stops on Ctrl-C, SIGTERM or SIGHUP (an ssh session that ends). Local processes run with this
-Python (``python -m derl.nodes.cli``, the same as ``derl``).
+policy (the coordinator alone: it resumes from its journal while the workers go on), except a
+worker once the run is over (`over`: workers end as they hear so, before the coordinator does).
+Everything stops on Ctrl-C, SIGTERM or SIGHUP (an ssh session that ends). Local processes run
+with this Python (``python -m derl.nodes.cli``, the same as ``derl``); one with a launcher
+(``srun ...``: a Slurm job step) runs its ``derl`` under it.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ RESTART_DELAY_S = 1.0
 MAX_RESTART_DELAY_S = 30.0
 REASON_PREFIX = "derl: "  # how a node's last words start (`derl.nodes.cli.main`)
 STOPS_ALL = ("coordinator", "ssh")  # roles whose refusal stops the whole launch
+WORKERS = ("trainer", "evaluator")  # roles that end by themselves once the run is over
 
 
 @dataclass
@@ -50,6 +53,7 @@ class Supervisor:
         self.slots = [_Slot(command) for command in commands]
         self.log_dir = Path(log_dir)
         self.stop = threading.Event()
+        self.over = threading.Event()  # the run is over (its status said so): no worker restarts
 
     def _start(self, slot: _Slot) -> None:
         command = slot.command
@@ -58,7 +62,7 @@ class Supervisor:
             out.write(
                 f"--- derl launch, start {slot.restarts}: {command.shell(slot.restarts)}\n".encode()
             )
-        if command.remote is None:
+        if command.remote is None and not command.launcher:
             slot.process = spawn_derl(command.derl_args(slot.restarts), log_file)
         else:
             slot.process = _spawn(command.argv(slot.restarts), log_file)
@@ -91,7 +95,9 @@ class Supervisor:
             if slot.finished:
                 continue
             if slot.due is not None:
-                if now >= slot.due:
+                if self._over_for(slot.command):
+                    slot.finished, slot.due = True, None
+                elif now >= slot.due:
                     self._start(slot)
                 continue
             if slot.process is None or slot.process.poll() is None:
@@ -112,6 +118,7 @@ class Supervisor:
                           reason)  # fmt: skip
                 continue
             wanted = command.restart == "always" or (command.restart == "on-failure" and code != 0)
+            wanted = wanted and not self._over_for(command)
             if wanted and slot.restarts < command.max_restarts:
                 slot.restarts += 1
                 delay = min(RESTART_DELAY_S * 2 ** (slot.restarts - 1), MAX_RESTART_DELAY_S)
@@ -129,6 +136,10 @@ class Supervisor:
         if all(slot.finished for slot in self.slots):
             return 0 if all(slot.returncode == 0 for slot in self.slots) else 1
         return None
+
+    def _over_for(self, command: NodeCommand) -> bool:
+        """Whether `command` is a worker of a run that is over: it is not started again."""
+        return self.over.is_set() and command.role in WORKERS
 
     def _reason(self, command: NodeCommand) -> str:
         """What a node that ended said last (its `derl: ...` line), else where to look."""
@@ -148,7 +159,8 @@ class Supervisor:
 
 
 def _spawn(argv: list[str], log_file: Path) -> subprocess.Popen:
-    """Start a non-derl command (ssh) like `spawn_derl` does: own process group, dies with us."""
+    """Start another command (ssh, srun ...) as `spawn_derl` does: own process group, dies with
+    us."""
     with log_file.open("ab") as out:
         return subprocess.Popen(
             argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

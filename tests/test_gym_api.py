@@ -1,0 +1,95 @@
+"""derl from Python as a gymnasium user meets it: `import derl` registers every task (without
+importing the simulation), the environments render RGB frames for gymnasium's video wrappers,
+a trained body loads and acts in a few lines, and the version is the package's."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.wrappers import RenderCollection
+from nodes_fixtures import REPO, derl_argv
+
+import derl
+from derl.envs import TASKS, make_task
+from derl.lifetime import learn, ppo_config
+from derl.unimal import Genome
+
+REGISTERED = """
+import sys, gymnasium, derl
+assert "derl.envs" not in sys.modules  # registered, not yet imported
+env = gymnasium.make("derl/FT-v0", genome=sys.argv[1])
+obs, _ = env.reset(seed=0)
+print(sorted(obs), env.action_space.shape[0])
+"""
+
+
+def test_import_derl_registers_every_task_with_gymnasium(quadruped: Genome, tmp_path: Path) -> None:
+    assert {make_task(name).gym_name: name for name in TASKS} == derl.GYM_TASKS
+    genome = tmp_path / "body.json"
+    genome.write_text(quadruped.model_dump_json())
+    made = subprocess.run([sys.executable, "-c", REGISTERED, str(genome)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    assert made.stdout.split() == ["['proprioception']", "10"]
+
+
+def test_rgb_frames_for_gymnasiums_video_wrappers(quadruped: Genome) -> None:
+    env = gymnasium.make("derl/VT-v0", genome=quadruped, render_mode="rgb_array", width=64,
+                         height=48)  # fmt: skip
+    assert env.metadata["render_fps"] == 50  # one frame a control step: real time
+    recorded = RenderCollection(env)  # what RecordVideo films (it writes them with moviepy)
+    recorded.reset(seed=0)
+    for _ in range(3):
+        recorded.step(recorded.action_space.sample())
+    frames = recorded.render()
+    assert len(frames) == 4 and frames[0].shape == (48, 64, 3) and frames[0].dtype == np.uint8
+    assert frames[-1].std() > 0  # a picture, not a blank
+    recorded.close()
+    plain = gymnasium.make("derl/FT-v0", genome=quadruped)
+    plain.reset(seed=0)
+    assert plain.render() is None
+    plain.close()
+
+
+def test_a_trained_body_loads_and_acts(quadruped: Genome, tmp_path: Path) -> None:
+    _, result = learn(quadruped, "ft", ppo_config("ft", 1024, seed=0, num_envs=8))
+    (tmp_path / "genome.json").write_text(quadruped.model_dump_json())
+    (tmp_path / "checkpoint.pt").write_bytes(result.checkpoint.to_bytes())
+    (tmp_path / "result.json").write_text(json.dumps({"task": "ft"}))
+    agent = derl.load_trained(tmp_path)
+    env = agent.gym_env()
+    obs, _ = env.reset(seed=0)
+    action = agent.act(obs)
+    assert action.shape == env.action_space.shape and np.abs(action).max() <= 1.0
+    batch = {key: np.stack([value, value]) for key, value in obs.items()}
+    np.testing.assert_allclose(agent.act(batch), np.stack([action, action]), atol=1e-6)
+    for _ in range(5):
+        obs, reward, _, _, info = env.step(agent.act(obs))
+    assert "forward" in info and isinstance(reward, float)
+    env.close()
+
+
+def test_the_version_is_the_packages() -> None:
+    assert derl.__version__ == importlib.metadata.version("derl")
+    shown = subprocess.run(derl_argv("--version"), capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0 and shown.stdout.strip() == f"derl {derl.__version__}"
+
+
+@pytest.mark.slow
+def test_stable_baselines3_trains_a_derl_body(quadruped: Genome, tmp_path: Path) -> None:
+    pytest.importorskip("stable_baselines3")
+    genome = tmp_path / "body.json"
+    genome.write_text(quadruped.model_dump_json())
+    example = REPO / "examples" / "stable_baselines3_ft.py"
+    done = subprocess.run([sys.executable, str(example), str(genome), "2048"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "trained 2,048 steps: an episode walked" in done.stdout
+    assert (tmp_path / "ppo_derl_ft.zip").is_file()
