@@ -111,7 +111,7 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
     fitness report and a repeated evaluation result, as a journal may hold after restarts."""
     founders = [*variants(genome, 2), genome]  # three bodies
     c0_body = breed(founders[2], 7)[0]
-    c1_body = breed(c0_body, 7)[0]
+    c1_body = c0_body  # a gear mutation that drew the gears c0 had: the same body
     with Journal(run_dir) as journal:
         for k, fitness in enumerate((10.0, 20.0, 30.0)):
             journal.write(_job(f"i{k}", founders[k], None))
@@ -301,7 +301,7 @@ def test_study_plan_only_writes_the_retraining_jobs(tmp_path: Path, quadruped: G
     assert main([*argv, "--profile", str(profile)]) == 0
     result = RetrainPlan.model_validate_json((study / "plan.json").read_text())
     # the final population (the last 3 born: i2, c0, c1) is one lineage, i2's; c1 is c0's body
-    # (its gear mutation drew the gears c0's had drawn): counted once, as c0 (was c1, c0)
+    # (its gear mutation drew the gears c0 had): counted once, as c0
     assert [j.agent for j in result.jobs[::3]] == ["c0", "i2"]
     assert len(result.jobs) == 6 and 1409 not in result.seeds
     assert {(j.task, j.steps, j.lineage) for j in result.jobs} == {("vt", 300, "i2")}
