@@ -87,6 +87,8 @@ from derl.nodes.journal.segments import cut_torn_tail, replay, segments  # noqa:
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session  # noqa: E402
 
 from derl.evolution import EvolutionConfig, load_profile  # noqa: E402
+from derl.policy_check import untrained_policy  # noqa: E402
+from derl.unimal import Genome  # noqa: E402
 
 RUN = "crash"
 PROFILE = {"profile": "smoke", "total": 10, "eval_top": 0, "eval_tasks": [], "lease_s": 60.0}
@@ -107,10 +109,11 @@ def config() -> EvolutionConfig:
 # --- 1. the simulated trainers ---------------------------------------------------------------
 
 
-def checkpoint_of(child: str) -> bytes:
-    """The policy bytes a trainer reports for `child` (3 to 70 kB: a write spans pages)."""
-    rng = random.Random(f"checkpoint {child}")
-    return rng.randbytes(rng.randrange(3_000, 70_000))
+def checkpoint_of(child: str, genome: Genome, world: str) -> bytes:
+    """The policy a trainer reports for `child` of body `genome` (an untrained one, its weights
+    drawn from the child's name: each child's own; tens of kB, so a write spans pages)."""
+    seed = int.from_bytes(hashlib.sha256(child.encode()).digest()[:4], "little")
+    return untrained_policy(genome, world, seed)
 
 
 @cache
@@ -122,7 +125,7 @@ def _report(job: TrainJob) -> FitnessReport:
 
     fitness = int(job.child[1:]) + (50.0 if job.child.startswith("c") else 0.0)
     report = report_of(job.run, job, fitness)
-    checkpoint = checkpoint_of(job.child)
+    checkpoint = checkpoint_of(job.child, job.genome, job.task)
     return report.model_copy(update={"env_steps": job.steps, "checkpoint": checkpoint})
 
 
@@ -627,11 +630,12 @@ def _journal_holds(folder: Path, knowledge: Knowledge, when: str, finished: bool
         problems.append(f"{when}: job {job}, received by a trainer, is not in the journal")
     births = Counter(m.child for m in journal if isinstance(m, Birth))
     born_from = {m.child: m.job for m in journal if isinstance(m, Birth)}
+    bodies = {m.child: m.genome for m in journal if isinstance(m, Birth)}
     for child, job in knowledge.acked:
         if born_from.get(child) != job:
             problems.append(f"{when}: acknowledged birth of {child} (job {job}) is not in the "
                             f"journal (born from {born_from.get(child)})")  # fmt: skip
-        elif _checkpoint(folder, child) != checkpoint_of(child):
+        elif _checkpoint(folder, child) != checkpoint_of(child, bodies[child], config().world):
             problems.append(f"{when}: acknowledged {child}'s checkpoint file is missing or not "
                             "its trainer's")  # fmt: skip
     problems += [f"{when}: {child} born {n} times" for child, n in births.items() if n > 1]

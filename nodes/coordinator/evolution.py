@@ -52,7 +52,6 @@ from derl.nodes.errors import Refused
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
-from derl.policy_check import policy_problem
 from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
 
@@ -250,6 +249,8 @@ class EvolutionPolicy:
             return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
         if report.env_steps > order.steps:
             return f"{report.env_steps} env steps trained, the job allowed {order.steps}"
+        from derl.policy_check import policy_problem  # torch: not before the first report
+
         return policy_problem(report.checkpoint, order.genome, order.task)
 
     def on_evaluation(self, result: EvalResult) -> None:
