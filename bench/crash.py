@@ -592,6 +592,8 @@ def check(folder: Path, knowledge: Knowledge, jobs: dict[str, TrainJob]) -> list
     heard = Heard()
     coordinator.bus = heard  # type: ignore[assignment]
     trainers = {t.node: t for t in trainers_at(knowledge, jobs)}
+    for node in trainers:  # each holds its liveliness token
+        coordinator._liveliness("trainer", node, True)
     try:
         inbox: list[MessageBase] = [t.again() for t in trainers.values()]
         after = 0  # rounds since the run finished: its serve loop goes on while it says so
