@@ -752,6 +752,25 @@ def journaled(recorded: Recorded, cut: Cut) -> list[MessageBase]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def last_checkpoint_late(recorded: Recorded) -> Cut:
+    """A kill just after the run's last birth was journaled, before its checkpoint file was in
+    place. Which of the two the recorded run wrote first is up to its two processes' timing, so
+    where the checkpoint came first the state is made from the first kill state with every birth
+    journaled, less the checkpoint files of the births not yet acknowledged: what the other
+    order leaves (the Ack waits for both, so the trainers' knowledge is the same)."""
+    for cut in recorded.distinct:
+        if cut.kind != "kill":
+            continue
+        births = {m.child for m in journaled(recorded, cut) if isinstance(m, Birth)}
+        if len(births) < config().total:
+            continue
+        late = births - {child for child, _ in cut.knowledge.acked}
+        state = {name: content for name, content in cut.state.items() if not (
+            name.startswith("checkpoints/") and name[12:].split(".pt")[0] in late)}  # fmt: skip
+        return Cut(cut.index, "kill", state, cut.knowledge)
+    raise RuntimeError("the recorded run never journaled its last birth")
+
+
 def holds_at_start(recorded: Recorded, cut: Cut) -> list[str]:
     """What a state breaks of the invariants a start must find (every job a trainer received
     and every acknowledged birth with its checkpoint in place), without running the run."""

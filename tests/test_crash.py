@@ -1,7 +1,7 @@
 """Crash consistency, checked on a small real run recorded under strace (`bench/crash.py`): the
 run directory rebuilt as a process kill or a power cut at each point of the run's writes would
 leave it (torn journal writes included), and the coordinator started on it. Every state is
-checked for what a start must find; a sample of them, and every state where the run's last
+checked for what a start must find; a sample of them, and the state where the run's last
 birth is journaled but its checkpoint is not in place, are run to the end in this process, and one
 with a real `derl coordinator` and trainers over Zenoh. `python bench/crash.py` runs every state to
 the end."""
@@ -51,22 +51,18 @@ def test_every_crash_state_holds_what_the_trainers_were_told(recorded: crash.Rec
     assert {cut: problems for cut, problems in broken.items() if problems} == {}
 
 
-def _last_checkpoint_missing(recorded: crash.Recorded, cut: crash.Cut) -> bool:
-    """Whether every birth is journaled in `cut` and a born child's checkpoint is not in place."""
-    births = {m.child for m in crash.journaled(recorded, cut) if isinstance(m, Birth)}
-    files = {name.removeprefix("checkpoints/").removesuffix(".pt") for name in cut.state}
-    return len(births) == crash.config().total and not births <= files
-
-
 def test_sampled_crash_states_run_to_the_end(recorded: crash.Recorded) -> None:
     """Started on the state, the coordinator runs the run to its end with the trainers as they
     were: no acknowledged birth lost, none born twice, every body born with its checkpoint, the
-    best ones' folders whole. The sample: every state where the last birth is journaled and its
-    checkpoint is not in place, and 10 others drawn at random."""
-    ends = [cut for cut in recorded.distinct if _last_checkpoint_missing(recorded, cut)]
-    assert ends, "no state between the last birth and its checkpoint"
+    best ones' folders whole. The sample: the state where the last birth is journaled and its
+    checkpoint is not in place (`crash.last_checkpoint_late`), and 10 others drawn at random."""
+    end = crash.last_checkpoint_late(recorded)
+    births = {m.child for m in crash.journaled(recorded, end) if isinstance(m, Birth)}
+    assert len(births) == crash.config().total
+    files = {name.removeprefix("checkpoints/").removesuffix(".pt") for name in end.state}
+    assert not births <= files
     others = random.Random(1).sample(recorded.distinct, 10)
-    failures = [crash.check_cut(recorded, cut) for cut in [*ends, *others]]
+    failures = [crash.check_cut(recorded, cut) for cut in [end, *others]]
     assert [f for f in failures if f] == []
 
 
@@ -78,8 +74,7 @@ def test_a_real_coordinator_resumes_a_crash_at_the_end_and_mid_run(
     were written at the first 'done' and missed the checkpoint its trainer sent again: the best
     body had none), and from a power cut (or, where none left another state, a kill) after some
     births were acknowledged while a trainer waited for its Ack."""
-    end = next(c for c in recorded.distinct if c.kind == "kill" and
-               _last_checkpoint_missing(recorded, c))  # fmt: skip
+    end = crash.last_checkpoint_late(recorded)
     total = crash.config().total
 
     # A power cut halfway, a trainer waiting for its Ack if there is one. Where the disk was in
