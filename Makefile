@@ -46,5 +46,7 @@ lint: install-test
 
 # Two test processes (pytest-xdist): most tests are one process's CPU, many wait on nodes;
 # on 2 cores the suite takes about 70% of its serial time (`pytest` alone runs it serially).
+# `loadgroup` keeps a module's `xdist_group` on one process (its module fixture made once);
+# the 20 slowest tests are listed at the end.
 test: lint
-	$(BIN)/python -m pytest -n 2 --dist load
+	$(BIN)/python -m pytest -n 2 --dist loadgroup --durations=20

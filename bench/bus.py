@@ -75,6 +75,8 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from derl.evolution import EvolutionConfig, load_profile
+from derl.evolution.population import breed
 from derl.messages import (
     Curve,
     FitnessReport,
@@ -90,9 +92,6 @@ from derl.messages import (
 )
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.worker.node import ready_wait
-
-from derl.evolution import EvolutionConfig, load_profile
-from derl.evolution.population import breed
 from derl.policy_check import untrained_policy
 from derl.unimal import Genome, sample_population
 
@@ -821,9 +820,8 @@ def hub(endpoint: str, run: str, seconds: float) -> None:
 def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
     import subprocess
 
-    from derl.messages import Ack
-
     from derl.lifetime import learn, ppo_config
+    from derl.messages import Ack
 
     run, node = "bench-share", "trainer-0"
     genome = bodies()[1]

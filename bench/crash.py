@@ -69,6 +69,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
+from derl.evolution import EvolutionConfig, load_profile  # noqa: E402
 from derl.messages import (  # noqa: E402
     Ack,
     Birth,
@@ -85,8 +86,6 @@ from derl.messages import (  # noqa: E402
 from derl.nodes.journal.reader import JournalDamaged  # noqa: E402
 from derl.nodes.journal.segments import cut_torn_tail, replay, segments  # noqa: E402
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session  # noqa: E402
-
-from derl.evolution import EvolutionConfig, load_profile  # noqa: E402
 from derl.policy_check import untrained_policy  # noqa: E402
 from derl.unimal import Genome  # noqa: E402
 
@@ -109,9 +108,11 @@ def config() -> EvolutionConfig:
 # --- 1. the simulated trainers ---------------------------------------------------------------
 
 
+@cache
 def checkpoint_of(child: str, genome: Genome, world: str) -> bytes:
     """The policy a trainer reports for `child` of body `genome` (an untrained one, its weights
-    drawn from the child's name: each child's own; tens of kB, so a write spans pages)."""
+    drawn from the child's name: each child's own; tens of kB, so a write spans pages); made
+    once (its orthogonal weights cost tens of ms, and every state's check compares them)."""
     seed = int.from_bytes(hashlib.sha256(child.encode()).digest()[:4], "little")
     return untrained_policy(genome, world, seed)
 

@@ -12,8 +12,9 @@ import reprlib
 from typing import TypeVar, overload
 
 import msgpack
-from derl.messages.schema import SCHEMA_VERSION, Message, MessageBase
 from pydantic import TypeAdapter, ValidationError
+
+from derl.messages.schema import SCHEMA_VERSION, Message, MessageBase
 
 M = TypeVar("M", bound=MessageBase)
 

@@ -22,15 +22,16 @@ from derl.messages.schema import (
     Member,
     MessageBase,
     PopulationSnapshot,
+    Quarantine,
     Reject,
     Rejection,
+    Retrained,
     RunStatus,
     Tournament,
     TrainJob,
     TrainProgress,
     WorkerReady,
 )
-
 from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome, Joint, Limb
 
@@ -148,6 +149,20 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             genome=GENOME,
         ),
         ChildFailed(run=run, child=child, parent=parent, attempts=3, error="ValueError: again"),
+        Quarantine(
+            run=run, node=node, child=child, jobs=(job, f"{job}b", f"{job}c"), retrain=(parent,)
+        ),
+        Retrained(
+            run=run,
+            child=child,
+            job=job,
+            node=node,
+            fitness=122.25 + i,
+            was=123.25 + i,
+            cost_of_work=0.75,
+            energy=4.5e3,
+            mass=6.25,
+        ),
         Rejection(
             run=run,
             reason="wrong key",

@@ -67,6 +67,8 @@ ROUTES: Final[dict[str, tuple[str, tuple[str, ...]]]] = {
     "EvalResult": ("eval", ("node", "agent", "task")),
     "Birth": ("births", ("child",)),
     "ChildFailed": ("births", ("child",)),
+    "Quarantine": ("births", ("child",)),
+    "Retrained": ("births", ("child",)),
     "JobLost": ("lost", ("node",)),
     "Rejection": ("rejected", ()),
     "PopulationSnapshot": ("population", ()),

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Annotated, Final, Literal, get_args
 
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
 from derl.messages.types import (
     MAX_CHECKPOINT_BYTES,
     MAX_ITEMS,
@@ -23,8 +25,6 @@ from derl.messages.types import (
     Steps,
     Text,
 )
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
 from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome
 from derl.unimal.mutations import OPERATORS
@@ -441,6 +441,46 @@ class ChildFailed(MessageBase):
     """The last error."""
 
 
+class Quarantine(MessageBase):
+    """A trainer identity caught lying (also on ``births/<child>``, `child` the child whose audit
+    caught it): a third training of `child` agreed with another identity's and not with its
+    own. It gets no more jobs, its reports are rejected, and the children born from its reports
+    that no audit checked (`retrain`) are trained again by others (`Retrained`)."""
+
+    type: Literal["Quarantine"] = "Quarantine"
+    node: Id
+    """The identity (a worker's name without its ``.r<n>`` restart suffix)."""
+    child: Id
+    """The child whose audit caught it."""
+    jobs: Annotated[tuple[Id, ...], Field(max_length=100)]
+    """The trainings of `child` compared."""
+    retrain: Annotated[tuple[Id, ...], Field(max_length=MAX_ITEMS)] = ()
+    """Its unchecked births, trained again."""
+
+
+class Retrained(MessageBase):
+    """A child born from a quarantined identity's report, trained again by another (also on
+    ``births/<child>``): its result replaces the one it was born with, for it and its repeats."""
+
+    type: Literal["Retrained"] = "Retrained"
+    child: Id
+    """The child."""
+    job: Id
+    """The job whose report replaces its result."""
+    node: Id
+    """The trainer that trained it again."""
+    fitness: Finite
+    """Its fitness."""
+    was: Finite
+    """The fitness it was born with (the quarantined identity's)."""
+    cost_of_work: Measure
+    """As in FitnessReport."""
+    energy: Measure
+    """As in FitnessReport."""
+    mass: Positive
+    """The body's mass, kg."""
+
+
 class Rejection(MessageBase):
     """A fact of the coordinator: a message it refused (`reason`), from `sender` on `key`."""
 
@@ -503,6 +543,12 @@ class RunStatus(MessageBase):
     """Children given up."""
     repeats: Count = 0
     """Children born as repeats of an earlier body."""
+    audited: Count = 0
+    """Children born from two trainings that agreed bit for bit (`EvolutionConfig.audit`)."""
+    quarantined: Annotated[tuple[Id, ...], Field(max_length=MAX_ITEMS)] = ()
+    """Trainer identities caught lying (`Quarantine`)."""
+    retraining: Count = 0
+    """Children of quarantined identities still to be trained again."""
     rejected: Count = 0
     """Messages rejected."""
     steps_per_s: NonNegative = 0.0
@@ -532,6 +578,8 @@ Message = Annotated[
     | JobFailed
     | Birth
     | ChildFailed
+    | Quarantine
+    | Retrained
     | Rejection
     | PopulationSnapshot
     | RunStatus,

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import yaml
+
 from derl.messages import (
     Birth,
     Curve,
@@ -34,7 +35,6 @@ from derl.messages import (
 from derl.nodes.journal.segments import Journal, replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.processes import child_setup, stop_all
-
 from derl.rl import PPOConfig
 from derl.unimal import Genome
 

@@ -12,12 +12,12 @@ from pathlib import Path
 import msgpack
 import pytest
 import yaml
+from nodes_fixtures import Processes, derl_argv, free_port, run_id, wait_for
+
 from derl.messages import Birth, FitnessReport, Reject, Rejection, TrainProgress, encode
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from nodes_fixtures import Processes, derl_argv, free_port, run_id, wait_for
-
 from derl.unimal import Genome
 
 PROFILE = {

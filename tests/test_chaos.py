@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
+
 from derl.messages import (
     Birth,
     ChildFailed,
@@ -29,7 +31,6 @@ from derl.messages import (
 )
 from derl.nodes.runtime.bus import Bus
 from derl.nodes.tools.logs import read_log
-from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 

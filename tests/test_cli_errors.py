@@ -10,9 +10,10 @@ joined the bus: by default the local run's endpoint, $DERL_LOCAL_PORT here) or i
 listen a negative time, a report of a file that is no log, an export with nothing to write, a
 missing or misspelt Zenoh config, an argument no option takes; a training's folder that is a
 file or cannot be made, a resume with a new training's flags or of no stopped training, a
-report into a folder that cannot be made, a video of a format derl does not write or in no
-folder (said before the episode is filmed), an endpoint without a port or with one out of
-range). A mistake in a command's own flags (--set included) exits 2, as argparse's do."""
+report into a folder that cannot be made, a video of a format derl does not write, in no folder
+or where no file can be made (said before the episode is filmed), an endpoint without a port or
+with one out of range). A mistake in a command's own flags (--set included) exits 2, as
+argparse's do."""
 
 from __future__ import annotations
 
@@ -26,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from derl.messages import WorkerReady
-from derl.nodes.journal.segments import Journal
 from nodes_fixtures import REPO, derl_argv, free_port
 
+from derl.messages import WorkerReady
+from derl.nodes.journal.segments import Journal
 from derl.unimal import Genome
 
 GENOME = "genome.json"
@@ -105,6 +106,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                            "--video x.avi: write a .gif, or an .mp4"),
     "a video in no folder": (["rollout", "trained", "--video", "missing/v.gif"], 1,
                              "--video missing/v.gif: no folder missing"),
+    "a video where no file can be made": (["rollout", "trained", "--video", "/proc/v.gif"], 1,
+                                          "--video /proc/v.gif: cannot write there ("),
     "an endpoint without a port": (["monitor", "--connect", "tcp/nonsense", "--once", "1"], 2,
                                    "argument --connect: 'tcp/nonsense' is not an endpoint: give "
                                    "tcp/HOST:PORT"),

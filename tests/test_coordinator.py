@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from derl.evolution import Evolution, EvolutionConfig, breed, load_profile, population
 from derl.messages import (
     Ack,
     Birth,
@@ -39,7 +41,9 @@ from derl.messages import (
     encode,
 )
 from derl.nodes.coordinator import node
+from derl.nodes.coordinator.audits import journaled
 from derl.nodes.coordinator.evolution import EvolutionPolicy
+from derl.nodes.coordinator.ledger import JOURNALED_REFUSALS
 from derl.nodes.coordinator.node import Coordinator
 from derl.nodes.coordinator.run_files import INITIAL_FILE, PROFILE_FILE
 from derl.nodes.coordinator.state import CoordinatorState
@@ -47,8 +51,6 @@ from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-
-from derl.evolution import Evolution, EvolutionConfig, breed, load_profile, population
 from derl.policy_check import untrained_policy
 from derl.rl import PPOConfig, PPOHyperparameters
 from derl.unimal import Genome, Joint, Limb, body_hash, sample_population
@@ -192,7 +194,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
         coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)
     assert second.child in coordinator.state.evolution.fitness
-    assert report.model_copy(update={"checkpoint": b""}) in _journaled(coordinator)
+    assert journaled(report) in _journaled(coordinator)  # its checkpoint: the SHA-256
     assert _quiet(heard), "an Ack went out for a checkpoint that is not on disk"
     assert f"cannot write {folder / second.child}.pt (Not a directory)" in caplog.text
     assert coordinator.ledger.stalled
@@ -344,7 +346,7 @@ def test_a_child_bred_like_one_in_training_waits_for_its_birth() -> None:
     state.training("c00000")
     assert not state.hold("c00000")  # not held for itself
     assert state.hold("c00001") and state.held == {"c00001": "c00000"}
-    assert list(state.waiting) == ["c00000"] and not state.wants_tournament()
+    assert list(state.waiting) == ["c00000"] and state.next_child_for("t0", 2) == "c00000"
     body, _ = breed(initial[0], seed)
     state.apply(_born(run, "c00000", "i0000", body, 2))
     assert list(state.waiting) == ["c00001"] and not state.held and not state.in_training
@@ -638,6 +640,29 @@ def test_who_comes_before_what_and_copies_of_a_taken_report_leave_the_journal_as
         coordinator._handle(decode(encode(_report(job, 0))))
     coordinator.settle()
     assert len(_journaled(coordinator)) == before
+
+
+def test_a_flood_of_refused_messages_from_one_identity_journals_a_bounded_share(
+    coordinator_of: Callable[..., Coordinator],
+) -> None:
+    """Reports for jobs never given to their sender, from one identity under its restart names,
+    as fast as it can: every one is refused, counted and answered (a Reject), but only
+    `JOURNALED_REFUSALS` a minute are journaled (each was, so such a flood grew the journal
+    without bound); another identity's refusals are journaled as before."""
+    coordinator = coordinator_of(population=2, total=3)
+    job = _job_for(coordinator, "w1")
+    report = _report(job, 0)
+    before = len(_journaled(coordinator))
+    for k in range(3 * JOURNALED_REFUSALS):
+        name = "evil" if k % 3 == 0 else f"evil.r{k % 3}"
+        forged = report.model_copy(update={"node": name, "job": f"forged.{k}"})
+        coordinator._handle(decode(encode(forged)))
+    coordinator._handle(decode(encode(report.model_copy(update={"node": "other"}))))
+    coordinator.settle()
+    refusals = [m for m in _journaled(coordinator)[before:] if isinstance(m, Reject)]
+    assert [m.node.split(".")[0] for m in refusals] == ["evil"] * JOURNALED_REFUSALS + ["other"]
+    assert coordinator.ledger.rejected == 3 * JOURNALED_REFUSALS + 1
+    assert coordinator.ledger.unjournaled == 2 * JOURNALED_REFUSALS
 
 
 def test_a_checkpoint_that_is_not_a_policy_of_its_body_is_never_born(

@@ -15,13 +15,14 @@ import sys
 from pathlib import Path
 
 import pytest
+
 from derl.messages import Birth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 import crash
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("crash")]
 
 
 def _strace_works() -> bool:

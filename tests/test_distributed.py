@@ -16,11 +16,6 @@ from pathlib import Path
 
 import msgpack
 import pytest
-from derl.messages import Birth, FitnessReport, JobLost, encode
-from derl.messages.examples import examples
-from derl.messages.types import MAX_MESSAGE_BYTES
-from derl.nodes.journal.segments import replay, segments
-from derl.nodes.runtime.bus import ZenohOptions, open_session, zenoh_config
 from nodes_fixtures import (
     LocalRun,
     Observer,
@@ -35,6 +30,12 @@ from nodes_fixtures import (
     wait_for,
 )
 from soak import sample  # bench/, on the path by nodes_fixtures
+
+from derl.messages import Birth, FitnessReport, JobLost, encode
+from derl.messages.examples import examples
+from derl.messages.types import MAX_MESSAGE_BYTES
+from derl.nodes.journal.segments import replay, segments
+from derl.nodes.runtime.bus import ZenohOptions, open_session, zenoh_config
 
 PROFILE = {
     "total": 4,

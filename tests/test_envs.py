@@ -4,6 +4,7 @@ and tasks as compositions of parts."""
 from __future__ import annotations
 
 import ast
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium
@@ -21,7 +22,7 @@ from derl.envs.eval_tasks import ObstacleConfig
 from derl.envs.flat_ground import AGENT_BIT, PLANE_NAME
 from derl.envs.heightmap import sample
 from derl.envs.rewards import REWARD_WEIGHTS, Forward, RewardWeights, RimBonus
-from derl.envs.task import Task
+from derl.envs.task import HOOKS, Part, RewardTerm, Task
 from derl.envs.terrain import Terrain, TerrainConfig
 from derl.envs.terrain_stack import HFIELD_NAME
 from derl.envs.view import EnvView
@@ -85,7 +86,6 @@ def test_push_and_reach_rewards(quadruped: Genome) -> None:
     task = env.task
     box = env.free_joint("box_root")
     (obj,) = task.props
-    reach = task.rewards[0]
     goal = obj.goal[:, :2].copy()
     start = box.qpos[:, :2].copy()
     toward = (goal - start) / np.linalg.norm(goal - start, axis=1, keepdims=True)
@@ -94,7 +94,7 @@ def test_push_and_reach_rewards(quadruped: Genome) -> None:
     box.qvel[:, :2] = 2.0 * toward
     env.batch.forward()
     task.placed(env, np.arange(2))
-    reach.reached[0] = True  # copy 0 has reached the box, copy 1 not
+    obj.reached[0] = True  # copy 0 has reached the box, copy 1 not
     push = np.zeros(2)
     for _ in range(10):
         result = env.step(np.zeros((2, env.action_dim), np.float32))
@@ -115,7 +115,7 @@ def test_delivery_bonus_is_paid_at_every_step_at_the_goal(quadruped: Genome) -> 
     box.qpos[:, :2] = obj.goal[:, :2] + [[0.7, 0.0], [0.8, 0.0]]  # within 0.75 m, and not
     env.batch.forward()
     task.placed(env, env.all)
-    task.rewards[0].reached[:] = True
+    obj.reached[:] = True
     for _ in range(3):
         push = env.step(np.zeros((2, env.action_dim), np.float32)).components["push"]
         assert push[0] == pytest.approx(10.0, abs=0.5) and abs(push[1]) < 0.5
@@ -130,6 +130,43 @@ def test_reach_bonus_is_paid_once(quadruped: Genome) -> None:
     first = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
     second = env.step(np.zeros((1, env.action_dim), np.float32)).components["reach"][0]
     assert first > 9.0 and abs(second) < 5.0
+
+
+def test_reward_terms_in_any_order_pay_the_same(quadruped: Genome) -> None:
+    """Terms keep no state: they read the props', advanced before any term. MVT's terms listed
+    in reverse pay what they pay in order, at the step the box is first reached too (push pays
+    from that step on, its bonus included)."""
+    runs = []
+    for order in (1, -1):
+        task = make_task("mvt", terrain=SMALL_MVT)
+        task = replace(task, rewards=task.rewards[::order])
+        env = UnimalEnv(quadruped, task, EnvConfig(num_envs=2))
+        env.reset(1)
+        (obj,) = env.task.props
+        box = env.free_joint("box_root")
+        head = env.head_pos[:, :2].copy()
+        box.qpos[:, :2] = head + np.array([0.5, 0.0])  # within reach, sliding to the head
+        box.qvel[:] = 0.0
+        box.qvel[:, 0] = -1.0
+        obj.goal[:, :2] = head - [[3.0, 0.0], [0.0, 0.0]]  # copy 1's within the margin
+        env.batch.forward()
+        env.task.placed(env, env.all)
+        runs.append([env.step(np.zeros((2, env.action_dim), np.float32)) for _ in range(3)])
+    first = runs[0][0].components
+    assert (first["reach"] > 10.0).all() and first["push"][0] > 0.0 and first["push"][1] > 10.0
+    for in_order, reversed_ in zip(*runs, strict=True):
+        assert in_order.components.keys() == reversed_.components.keys()
+        for key, values in in_order.components.items():
+            np.testing.assert_array_equal(reversed_.components[key], values, err_msg=key)
+        np.testing.assert_array_equal(reversed_.reward, in_order.reward)
+
+
+def test_reward_terms_have_no_hooks() -> None:
+    """No term keeps per-copy state: none sizes, resets or advances any (the props do)."""
+    terms = [t for t in RewardTerm.__subclasses__() if t.__module__ == "derl.envs.rewards"]
+    assert len(terms) >= 8
+    for term in terms:
+        assert [h for h in HOOKS if getattr(term, h) is not getattr(Part, h)] == [], term
 
 
 def test_the_box_is_reached_at_its_face_centres(quadruped: Genome) -> None:
@@ -153,11 +190,10 @@ def test_the_box_is_reached_at_its_face_centres(quadruped: Genome) -> None:
         [1.0, 2.0, 0.0],
     ]
     np.testing.assert_allclose(points, expected, atol=1e-12)
-    reach = env.task.rewards[0]
     agent = env.agent_points()[0]  # the head's bottom first (the released torso/btm_pos site)
     np.testing.assert_allclose(agent[0], env.head_pos[0] - 0.1 * env.head_rot[0, :, 2])
     nearest = np.linalg.norm(agent[:, None] - points[None], axis=2).min()
-    assert reach.distance(env)[0] == pytest.approx(nearest)
+    assert obj.reach_distance(env)[0] == pytest.approx(nearest)
 
 
 def test_object_is_seen_in_the_head_frame(quadruped: Genome) -> None:

@@ -286,7 +286,7 @@ def test_push_reward_for_a_known_displacement(quadruped: Genome, task: str) -> N
     box.qvel[:, :2] = 2.0 * np.array([0.8, 0.6])
     env.batch.forward()
     env.task.placed(env, env.all)
-    env.task.rewards[0].reached[:] = True  # push pays once the agent has reached the object
+    obj.reached[:] = True  # push pays once the agent has reached the object
     push = np.zeros(env.num_envs)
     for _ in range(10):
         push += _idle(env).components["push"]
@@ -307,7 +307,7 @@ def test_box_lies_on_the_slope_below_the_goal(quadruped: Genome) -> None:
     np.testing.assert_allclose(lift, 0.2 / np.cos(SLOPE))  # resting on the slope
     np.testing.assert_allclose(obj.goal[:, :2], [[10.0, 0.0]] * 2)
     np.testing.assert_allclose(obj.goal[:, 2], obj.goal[:, 0] * np.tan(SLOPE) + 0.11)
-    assert env.task.rewards[0].weights.margin == 0.5
+    assert obj.margin == 0.5
     for _ in range(25):  # it stays put
         _idle(env)
     np.testing.assert_allclose(obj.position, box[:, :3], atol=0.02)
@@ -355,7 +355,7 @@ def test_ball_is_a_rolling_sphere_placed_like_the_box(quadruped: Genome) -> None
     overlap = (np.abs(goal[:, 0] - x) < 0.7) & (np.abs(goal[:, 1] - y) < 0.7)
     assert not overlap.any()
     np.testing.assert_array_equal(ball.reach_points(), ball.position[:, None])
-    assert env.task.rewards[0].weights.margin == 0.5
+    assert ball.margin == 0.5
 
 
 def test_obstacle_boxes_are_placed_as_the_released_code() -> None:

@@ -12,7 +12,7 @@ from pydantic import ValidationError
 from derl.analysis.study import load_study_profile
 from derl.evolution import Child, Evolution, breed, load_profile
 from derl.evolution.population import tournament_draws
-from derl.unimal import Genome, canonical_genome, check_body, is_valid, sample_population
+from derl.unimal import Genome, canonical_genome, check_body, sample_population
 from derl.unimal.mutations import OPERATORS
 
 
@@ -54,7 +54,8 @@ def test_a_child_is_bred_once_where_its_tournament_is_held(initial: list[Genome]
     body, mutation = evolution.body(decided.name)
     parent = canonical_genome(initial[int(decided.parent[1:])])
     assert (body, mutation) == breed(parent, decided.mutation_seed)
-    assert is_valid(body) and evolution.body(decided.name) == (body, mutation)
+    check_body(body)  # bred with the full validity check: it passes it
+    assert evolution.body(decided.name) == (body, mutation)
     other = _evolution(initial)
     for k, child in enumerate(other.initial):
         other.birth(child.name, float(k), initial[k])
@@ -159,7 +160,6 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     from derl.messages import Birth, TrainJob
     from derl.messages.examples import examples
     from derl.nodes.coordinator.state import CoordinatorState, tournament_message
-
     from derl.rl import PPOConfig
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
@@ -198,7 +198,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     tournament = tournament_message("r", decided)
     state.apply(tournament)
     state.apply(tournament)  # replayed twice: still one waiting child
-    assert list(state.waiting) == [decided.name] and not state.wants_tournament()
+    assert list(state.waiting) == [decided.name] and state.next_child_for("t0", 1) == decided.name
     genome, mutation = state.evolution.body(decided.name)
     state.apply(
         TrainJob(

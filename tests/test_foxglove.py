@@ -19,14 +19,15 @@ import foxglove
 import pytest
 import websockets
 import zenoh
+from nodes_fixtures import free_port
+from viewer_parser import parse_json_schema
+
 from derl.messages import Birth, TrainProgress, encode
 from derl.messages.examples import examples
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.tools.foxglove import SUMMARY_TOPIC, TOPICS, Bridge, RunSummary, serve
 from derl.nodes.tools.logs import base64_text, json_form, json_schema
 from derl.nodes.tools.viewer_schema import viewer_schema
-from nodes_fixtures import free_port
-from viewer_parser import parse_json_schema
 
 LAYOUT = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
 SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk 0.30 accepts (formerly foxglove.websocket.v1)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from derl.messages import Ack, Birth
 from nodes_fixtures import (
     FullDisk,
     LocalRun,
@@ -19,6 +18,8 @@ from nodes_fixtures import (
     observe,
     wait_for,
 )
+
+from derl.messages import Ack, Birth
 
 FAULT_S = 4.0  # how long the disk stays full once the coordinator has said so
 

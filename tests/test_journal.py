@@ -15,6 +15,14 @@ from pathlib import Path
 
 import msgpack
 import pytest
+from mcap.reader import make_reader
+from mcap.records import Message
+from mcap.stream_reader import StreamReader
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import CompressionType, Writer
+from nodes_fixtures import FullDisk
+
+from derl.evolution import load_profile
 from derl.messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, kind_of
 from derl.messages.examples import examples
 from derl.nodes.coordinator.evolution import EvolutionPolicy
@@ -31,14 +39,6 @@ from derl.nodes.journal.segments import (
     replay,
     segments,
 )
-from mcap.reader import make_reader
-from mcap.records import Message
-from mcap.stream_reader import StreamReader
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import CompressionType, Writer
-from nodes_fixtures import FullDisk
-
-from derl.evolution import load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,10 +13,6 @@ from pathlib import Path
 
 import pytest
 import yaml
-from derl.nodes.cli.main import build_parser
-from derl.nodes.launch.commands import build_commands, dry_run_text, plan
-from derl.nodes.launch.local import LOCAL_FILE, local_launch
-from derl.nodes.launch.model import LaunchFile, load
 from nodes_fixtures import (
     REPO,
     Processes,
@@ -31,6 +27,10 @@ from nodes_fixtures import (
 )
 
 from derl.evolution import load_profile
+from derl.nodes.cli.main import build_parser
+from derl.nodes.launch.commands import build_commands, dry_run_text, plan
+from derl.nodes.launch.local import LOCAL_FILE, local_launch
+from derl.nodes.launch.model import LaunchFile, load
 
 LOCAL = REPO / "launch" / "local.yaml"
 CLUSTER = REPO / "launch" / "cluster.example.yaml"

@@ -13,16 +13,17 @@ import sys
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import Writer
+from nodes_fixtures import Processes, derl_argv, wait_for
+
 from derl.messages import Birth, FitnessReport, MessageBase, encode, kind_of
 from derl.messages.examples import examples
 from derl.nodes.errors import REFUSED
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import Journal, JournalWriter, segments
 from derl.nodes.tools.logs import LogError, export_json, info, read_log, repair
-from mcap.reader import make_reader
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import Writer
-from nodes_fixtures import Processes, derl_argv, wait_for
 
 STEPS = 5
 

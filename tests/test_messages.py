@@ -9,6 +9,10 @@ import typing
 import msgpack
 import pytest
 import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
+
 from derl.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
@@ -26,9 +30,6 @@ from derl.messages import (
 )
 from derl.messages.examples import GENOME, examples
 from derl.messages.keys import ARITY, ROUTES
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from pydantic import ValidationError
 
 SAMPLES = examples("run1", 3)
 PAYLOADS = [encode(m) for m in SAMPLES]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import msgpack
 import pytest
+
 from derl.messages import Ack, RunStatus
 from derl.nodes.coordinator.disk_faults import DiskFaults
 from derl.nodes.coordinator.outbox import Outbox

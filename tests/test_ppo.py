@@ -25,7 +25,8 @@ from derl.rl import (
     train,
 )
 from derl.rl.episodes import EpisodeTracker
-from derl.rl.fused import FusedActorCritic, PPOCoefficients
+from derl.rl.fused import FusedActorCritic
+from derl.rl.loss import PPOCoefficients, Samples, ppo_loss
 
 DERL_OBS = {"proprioception": 50, "heightmap": 1410}
 
@@ -85,40 +86,9 @@ def test_network_shapes_and_init() -> None:
     assert single.action_mean({"proprioception": torch.zeros(3, 4)}).shape == (3, 1)
 
 
-def _released_loss(
-    net: ActorCritic,
-    obs: dict[str, torch.Tensor],
-    aux: torch.Tensor,
-    coef: PPOCoefficients,
-    terms: dict[str, float] | None = None,
-) -> torch.Tensor:
-    """The released code's PPO loss, with torch.distributions and autograd; its terms as PPO
-    libraries log them into `terms` where given."""
-    a = net.action_dim
-    actions, old_log_prob, adv, old_value, ret = (
-        aux[:, :a],
-        aux[:, a],
-        aux[:, a + 1],
-        aux[:, a + 2],
-        aux[:, a + 3],
-    )
-    pi = torch.distributions.Normal(net.action_mean(obs), net.log_std.exp())
-    ratio = torch.exp(pi.log_prob(actions).sum(-1) - old_log_prob)
-    clipped_ratio = ratio.clamp(1.0 - coef.clip, 1.0 + coef.clip)
-    pi_loss = -torch.min(ratio * adv, clipped_ratio * adv).mean()
-    value = net.value(obs)
-    clipped = old_value + (value - old_value).clamp(-coef.value_clip, coef.value_clip)
-    value_loss = 0.5 * torch.max((value - ret).square(), (clipped - ret).square()).mean()
-    entropy = pi.entropy().mean()  # over batch and action dimensions (released code)
-    if terms is not None:
-        log_ratio = pi.log_prob(actions).sum(-1) - old_log_prob
-        terms.update(
-            policy_loss=float(pi_loss.detach()),
-            value_loss=float(value_loss.detach()),
-            approx_kl=float(-log_ratio.detach().mean()),
-            clip_fraction=float(((ratio.detach() - 1.0).abs() > coef.clip).float().mean()),
-        )
-    return pi_loss + coef.value_coef * value_loss - coef.entropy_coef * entropy
+def _samples(aux: torch.Tensor, action_dim: int) -> Samples:
+    """The columns of a fused minibatch's `aux` (`FusedActorCritic.step`) as `Samples`."""
+    return Samples(aux[:, :action_dim], *aux[:, action_dim:].T)
 
 
 @pytest.mark.parametrize(
@@ -131,9 +101,9 @@ def _released_loss(
     ids=["heightmap-some-flat", "heightmap-all-flat", "proprioception-only"],
 )
 def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: slice) -> None:
-    """Sampling, values and the hand-written PPO gradient equal torch's on the released loss,
-    with some or all heightmap rows zero (flat ground, which the first layer skips), and with
-    proprioception alone (no fuse layer)."""
+    """Sampling, values and the hand-written PPO loss and gradient equal torch's on the loss as
+    defined (`ppo_loss`, autograd), with some or all heightmap rows zero (flat ground, which the
+    first layer skips), and with proprioception alone (no fuse layer)."""
     torch.manual_seed(0)
     rows, a = 64, 12
     net = ActorCritic(spaces, a)
@@ -180,8 +150,8 @@ def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: 
         clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.01, max_grad_norm=1e9, kl_stop=1e9
     )
     net.zero_grad()
-    terms: dict[str, float] = {}
-    _released_loss(net, obs, aux, coef, terms).backward()
+    loss = ppo_loss(net, obs, _samples(aux, a), coef)
+    loss.total.backward()
     mb = fused.minibatch(rows, [spaces[k] for k in fused.keys], aux.shape[1])
     sources = [obs[k] for k in fused.keys]
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.randperm(rows, generator=gen))
@@ -191,12 +161,12 @@ def test_fused_network_matches_torch_and_autograd(spaces: dict[str, int], flat: 
     mb.gather(sources, fused.nonzero_rows(obs), aux, torch.arange(rows))
     assert fused.step(mb, coef)  # the gradient stays in fused.grad after the Adam step
     # the diagnostics: the loss's terms as the step computed them on the way to its gradient
-    assert fused.losses.steps == 1 and 0 < terms["clip_fraction"] < 1
+    assert fused.losses.steps == 1 and 0 < loss.clip_fraction < 1
     policy, value, kl, clipped = fused.losses.means()
-    assert policy == pytest.approx(terms["policy_loss"], rel=1e-4, abs=1e-6)
-    assert value == pytest.approx(terms["value_loss"], rel=1e-4)
-    assert kl == pytest.approx(terms["approx_kl"], rel=1e-4, abs=1e-6)
-    assert clipped == terms["clip_fraction"]
+    assert policy == pytest.approx(loss.policy.item(), rel=1e-4, abs=1e-6)
+    assert value == pytest.approx(loss.value.item(), rel=1e-4)
+    assert kl == pytest.approx(loss.approx_kl.item(), rel=1e-4, abs=1e-6)
+    assert clipped == loss.clip_fraction.item()
     flat = torch.cat(
         [
             g
@@ -266,7 +236,7 @@ def test_value_gradient_where_the_clipped_term_wins_by_rounding() -> None:
         clip=0.2, value_clip=0.2, value_coef=0.5, entropy_coef=0.0, max_grad_norm=1e9, kl_stop=1e9
     )
     net.zero_grad()
-    _released_loss(net, obs, aux, coef).backward()
+    ppo_loss(net, obs, _samples(aux, 2), coef).total.backward()
     mb = fused.minibatch(rows, [7], aux.shape[1])
     mb.gather([obs["proprioception"]], [None], aux, torch.arange(rows))
     fused.step(mb, coef)
@@ -456,7 +426,7 @@ def test_training_is_reproducible() -> None:
     assert [p.iteration for p in progress] == [1, 2]
     assert first.env_steps == 512 and len(first.curve) == 2
     assert first.curve == second.curve
-    assert first.num_episodes == second.num_episodes > 0
+    assert len(first.episodes) == len(second.episodes) > 0
     assert first.time_split.physics_s is None  # the gymnasium adapter does not count it
     assert first.kl_stops == 0
     stopped, _ = _short_run(seed=3, kl_stop=1e-12)  # every update stops at once

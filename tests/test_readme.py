@@ -10,8 +10,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from derl.nodes.cli.main import build_parser
 from nodes_fixtures import REPO, derl_argv
+
+from derl.nodes.cli.main import build_parser
 
 README = REPO / "README.md"
 CHEAP = ("derl unimal",)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+
 from derl.messages import MESSAGE_TYPES, SCHEMA_VERSION, Birth
 from derl.nodes.cli.main import main
 from derl.nodes.tools.reference import DOCUMENTS, command

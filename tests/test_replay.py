@@ -8,10 +8,10 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from derl.nodes.cli.main import main
 from nodes_fixtures import REPO, Processes, derl_argv, write_profile
 from PIL import Image
 
+from derl.nodes.cli.main import main
 from derl.replay import Trained
 
 

@@ -14,15 +14,15 @@ from pathlib import Path
 import pytest
 import yaml
 from body_variants import variants
+
+from derl.analysis import RetrainPlan
+from derl.evolution import breed
 from derl.messages import Ack, Birth, Curve, EvalResult, FitnessReport, Tournament, TrainJob
 from derl.nodes.cli.main import main
 from derl.nodes.cli.report import _thresholds
 from derl.nodes.journal.history import load_runs
 from derl.nodes.journal.history import run_log as load_run
 from derl.nodes.journal.segments import Journal, segments
-
-from derl.analysis import RetrainPlan
-from derl.evolution import breed
 from derl.rl import PPOConfig
 from derl.unimal import Genome
 

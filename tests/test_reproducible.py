@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from derl.messages import Birth
-from derl.nodes.journal.history import load_history
 from nodes_fixtures import REPO, LocalRun, Processes, assert_born_once, journaled, wait_for
 from pydantic import ValidationError
 
 from derl.evolution import Evolution, EvolutionConfig, fingerprint, load_profile
 from derl.lifetime import learn, ppo_config
+from derl.messages import Birth
+from derl.nodes.journal.history import load_history
 from derl.rl.config import SAVED
 from derl.unimal import Genome, body_hash, canonical_genome, sample_population
 

@@ -14,11 +14,6 @@ import signal
 from pathlib import Path
 
 import pytest
-from derl.messages import RunStatus
-from derl.nodes.cli.run import TrainingRate
-from derl.nodes.errors import REFUSED
-from derl.nodes.launch.commands import NodeCommand
-from derl.nodes.launch.supervisor import Supervisor
 from nodes_fixtures import (
     Processes,
     assert_born_once,
@@ -32,6 +27,11 @@ from nodes_fixtures import (
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from derl.evolution import load_profile
+from derl.messages import RunStatus
+from derl.nodes.cli.run import TrainingRate
+from derl.nodes.errors import REFUSED
+from derl.nodes.launch.commands import NodeCommand
+from derl.nodes.launch.supervisor import Supervisor
 
 COORDINATOR = "local-coordinator-0"  # the node names of launch/local.yaml
 

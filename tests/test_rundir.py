@@ -12,8 +12,9 @@ import time
 from pathlib import Path
 
 import pytest
-from derl.nodes.runtime.rundir import LOCK_FILE, RunDirLocked, lock_run_dir, write_atomic
 from nodes_fixtures import REPO, wait_for
+
+from derl.nodes.runtime.rundir import LOCK_FILE, RunDirLocked, lock_run_dir, write_atomic
 
 
 def _python(code: str) -> subprocess.Popen:

@@ -30,6 +30,20 @@ import yaml
 import zenoh
 from cryptography.hazmat.primitives.serialization import load_pem_private_key
 from cryptography.x509 import load_pem_x509_certificate
+from nodes_fixtures import (
+    REPO,
+    LocalRun,
+    Processes,
+    assert_born_once,
+    derl_argv,
+    free_port,
+    observe,
+    run_id,
+    wait_for,
+    write_profile,
+)
+
+from derl.evolution import breed
 from derl.messages import (
     Birth,
     FitnessReport,
@@ -47,20 +61,6 @@ from derl.nodes.launch.commands import build_commands
 from derl.nodes.launch.identities import MONITOR, issue, make_ca
 from derl.nodes.launch.model import load
 from derl.nodes.runtime.bus import Bus, ZenohOptions, zenoh_config
-from nodes_fixtures import (
-    REPO,
-    LocalRun,
-    Processes,
-    assert_born_once,
-    derl_argv,
-    free_port,
-    observe,
-    run_id,
-    wait_for,
-    write_profile,
-)
-
-from derl.evolution import breed
 
 FORGED_FITNESS = -4242.0
 

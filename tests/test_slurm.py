@@ -39,6 +39,15 @@ from pathlib import Path
 
 import pytest
 from cryptography.x509 import load_pem_x509_certificate
+from nodes_fixtures import (
+    REPO,
+    assert_born_once,
+    free_port,
+    journaled,
+    wait_for,
+    write_profile,
+)
+
 from derl.messages import Birth, JobLost, TrainJob
 from derl.nodes.journal.segments import segments
 from derl.nodes.launch.commands import NODE_CONFIG, NodeCommand
@@ -52,14 +61,6 @@ from derl.nodes.launch.slurm import (
     tasks_per_node,
 )
 from derl.nodes.launch.supervisor import Supervisor
-from nodes_fixtures import (
-    REPO,
-    assert_born_once,
-    free_port,
-    journaled,
-    wait_for,
-    write_profile,
-)
 
 SBATCH = REPO / "launch" / "slurm" / "derl-run.sbatch"
 PACKAGES = ("slurmctld", "slurmd", "slurm-client", "munge")

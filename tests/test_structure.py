@@ -175,5 +175,40 @@ def test_the_docs_name_only_files_that_exist() -> None:
     assert missing == []
 
 
+def _citable(document: Path) -> tuple[list[str], set[str]]:
+    """What a section of `document` is cited by: its headings' and its tables' rows' first words
+    (a row names a point: docs/fidelity.md's), and its headings' anchors (GitHub's)."""
+    lines = document.read_text().splitlines()
+    headings = [line.lstrip("#").strip() for line in lines if line.startswith("#")]
+    rows = [line[1:].split("|")[0].strip() for line in lines if line.startswith("| ")]
+    anchors = {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in headings}
+    return headings + rows, anchors
+
+
+def test_every_section_cited_exists() -> None:
+    """Every section a document, a launch file or a module cites exists: `README "Heading"` or
+    `docs/x.md, "Heading"` (the beginning of a heading or of a table's row) and `x.md#anchor`."""
+    cited = re.compile(r"(README|[\w/-]+\.md)\)?,? \"([^\"]+)\"")
+    linked = re.compile(r"\]\(([\w/.-]*\.md)?#([\w-]+)\)")
+    citing = [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), ROOT / "agents" / "README.md",
+              *(p for p in (ROOT / "launch").rglob("*") if p.is_file()),
+              *(p for f in ("derl", "messages", "nodes", "bench", "examples")
+                for p in (ROOT / f).rglob("*.py"))]  # fmt: skip
+    missing = []
+    for path in citing:
+        text = re.sub(r"\s*\n\s*(?:#\s*)?", " ", path.read_text())  # a citation across lines
+        for name, section in cited.findall(text):
+            document = ROOT / ("README.md" if name == "README" else name)
+            if not document.exists():
+                document = path.parent / name
+            if not any(s.startswith(section) for s in _citable(document)[0]):
+                missing.append(f"{path.relative_to(ROOT)}: {name} {section!r}")
+        for name, anchor in linked.findall(text):
+            document = path.parent / name if name else path
+            if anchor not in _citable(document)[1]:
+                missing.append(f"{path.relative_to(ROOT)}: {name}#{anchor}")
+    assert missing == []
+
+
 def test_every_module_says_what_it_is_for() -> None:
     assert [entry.path for entry in module_tree() if not entry.job] == []

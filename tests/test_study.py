@@ -13,9 +13,6 @@ from pathlib import Path
 import pytest
 import yaml
 from body_variants import variants
-from derl.messages import Curve, EvalJob, EvalResult, JobFailed
-from derl.nodes.coordinator.study import StudyState
-from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
 from nodes_fixtures import (
     HandBirth,
     Processes,
@@ -29,6 +26,9 @@ from nodes_fixtures import (
 
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
+from derl.messages import Curve, EvalJob, EvalResult, JobFailed
+from derl.nodes.coordinator.study import StudyState
+from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
 from derl.rl import PPOConfig
 from derl.unimal import Genome, body_hash
 

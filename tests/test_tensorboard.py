@@ -14,13 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from nodes_fixtures import Processes, derl_argv, free_port, wait_for
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
 from derl.messages import Birth, Curve, FitnessReport, MessageBase, RunStatus
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import JournalWriter
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.tools.tensorboard import TAGS, LiveRun, Scalars, summary_writer
-from nodes_fixtures import Processes, derl_argv, free_port, wait_for
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 FITNESS = (1.0, 2.0, 3.0, 4.0, 5.0, 2.5, 6.0)  # 4 initial bodies, then 3 children of b1
 RETURNS = ((0.0, 2.0, 5.0), (0.0, 4.0, 4.0), (0.0, 1.0, 1.0))  # by body, cycling

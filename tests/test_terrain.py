@@ -235,8 +235,9 @@ def _ray_heights(model: mujoco.MjModel, points: np.ndarray) -> np.ndarray:
 
 def test_terrains_drawn_in_place_are_what_mujoco_sees() -> None:
     """A terrain drawn straight into a model's padded heightfield (no recompile), again and
-    again: MuJoCo's surface is `Terrain.height_at` of the stack's heights, the same draws as
-    `generate_terrain`'s, and continues at its edge heights beyond the edges."""
+    again: MuJoCo's surface passes through the vertices of the ground the environment reads
+    (`TerrainStack.ground`), the same draws as `generate_terrain`'s, and continues at its edge
+    heights beyond the edges (between vertices MuJoCo interpolates on its own triangles)."""
     config = TerrainConfig(size_x=20.0, size_y=10.0, start_flat=4.0)
     spec = mujoco.MjSpec()
     add_hfield(spec, config, HeightmapGrid())
@@ -251,9 +252,13 @@ def test_terrains_drawn_in_place_are_what_mujoco_sees() -> None:
         assert terrain.heights.max() > 0.2
         rough = rough_columns(terrain.heights, stack.margin)  # heads that need a lookup
         assert rough.any() and not (rough & ~stack.rough[0]).any()
-        points = rng.uniform((-12.0, -7.0), (12.0, 7.0), size=(400, 2))  # beyond the edges too
-        hits = _ray_heights(stack.models[0], points)
-        np.testing.assert_allclose(hits, terrain.height_at(points[:, 0], points[:, 1]), atol=2e-3)
+        # vertices (column, row), up to 2 m beyond the edges too
+        beyond = round(2.0 / config.resolution)
+        cells = rng.integers(-beyond, np.array(config.grid_shape)[::-1] + beyond, size=(400, 2))
+        points = np.array([stack.layout.x_min, stack.layout.y_min]) + cells * config.resolution
+        # cast a hair inside a triangle: a ray at a vertex can slip between the triangles there
+        hits = _ray_heights(stack.models[0], points + np.array([1e-5, 5e-6]))
+        np.testing.assert_allclose(hits, stack.ground(points, np.zeros(400, int)), atol=2e-4)
 
 
 def test_level_holds_over_flat_stretches_only() -> None:
@@ -283,18 +288,6 @@ def test_level_holds_over_flat_stretches_only() -> None:
                 end = x[span.c1] - 2 * res if span.c1 < len(x) - 1 else 50.0
                 inside |= (which == i) & (low >= start) & (high <= end)
     assert inside.sum() > 200 and level[inside].all()
-
-
-def test_height_at_interpolates_on_mujoco_triangles() -> None:
-    heights = np.zeros((3, 3), dtype=np.float32)
-    heights[0, 1] = 1.0  # vertex at (x, y) = (0, -1) of a 2 x 2 m world
-    terrain = Terrain(heights=heights, resolution=1.0)
-    np.testing.assert_allclose(
-        terrain.height_at(
-            np.array([-0.5, -0.25, -0.75, 0.0, 5.0]), np.array([-0.5, -0.75, -0.25, -1, -1])
-        ),
-        [0.0, 0.5, 0.0, 1.0, 0.0],
-    )
 
 
 # --- heightmap ----------------------------------------------------------------------------------

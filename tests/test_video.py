@@ -1,10 +1,14 @@
 """Clips that can be read: frames of FT, VT and MVT rendered offscreen (real MuJoCo, EGL) and
 checked by their pixels (not black, a sky, a textured ground, the body in view while it moves
-metres, an MVT box and goal in view), the drawn terrain against the one the physics uses, and
-the physics of a filmed copy against an unfilmed one."""
+metres, close up and never end-on however it turns, an MVT box and goal in view with their
+poles), the drawn terrain against the one the physics uses, the physics of a filmed copy against
+an unfilmed one, and a GIF's colours against the frames'."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import imageio.v3 as iio
 import mujoco
 import numpy as np
 import pytest
@@ -13,12 +17,13 @@ from derl.envs import make_task
 from derl.envs.batched import EnvConfig, UnimalEnv
 from derl.envs.film_set import COARSE_DROP, COARSE_STEP, FAR_TERRAIN
 from derl.envs.terrain_stack import HFIELD_NAME
-from derl.envs.video import FrameRecorder
-from derl.unimal import Genome
+from derl.envs.video import FrameRecorder, write_video
+from derl.unimal import Genome, Joint, Limb
 
 WIDTH, HEIGHT = 240, 180
 SPEED = 0.08
 """m per control step the body is carried along +x in the follow test (4 m/s)."""
+ROLL = Joint(axis="y", range=(-30, 0), gear=150)
 
 
 def _env(genome: Genome, task: str, seed: int = 3) -> UnimalEnv:
@@ -58,7 +63,9 @@ def test_a_frame_is_lit_under_a_sky_on_a_textured_ground(quadruped: Genome, task
         recorder.close()
     luminance = frame @ [0.299, 0.587, 0.114]
     assert np.mean(luminance < 40) < 0.02 and luminance.mean() > 120  # not black, not dim
-    sky = frame[: HEIGHT // 20].reshape(-1, 3)  # the top rows
+    top = np.s_[: HEIGHT // 20]  # the top rows: the sky, but for a pole over a goal or a box
+    sky = frame[top][segments[top] < 0]
+    assert sky.size > 0.8 * frame[top].size
     assert np.all(sky[:, 2] > sky[:, 0]) and sky.mean() > 180  # a pale blue, not black
     ground = segments >= 0
     ground[np.isin(segments, _body_geoms(recorder.set.model))] = False
@@ -91,16 +98,53 @@ def test_the_camera_follows_the_body_over_an_episode(quadruped: Genome, task: st
     assert env.head_pos[0, 0] - start[0] > 7.5
 
 
+def test_a_walk_is_filmed_close_and_across_the_body_however_it_turns() -> None:
+    """A stick of a body (as the FT agent) held turned each way on FT: the camera, from behind and
+    to a side, turns to see it across, close up; it never sees it end-on."""
+    stick = Genome(
+        head_density=600,
+        limb_density=900,
+        limbs=(Limb(id=0, paired=True, length=0.3, theta=90, phi=90, joints=(ROLL,)),),
+    )
+    env = _env(stick, "ft")
+    recorder = FrameRecorder(env, WIDTH, HEIGHT)
+    body = _body_geoms(recorder.set.model)
+    start = env.qpos[0, env.root : env.root + 7].copy()
+    try:
+        for yaw in (0.0, -30.0, 45.0, 90.0):  # the stick's axis at 90, 60, 135 and 180 degrees
+            half = np.radians(yaw) / 2
+            turned = np.zeros(4)
+            mujoco.mju_mulQuat(turned, [np.cos(half), 0, 0, np.sin(half)], start[3:])
+            for _ in range(150):
+                env.qpos[0, env.root + 3 : env.root + 7] = turned
+                env.qvel[0] = 0.0
+                env.step(np.zeros((1, env.model.nu)))
+                recorder.follow()
+            recorder.frame()
+            cols = np.nonzero(np.isin(_segments(recorder), body))[1]
+            assert np.ptp(cols) > 0.4 * WIDTH, f"turned {yaw}: {np.ptp(cols)} px wide"
+    finally:
+        recorder.close()
+
+
 def test_mvt_shows_the_box_and_its_goal_then_the_goal_from_the_box(quadruped: Genome) -> None:
+    """The body close up with the box 15-24 m ahead and its goal beyond, both marked by poles;
+    once at the box, the goal."""
     env = _env(quadruped, "mvt", seed=0)  # seed 3's first terrain hides the box behind a hill
     recorder = FrameRecorder(env)  # full size: the goal is 30 m or more away
     model = recorder.set.model
     box = model.geom("box").id
     goal = set(np.flatnonzero(model.geom_bodyid == model.body("goal").id))
+    marker = set(np.flatnonzero(model.geom_bodyid == model.body("object_marker0").id))
     try:
-        recorder.frame()
-        seen = set(np.unique(_segments(recorder)))
-        assert box in seen and goal & seen
+        for _ in range(25):  # the camera settles
+            env.step(np.zeros((1, env.model.nu)))
+            recorder.frame()
+        segments = _segments(recorder)
+        seen = set(np.unique(segments))
+        assert box in seen and goal & seen and marker & seen
+        cols = np.nonzero(np.isin(segments, _body_geoms(model)))[1]
+        assert np.ptp(cols) > 0.15 * recorder.renderer.width  # the body close up, not afar
         (carried,) = recorder.set.objects
         floor = carried.position[0, 2] - carried.half
         at_box = [*(carried.position[0, :2] - [1.0, 0.0]), floor + env.rest_height + 0.05]
@@ -191,3 +235,20 @@ def test_a_clip_of_every_nth_frame_is_every_nth_frame_of_the_whole_clip(quadrupe
     assert len(kept) == 4
     for frame, expected in zip(kept, whole[::3], strict=True):
         assert np.array_equal(frame, expected)
+
+
+def test_a_gif_keeps_every_colour_near_its_own(quadruped: Genome, tmp_path: Path) -> None:
+    """A GIF has 256 colours a frame: small parts (the head, a far goal's pole) keep theirs, every
+    pixel within 20 of its level in each channel (Pillow's default palette greyed them by 50)."""
+    env = _env(quadruped, "mvt", seed=0)
+    recorder = FrameRecorder(env, WIDTH, HEIGHT)
+    try:
+        frames = []
+        for _ in range(3):
+            env.step(np.zeros((1, env.model.nu)))
+            frames.append(recorder.frame())
+    finally:
+        recorder.close()
+    write_video(tmp_path / "clip.gif", frames)
+    back = iio.imread(tmp_path / "clip.gif")[..., :3].astype(int)
+    assert np.abs(back - np.array(frames, dtype=int)).max() <= 20

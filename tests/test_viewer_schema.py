@@ -11,15 +11,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from mcap.reader import make_reader
+from pydantic import BaseModel
+from viewer_parser import RealParser, Unreadable, parse_json_schema
+
 from derl.messages import MESSAGE_TYPES
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import JournalWriter
 from derl.nodes.tools.foxglove import TOPICS, RunSummary
 from derl.nodes.tools.logs import base64_text, export_json, json_form, json_schema
 from derl.nodes.tools.viewer_schema import ViewerSchemaError, viewer_schema
-from mcap.reader import make_reader
-from pydantic import BaseModel
-from viewer_parser import RealParser, Unreadable, parse_json_schema
 
 
 def _served() -> dict[str, dict[str, Any]]:

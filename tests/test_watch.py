@@ -1,6 +1,7 @@
 """The watch-and-replay tools on real Zenoh (loopback, multicast off, a fresh port and run id per
-test) with real processes: record, replay (timing, filters, refusal of a live run), topic
-echo (through a router, as clients), hz and list, monitor --once, and the example monitor."""
+test) with real processes: record, replay (timing, filters, refusal of a live run, the line
+saying nobody heard it), topic echo (through a router, as clients), hz and list, monitor --once,
+and the example monitor."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from nodes_fixtures import LocalRun, Processes, derl_argv, free_port, wait_for
+
 from derl.messages import (
     Birth,
     FitnessReport,
@@ -34,7 +37,6 @@ from derl.nodes.runtime.processes import stop_all
 from derl.nodes.tools.logs import read_log
 from derl.nodes.tools.monitor import RunView, sparkline
 from derl.nodes.tools.topic import key_expression, rate_line
-from nodes_fixtures import LocalRun, Processes, derl_argv, free_port, wait_for
 
 STEP_TYPES = {"Tournament", "TrainProgress", "FitnessReport", "Ack", "RunStatus"}
 STEPS, GAP_S = 6, 0.4
@@ -187,6 +189,35 @@ def test_replay_loops_until_stopped(
     assert replay.returncode == 0 and "passes" in procs.log("replay")
     one_pass = list(range(2, STEPS + 2))  # the RunStatus of examples(run, i) has born = i + 2
     assert [m.born for _, m in got][: 2 * STEPS] == one_pass * 2
+
+
+def test_replay_says_when_nobody_heard_it(
+    run_log: Path, procs: Processes, bus: Bus, endpoint: str
+) -> None:
+    """A replay that no subscriber matched says so in one line (at its end, or after its first
+    seconds when it goes on): on a bus with nobody on it, and on one whose only watcher takes
+    other keys; a replay heard says nothing of it."""
+    alone = ["replay", str(run_log), "--listen", f"tcp/127.0.0.1:{free_port()}"]
+    assert procs.finish(procs.start("alone", derl_argv(*alone, "--rate", "0"))) == 0
+    logged = len(list(read_log(run_log)))
+    assert re.search(
+        rf"derl replay: nobody heard it: no subscriber matched the {logged} messages published "
+        r"\(peer, listening on tcp/127\.0\.0\.1:\d+\)\n",
+        procs.log("alone"),
+    ), procs.log("alone")
+    looping = procs.start("looping", derl_argv(*alone, "--rate", "20", "--loop"))
+    told = r"nobody heard it: no subscriber matched the \d+ messages published in its first 5 s"
+    wait_for(lambda: re.search(told, procs.log("looping")), 30, "the notice of a long replay")
+    stop_all([looping])
+    assert looping.returncode == 0 and procs.log("looping").count("nobody heard it") == 1
+    watcher = Bus(bus.session, "recorded")
+    statuses: list[MessageBase] = []
+    watcher.subscribe(watcher.keys.status(), statuses.append)
+    for topics, told in (("fitness", True), ("status", False)):
+        args = ["replay", str(run_log), "--rate", "0", "--topics", topics, "--connect", endpoint]
+        assert procs.finish(procs.start(topics, derl_argv(*args))) == 0, procs.log(topics)
+        assert ("nobody heard it" in procs.log(topics)) is told, procs.log(topics)
+    wait_for(lambda: len(statuses) == STEPS, 10, "the replayed statuses")
 
 
 def test_replay_refuses_a_run_with_live_nodes(

@@ -11,11 +11,11 @@ import threading
 import time
 
 import pytest
+
 from derl.messages import KeySpace, RunStatus
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.worker import node
 from derl.nodes.worker.node import Worker, ready_wait
-
 from tests.nodes_fixtures import free_port, run_id, wait_for
 
 

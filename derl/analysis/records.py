@@ -92,6 +92,10 @@ class RunLog(Record):
     directory that has one (a log alone has none)."""
     fingerprint: str | None = None
     """A hash of its births (`derl.evolution.fingerprint`), where it was read from a journal."""
+    audited: int = 0
+    """Births from two trainings by two trainer identities that agreed (an audit)."""
+    quarantined: tuple[str, ...] = ()
+    """Trainer identities caught lying by an audit (their unchecked births trained again)."""
 
     @model_validator(mode="after")
     def _a_tree_in_birth_order(self) -> RunLog:

@@ -5,19 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from derl.envs.objects import GoalPoint
 from derl.envs.task import Success
 from derl.envs.view import EnvView
-
-
-class Arrived(Success):
-    """The head arrived at its goal (`GoalPoint.arrived`)."""
-
-    def __init__(self, goal: GoalPoint) -> None:
-        self.goal = goal
-
-    def __call__(self, env: EnvView) -> np.ndarray:
-        return self.goal.arrived
 
 
 class Escaped(Success):

@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from derl.envs.arenas import Bowl, BowlConfig, Floor, Heightfield, ObstacleConfig
 from derl.envs.endings import Escaped
 from derl.envs.heightmap import HeightmapGrid
-from derl.envs.objects import CarriedObject, ForwardPlacement, GoalPoint
+from derl.envs.objects import CarriedObject, FloorCells, ForwardPlacement, GoalPoint
 from derl.envs.observations import GoalSeen, Heightmap, ObjectSeen
 from derl.envs.rewards import (
     REWARD_WEIGHTS,
@@ -140,13 +140,15 @@ def exploration(
     """Visit as many distinct ``cell`` x ``cell`` squares of the floor as possible, from its
     centre."""
     w = weights or REWARD_WEIGHTS["exploration"]
+    cells = FloorCells(size / 2, cell)
     return Task(
         name="exploration",
         gym_name="Exploration",
         fitness_component="explore",
         arena=Floor(size, size),
         spawn=(0.0, 0.0),
-        rewards=(Explore(size / 2, cell), Ctrl(w)),
+        props=(cells,),
+        rewards=(Explore(cells), Ctrl(w)),
     )
 
 
@@ -235,7 +237,6 @@ def _carry(
     fall_ratio: float | None = None,
 ) -> Task:
     """MVT's reach and push rewards and "object" observation, for ``obj`` on ``arena``."""
-    reach = ReachObject(obj, weights)
     return Task(
         name=name,
         gym_name=gym_name,
@@ -243,7 +244,7 @@ def _carry(
         arena=arena,
         spawn=spawn,
         props=(obj,),
-        rewards=(reach, PushObject(obj, weights, reach), Ctrl(weights)),
+        rewards=(ReachObject(obj, weights), PushObject(obj, weights), Ctrl(weights)),
         observations=(ObjectSeen(obj),),
         metrics={"manipulation": ("reach", "push")},
         fall_ratio=fall_ratio,
@@ -284,8 +285,8 @@ def push_box_incline(
     """Push a box up a 10 degree slope to a goal near the far end."""
     floor = Floor(length, width, slope)
     spawn = _slope_spawn(floor)
-    box = CarriedObject(floor, spawn, placement or PushBoxPlacement())
     w = weights or REWARD_WEIGHTS["push_box_incline"]
+    box = CarriedObject(floor, spawn, placement or PushBoxPlacement(), w.margin)
     return _carry("push_box_incline", "PushBoxIncline", floor, spawn, box, w, SLOPE_FALL_RATIO)
 
 
@@ -330,6 +331,6 @@ def manipulate_ball(
     MVT's names ("box", "box_root"); the agent reaches it at its centre."""
     placement = placement or BallPlacement()
     floor, spawn = Floor(size, size), (-size / 2 + BALL_SPAWN_FROM_END, 0.0)
-    ball = CarriedObject(floor, spawn, placement, placement.geom(), faces=False)
     w = weights or REWARD_WEIGHTS["manipulate_ball"]
+    ball = CarriedObject(floor, spawn, placement, w.margin, placement.geom(), faces=False)
     return _carry("manipulate_ball", "ManipulateBall", floor, spawn, ball, w)

@@ -3,9 +3,9 @@ frame as copy 0 of the environment is.
 
 The environment's own model carries nothing visual. `FilmSet` builds the same world (the body, the
 task's arena and props) with the scenery of `derl.unimal.scenery` (sky, checkered ground, a sun
-that follows the body), a pole over a goal, and copies copy 0's positions into it: the physics
-stays the environment's. A heightfield is drawn twice: in full detail in a patch of `PATCH`
-metres around the camera's target, cut from copy 0's terrain and moved as the body walks, and
+that follows the body), a pole over each object and goal, and copies copy 0's positions into it:
+the physics stays the environment's. A heightfield is drawn twice: in full detail in a patch of
+`PATCH` metres around the body filmed, cut from copy 0's terrain and moved as the body walks, and
 whole, coarsely (every `COARSE_STEP`-th vertex; under the patch a running minimum, so that it
 lies below the detailed surface there, and 2 cm lower). Renderers without a GPU (Mesa's
 llvmpipe) spend 0.6 s a frame on a whole 100 m VT terrain at its 0.1 m resolution.
@@ -26,7 +26,7 @@ from derl.unimal.scenery import GROUND_SQUARE, add_scenery
 FLOOR = "floor"
 FAR_TERRAIN = "terrain_far"
 PATCH = (24.0, 16.0)
-"""Size (x, y) of the detailed heightfield patch around the camera's target, m."""
+"""Size (x, y) of the detailed heightfield patch around the body filmed, m."""
 PATCH_AHEAD = 6.0
 """The patch's centre lies this far ahead (+x) of the target: bodies walk along +x."""
 PATCH_SLACK = 3.0
@@ -40,9 +40,11 @@ HAZE = (20.0, 60.0)
 PLANE_GRID = 2.0
 """A plane is drawn in squares of this side, m (the environment's 0.1 m made 2 million squares
 of FT's floor; a plane's third size is for drawing only)."""
-GOAL_RGBA = (0.85, 0.15, 0.15, 0.7)
-POLE = 2.0
-"""Height of the pole over a goal, m."""
+GOAL_RGBA = (0.85, 0.15, 0.15, 1.0)
+OBJECT_RGBA = (0.95, 0.75, 0.1, 1.0)
+POLE = 3.0
+"""Height of the pole over an object or a goal, m; a ball of `FLAG` m radius tops it."""
+FLAG = 0.3
 REACHED = 1.0
 """The body has reached its object when its head is this close to the object's side, m."""
 
@@ -77,7 +79,9 @@ class FilmSet:
                     geom.size[2] = PLANE_GRID
         goal = spec.body("goal")  # a carried object's goal marker
         if goal is not None:
-            _add_pole(goal)
+            _add_pole(goal, GOAL_RGBA)
+        for k in range(len(self.objects)):  # a pole over each object, upright whatever it does
+            _add_pole(spec.worldbody.add_body(name=f"object_marker{k}", mocap=True), OBJECT_RGBA)
         for k in range(len(self.goals)):  # a goal for the head has no marker of its own
             marker = spec.worldbody.add_body(name=f"goal_marker{k}", mocap=True)
             marker.add_geom(
@@ -87,7 +91,7 @@ class FilmSet:
                 contype=0,
                 conaffinity=0,
             )
-            _add_pole(marker)
+            _add_pole(marker, GOAL_RGBA)
         if self.terrains is not None:
             self._add_terrain_views(spec, material)
         model = spec.compile()
@@ -130,11 +134,13 @@ class FilmSet:
         self.env.batch.get_data(0, self.source)
         data = self.data
         data.qpos[:] = self.source.qpos
-        carried = self.env.model.nmocap  # then the goal markers of this set
+        carried = self.env.model.nmocap  # then the object and goal markers of this set
         data.mocap_pos[:carried] = self.source.mocap_pos
         data.mocap_quat[:carried] = self.source.mocap_quat
-        for k, goal in enumerate(self.goals):
-            data.mocap_pos[carried + k] = goal.goal[0]
+        for k, obj in enumerate(self.objects):
+            data.mocap_pos[carried + k] = obj.position[0] + [0.0, 0.0, obj.half]
+        for k, goal in enumerate(self.goals, carried + len(self.objects)):
+            data.mocap_pos[k] = goal.goal[0]
         head = self.source.qpos[self.root : self.root + 3].copy()
         if self.terrains is not None:
             self._cut_terrain(head if target is None else target)
@@ -157,6 +163,18 @@ class FilmSet:
         for goal in self.goals:
             return goal.goal[0].copy()
         return None
+
+    def marks(self, head: np.ndarray) -> np.ndarray:
+        """(K, 3) what a clip is to show besides the body, the most wanted first: where the body
+        is to go (`focus`) and the ball atop its pole, then each other object and goal, then the
+        balls atop theirs."""
+        places = [obj.position[0] for obj in self.objects]
+        places += [obj.goal[0] for obj in self.objects] + [goal.goal[0] for goal in self.goals]
+        focus = self.focus(head)
+        places.sort(key=lambda place: focus is None or not np.array_equal(place, focus))
+        bases = np.array(places).reshape(-1, 3)
+        balls = bases + np.array([0.0, 0.0, POLE + FLAG])
+        return np.concatenate([bases[:1], balls[:1], bases[1:], balls[1:]])
 
     def _cut_terrain(self, target: np.ndarray) -> None:
         """The patch around `target` and the coarse terrain around it, when copy 0's terrain
@@ -216,16 +234,14 @@ def _in_phase(first: float, last: int, phase: int, period: int) -> int:
     return phase + period * int(np.clip(round((first - phase) / period), 0, most))
 
 
-def _add_pole(body: mujoco.MjsBody) -> None:
-    """A thin pole standing on `body`, seen from afar; visual only."""
-    body.add_geom(
-        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
-        size=[0.06, POLE / 2, 0],
-        pos=[0, 0, POLE / 2],
-        rgba=list(GOAL_RGBA),
-        contype=0,
-        conaffinity=0,
-    )
+def _add_pole(body: mujoco.MjsBody, rgba: tuple[float, ...]) -> None:
+    """A pole topped by a ball standing on `body`, seen from afar; visual only."""
+    for kind, size, height in (
+        (mujoco.mjtGeom.mjGEOM_CYLINDER, [0.08, POLE / 2, 0], POLE / 2),
+        (mujoco.mjtGeom.mjGEOM_SPHERE, [FLAG, 0, 0], POLE + FLAG),
+    ):
+        body.add_geom(type=kind, size=size, pos=[0, 0, height], rgba=list(rgba), contype=0,
+                      conaffinity=0)  # fmt: skip
 
 
 def _shape_hfield(hfield: mujoco.MjsHField, shape: tuple[int, int], spacing: float) -> None:

@@ -135,7 +135,7 @@ class HeightStack:
     """M terrains laid out like ``layout`` (its shape, resolution and extent) and the heightmap
     and ground lookups on them, all at once. The terrains are stacked in one float32 array of
     heights in metres, `padded` (M, nrow + 2 m, ncol + 2 m), m = `margin` = `padding` (grid):
-    each terrain framed by m cells on every side that repeat its edges (`pad`).
+    each terrain framed by m cells on every side that repeat its edges (`write`).
 
     Flat indices into the stack are int32 (numpy gathers them faster than int64), which limits a
     stack to 2**31 vertices: 1700 copies of a 100 m x 100 m terrain.
@@ -153,7 +153,7 @@ class HeightStack:
         if self.padded.size > np.iinfo(np.int32).max:
             raise ValueError(f"{count} terrains of {layout.heights.shape} exceed 2**31 vertices")
         self.interior = self.padded[:, m : m + nrow, m : m + ncol]
-        """The terrains' own vertices: a view of `padded` (write `pad` (i) after a change)."""
+        """The terrains' own vertices: a view of `padded` (`write` sets them and the padding)."""
         # (M, ncol) whether a head above the column reads more than one height (all zeros: no)
         self.rough = np.zeros((count, ncol), bool)
         row_length = self.padded.shape[2]

@@ -1,6 +1,7 @@
-"""Props: what a task puts in its arena each episode. `GoalPoint` is a goal for the head;
-`CarriedObject` is a free body (a box, or a ball) and the goal marker it is to be brought to.
-Reward terms, observations and success tests read their state."""
+"""Props: what a task puts in its arena each episode, and the episode's record of it. `GoalPoint`
+is a goal for the head; `CarriedObject` is a free body (a box, or a ball) and the goal marker it is
+to be brought to; `FloorCells` are the squares of a floor the head has been in. Each advances its
+state after every step, before the reward terms, observations and success tests read it."""
 
 from __future__ import annotations
 
@@ -135,17 +136,24 @@ class CarriedObject(Part):
     marker (mocap body "goal") `GOAL_LIFT` m above the ground. `position` is the object's live
     (N, 3) centre, `velocity` its (N, 6) free-joint velocity (linear in the world frame, angular
     in the object's own frame, MuJoCo's convention), `goal` (N, 3) its goals. ``faces``: the
-    agent reaches the cube at its six face centres (else at its centre, as for a ball)."""
+    agent reaches the cube at its six face centres (else at its centre, as for a ball).
+
+    After each step: `reach_gain` is the decrease in the agent-object distance
+    (`reach_distance`), `reached` whether that distance has been within ``margin`` in the
+    episode and `first_reach` whether it came within it at this step for the first time;
+    `push_gain` is the decrease in the object-goal distance (`goal_distance`) and `delivered`
+    whether that distance is within ``margin``."""
 
     def __init__(
         self,
         arena: Arena,
         spawn: tuple[float, float],
         placement: ObjectPlacement,
+        margin: float,
         geom: Mapping[str, object] | None = None,
         faces: bool = True,
     ) -> None:
-        self.arena, self.spawn, self.placement = arena, spawn, placement
+        self.arena, self.spawn, self.placement, self.margin = arena, spawn, placement, margin
         self.geom = dict(geom or {})
         self.faces = faces
         self.half = placement.box_size / 2
@@ -183,7 +191,10 @@ class CarriedObject(Part):
         self.rot = joint.rot
         self.velocity = joint.qvel
         self.marker = env.mocap_pos("goal")
-        self.goal = np.zeros((env.num_envs, 3))
+        n = env.num_envs
+        self.goal = np.zeros((n, 3))
+        self.reach_dist, self.goal_dist = np.zeros(n), np.zeros(n)
+        self.reached = np.zeros(n, dtype=bool)
 
     def reset(self, env: EnvView, ids: np.ndarray) -> None:
         arena = self.arena
@@ -193,6 +204,35 @@ class CarriedObject(Part):
         self.qpos[ids, 3:7] = arena.tilt
         self.goal[ids] = np.column_stack([goal, arena.ground(goal, ids) + GOAL_LIFT])
         self.marker[ids] = self.goal[ids]
+
+    def placed(self, env: EnvView, ids: np.ndarray) -> None:
+        self.reach_dist[ids] = self.reach_distance(env)[ids]
+        self.reached[ids] = False
+        self.goal_dist[ids] = self.goal_distance()[ids]
+
+    def update(self, env: EnvView) -> None:
+        reach = self.reach_distance(env)
+        self.reach_gain = self.reach_dist - reach
+        self.first_reach = ~self.reached & (reach <= self.margin)
+        self.reached |= self.first_reach
+        self.reach_dist = reach
+        goal = self.goal_distance()
+        self.push_gain = self.goal_dist - goal
+        self.delivered = goal <= self.margin
+        self.goal_dist = goal
+
+    def reach_distance(self, env: EnvView) -> np.ndarray:
+        """(N,) the distance from the nearest of the agent's points (head centre and bottom, limb
+        middles and ends) to the nearest of the object's `reach_points`."""
+        points, targets = env.agent_points(), self.reach_points()
+        gaps = points[:, :, None] - targets[:, None]  # (N, P, K, 3)
+        squares = np.add.reduce(np.square(gaps, out=gaps), axis=3).reshape(len(gaps), -1)
+        return np.sqrt(np.minimum.reduce(squares, axis=1))
+
+    def goal_distance(self) -> np.ndarray:
+        """(N,) the object-goal distance in the ground plane."""
+        gap = self.position[:, :2] - self.goal[:, :2]
+        return np.hypot(gap[:, 0], gap[:, 1])
 
     def angular_velocity(self) -> np.ndarray:
         """(N, 3) the object's angular velocity in the world frame."""
@@ -205,3 +245,32 @@ class CarriedObject(Part):
         faces = np.matmul(self.rot, self._face_offsets).transpose(0, 2, 1)
         faces += self.position[:, None]
         return faces
+
+
+class FloorCells(Part):
+    """The ``cell`` x ``cell`` squares of a floor of half size ``half`` that the head has been in
+    during the episode (a point off the floor counts as in a square at its edge). After each
+    step, `entered` is whether the head is in a square for the first time in the episode, the
+    first step's square included."""
+
+    def __init__(self, half: float, cell: float) -> None:
+        self.half, self.cell = half, cell
+        self.cells = round(2 * half / cell)
+
+    def bind(self, env: EnvView) -> None:
+        self.visited = np.zeros((env.num_envs, self.cells, self.cells), dtype=bool)
+        self.copies = np.arange(env.num_envs)
+
+    def placed(self, env: EnvView, ids: np.ndarray) -> None:
+        self.visited[ids] = False
+
+    def update(self, env: EnvView) -> None:
+        col, row = self._cell(env.head_pos[:, :2])
+        self.entered = ~self.visited[self.copies, row, col]
+        self.visited[self.copies, row, col] = True
+
+    def _cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(column, row) of the square under each point."""
+        index = np.floor((xy + self.half) / self.cell).astype(np.intp)
+        index = np.clip(index, 0, self.cells - 1)
+        return index[:, 0], index[:, 1]

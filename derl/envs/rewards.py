@@ -1,7 +1,10 @@
 """Reward terms, each a part a task lists, and every task's weights in one table.
 
 The reward of a step is the sum of its task's terms; each term is reported as a step component
-under its name. Distances are of the head centre in the ground plane unless said otherwise.
+under its name. A term is a pure function of the environment and of the state of the props it
+reads (`derl.envs.objects`: they advance it after each step, before any term), so terms keep
+nothing and their order does not matter. Distances are of the head centre in the ground plane
+unless said otherwise.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from derl.envs.task import RewardTerm
 from derl.envs.view import EnvView
 
 if TYPE_CHECKING:
-    from derl.envs.objects import CarriedObject, GoalPoint
+    from derl.envs.objects import CarriedObject, FloorCells, GoalPoint
 
 CONTROL_DT = 0.02  # s per control step: 4 x 5 ms
 
@@ -95,96 +98,46 @@ class ReachGoal(RewardTerm):
 
 
 class ReachObject(RewardTerm):
-    """``w_reach (d_prev - d)`` with d the distance from the nearest of the agent's points (head
-    centre and bottom, limb middles and ends) to the nearest of the object's reach points
-    (`CarriedObject.reach_points`), plus ``bonus`` the first time d <= margin in an episode,
-    after which `reached` is set (the released code, derl/envs/tasks/manipulation.py)."""
+    """``w_reach (d_prev - d)`` with d the distance from the nearest of the agent's points to the
+    nearest of the object's reach points (`CarriedObject.reach_distance`), plus ``bonus`` the
+    first time d <= margin in an episode (the released code, derl/envs/tasks/manipulation.py)."""
 
     name: ClassVar[str] = "reach"
 
     def __init__(self, obj: CarriedObject, weights: RewardWeights) -> None:
-        self.obj, self.weights = obj, weights
-
-    def bind(self, env: EnvView) -> None:
-        self.dist = np.zeros(env.num_envs)
-        self.reached = np.zeros(env.num_envs, dtype=bool)
-
-    def distance(self, env: EnvView) -> np.ndarray:
-        points, targets = env.agent_points(), self.obj.reach_points()
-        gaps = points[:, :, None] - targets[:, None]  # (N, P, K, 3)
-        squares = np.add.reduce(np.square(gaps, out=gaps), axis=3).reshape(len(gaps), -1)
-        return np.sqrt(np.minimum.reduce(squares, axis=1))
-
-    def placed(self, env: EnvView, ids: np.ndarray) -> None:
-        self.dist[ids] = self.distance(env)[ids]
-        self.reached[ids] = False
+        self.obj, self.weight, self.bonus = obj, weights.reach, weights.bonus
 
     def __call__(self, env: EnvView) -> np.ndarray:
-        w, dist = self.weights, self.distance(env)
-        now = ~self.reached & (dist <= w.margin)
-        term = w.reach * (self.dist - dist) + w.bonus * now
-        self.dist = dist
-        self.reached |= now
-        return term
+        return self.weight * self.obj.reach_gain + self.bonus * self.obj.first_reach
 
 
 class PushObject(RewardTerm):
     """``w_push (d_prev - d) + bonus [d <= margin]`` with d the object-goal distance in the
     ground plane: the bonus at every step the object is within the margin, and the whole term
-    zero until ``reach`` has `reached` the object (the released code; list ``reach`` before
-    this term)."""
+    zero until the agent has reached the object (`CarriedObject.reached`; the released code)."""
 
     name: ClassVar[str] = "push"
 
-    def __init__(self, obj: CarriedObject, weights: RewardWeights, reach: ReachObject) -> None:
-        self.obj, self.weights, self.reach = obj, weights, reach
-
-    def bind(self, env: EnvView) -> None:
-        self.dist = np.zeros(env.num_envs)
-
-    def distance(self) -> np.ndarray:
-        gap = self.obj.position[:, :2] - self.obj.goal[:, :2]
-        return np.hypot(gap[:, 0], gap[:, 1])
-
-    def placed(self, env: EnvView, ids: np.ndarray) -> None:
-        self.dist[ids] = self.distance()[ids]
+    def __init__(self, obj: CarriedObject, weights: RewardWeights) -> None:
+        self.obj, self.weight, self.bonus = obj, weights.push, weights.bonus
 
     def __call__(self, env: EnvView) -> np.ndarray:
-        w, dist = self.weights, self.distance()
-        term = w.push * (self.dist - dist) + w.bonus * (dist <= w.margin)
-        self.dist = dist
-        return np.where(self.reach.reached, term, 0.0)
+        obj = self.obj
+        return np.where(obj.reached, self.weight * obj.push_gain + self.bonus * obj.delivered, 0.0)
 
 
 class Explore(RewardTerm):
-    """+1 for each ``cell`` x ``cell`` square of a floor of half size ``half`` that the head is
-    in for the first time in the episode, the first step's square included (the released
-    code's ExploreTerrainReward)."""
+    """+1 for each square of ``cells`` the head is in for the first time in the episode, the
+    first step's square included (`FloorCells.entered`; the released code's
+    ExploreTerrainReward)."""
 
     name: ClassVar[str] = "explore"
 
-    def __init__(self, half: float, cell: float) -> None:
-        self.half, self.cell = half, cell
-        self.cells = round(2 * half / cell)
-
-    def bind(self, env: EnvView) -> None:
-        self.visited = np.zeros((env.num_envs, self.cells, self.cells), dtype=bool)
-        self.copies = np.arange(env.num_envs)
-
-    def _cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(column, row) of the cell under each point; points off the floor count as its edge."""
-        index = np.floor((xy + self.half) / self.cell).astype(np.intp)
-        index = np.clip(index, 0, self.cells - 1)
-        return index[:, 0], index[:, 1]
-
-    def placed(self, env: EnvView, ids: np.ndarray) -> None:
-        self.visited[ids] = False
+    def __init__(self, cells: FloorCells) -> None:
+        self.cells = cells
 
     def __call__(self, env: EnvView) -> np.ndarray:
-        col, row = self._cell(env.head_pos[:, :2])
-        new = ~self.visited[self.copies, row, col]
-        self.visited[self.copies, row, col] = True
-        return new.astype(np.float64)
+        return self.cells.entered.astype(np.float64)
 
 
 class Escape(RewardTerm):

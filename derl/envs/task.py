@@ -81,7 +81,9 @@ class Arena(Part):
 
 
 class RewardTerm(Part):
-    """One weighted term of the reward (the reward is their sum), reported under `name`."""
+    """One weighted term of the reward (the reward is their sum), reported under `name`: a pure
+    function of the environment and of the props' state (advanced in their `update`), keeping
+    none of its own, so that the terms' order does not matter."""
 
     name: ClassVar[str]
 

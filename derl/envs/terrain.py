@@ -217,27 +217,6 @@ class Terrain:
             return -np.inf
         return min((s.x_start for s in self.segments if s.kind != "flat"), default=np.inf)
 
-    def height_at(self, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
-        """Ground height at world (x, y), vectorised over broadcastable arrays.
-
-        Interpolation is piecewise linear on MuJoCo's own triangulation of the hfield: each cell
-        is split along the diagonal from vertex (r, c) to (r+1, c+1), so this is the surface that
-        MuJoCo's collision and ``mj_ray`` see (exact up to float32). Points outside the grid read
-        the height of the nearest edge (MuJoCo has no ground there).
-        """
-        u = np.clip((np.asarray(x, dtype=np.float64) - self.x_min) / self.resolution, 0, None)
-        v = np.clip((np.asarray(y, dtype=np.float64) - self.y_min) / self.resolution, 0, None)
-        u, v = np.minimum(u, self.ncol - 1), np.minimum(v, self.nrow - 1)
-        c = np.minimum(u.astype(np.intp), self.ncol - 2)
-        r = np.minimum(v.astype(np.intp), self.nrow - 2)
-        fu, fv = u - c, v - r
-        h = self.heights
-        h00, h11 = h[r, c], h[r + 1, c + 1]
-        # Lower triangle (fu >= fv) has its third vertex at (r, c+1), the upper one at (r+1, c).
-        side = np.where(fu >= fv, h[r, c + 1], h[r + 1, c])
-        big, small = np.maximum(fu, fv), np.minimum(fu, fv)
-        return h00 + big * (side - h00) + small * (h11 - side)
-
     def hfield(self, base: float = 0.1) -> HField:
         """The MuJoCo hfield description of this terrain; ``base`` is the depth of the solid
         below z = 0. The hfield geom must sit at the origin with identity orientation."""

@@ -78,8 +78,7 @@ def mvt(
     w = weights or REWARD_WEIGHTS["mvt"]
     arena = Heightfield(terrain)
     spawn = (-terrain.size_x / 2 + terrain.start_flat / 2, 0.0)
-    box = CarriedObject(arena, spawn, placement or BoxPlacement())
-    reach = ReachObject(box, w)
+    box = CarriedObject(arena, spawn, placement or BoxPlacement(), w.margin)
     return Task(
         name="mvt",
         gym_name="MVT",
@@ -87,7 +86,7 @@ def mvt(
         arena=arena,
         spawn=spawn,
         props=(box,),
-        rewards=(reach, PushObject(box, w, reach), Ctrl(w)),
+        rewards=(ReachObject(box, w), PushObject(box, w), Ctrl(w)),
         observations=(ObjectSeen(box),),
         metrics={"manipulation": ("reach", "push")},
     )

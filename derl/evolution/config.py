@@ -60,6 +60,15 @@ class EvolutionConfig(BaseModel):
         "number of trainers (keep W at 2-4x the trainers); 0: free-running, the P most recently "
         "born (not reproducible)",
     )
+    audit: float = Field(
+        0.02,
+        ge=0,
+        le=1,
+        description="the share of children trained twice, by two trainer identities, whose "
+        "results must agree bit for bit (a third training decides a disagreement and the "
+        "identity that lied is quarantined); 0: none. Trainers must be one machine type with "
+        "one set of library versions (training is deterministic only there)",
+    )
     train_steps: int = Field(
         5_000_000,
         ge=1,
@@ -117,10 +126,11 @@ class EvolutionConfig(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _free_running_if_saved_before_the_window(cls, data: object, info: ValidationInfo) -> object:
-        """A run saved before `in_flight` existed (2026-12-04) was free-running: it resumes so."""
-        if info.context == SAVED and isinstance(data, dict) and "in_flight" not in data:
-            return {**data, "in_flight": 0}
+    def _as_saved_before(cls, data: object, info: ValidationInfo) -> object:
+        """A run saved before `in_flight` existed (2026-12-04) was free-running, and one saved
+        before `audit` (2026-12-05) checked nothing: it resumes so."""
+        if info.context == SAVED and isinstance(data, dict):
+            return {"in_flight": 0, "audit": 0.0, **data}
         return data
 
     @model_validator(mode="after")
@@ -166,6 +176,7 @@ PROFILES: dict[str, EvolutionConfig] = {
         tournament=2,
         total=8,
         in_flight=2,
+        audit=0.0,
         train_steps=8192,
         num_envs=16,
         lease_s=30.0,
@@ -179,6 +190,7 @@ PROFILES: dict[str, EvolutionConfig] = {
         tournament=4,
         total=128,
         in_flight=8,
+        audit=0.05,
         train_steps=250_000,
         eval_top=2,
         eval_tasks=TEST_TASKS,

@@ -28,7 +28,7 @@ from __future__ import annotations
 import bisect
 import hashlib
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -259,6 +259,19 @@ class Evolution:
         self.settled_indices.add(index)
         while self.prefix in self.settled_indices:
             self.prefix += 1
+
+    def correct(self, agent: str, fitness: float) -> None:
+        """`agent` (born) and its repeats have `fitness`, not what they were born with (it was
+        trained again: the first result was a lie)."""
+        if agent not in self.fitness:
+            return
+        for k, member in enumerate(self.born):
+            if agent in (member.agent, member.repeat_of):
+                self.born[k] = self.by_index[self.index[member.agent]] = replace(
+                    member, fitness=fitness
+                )
+                self.fitness[member.agent] = fitness
+        self._best = max(self.born, key=lambda m: (m.fitness, -self.index[m.agent]))
 
     def repeat_of(self, genome: Genome) -> str | None:
         """The first agent born with the body `genome` (None: a body not born yet)."""

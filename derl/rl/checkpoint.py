@@ -98,7 +98,7 @@ class Policy:
     def from_checkpoint(cls, checkpoint: Checkpoint | bytes) -> Policy:
         if isinstance(checkpoint, bytes):
             checkpoint = Checkpoint.from_bytes(checkpoint)
-        net = ActorCritic(checkpoint.obs_spaces, checkpoint.action_dim)
+        net = ActorCritic(checkpoint.obs_spaces, checkpoint.action_dim, initialize=False)
         net.load_state_dict(checkpoint.weights)
         config = checkpoint.config
         obs_norm = ObsNormalizer(checkpoint.obs_spaces, config.obs_clip)

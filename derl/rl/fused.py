@@ -1,27 +1,28 @@
 """The actor-critic's sampling, values and PPO minibatch step written out by hand, on one flat
 float32 parameter vector and without autograd: the same arithmetic at a fraction of the per-op
-cost of small layers.
+cost of small layers, an optimisation of the loss as defined in `derl.rl.loss`.
 
 `ActorCritic` (network.py) defines and initialises the network; `FusedActorCritic` copies its
-weights into one flat vector (`store_into` copies them back) and runs
+weights into one flat vector (`store_into_net` copies them back) and runs
 
 - `act`: the actor on one batched step, Gaussian noise from a numpy generator, in numpy (on
   numpy views of the same weights): between two physics steps, which evict the caches, numpy's
   few small calls cost a third of torch's (FT, 10 limbs: 59 us against 190 us a step);
 - `values`: the critic on many rows at once (a rollout's values are computed after it);
-- `step`: one minibatch of the clipped PPO loss of the released code (clipped surrogate, clipped
-  value loss, entropy bonus as the mean over action dimensions), its gradient by the chain rule,
-  gradient-norm clipping and one step of torch's fused Adam kernel on the flat vector, called
-  directly, unless the minibatch's approximate KL exceeds its limit (the released code's early
-  stop) (`torch.optim.Adam` costs ~0.14 ms a step around it, and its constructor imports
-  torch._dynamo: ~0.8 s once per process).
+- `step`: one minibatch of the clipped PPO loss of the released code (`derl.rl.loss.ppo_loss`:
+  clipped surrogate, clipped value loss, entropy bonus as the mean over action dimensions), its
+  gradient by the chain rule, gradient-norm clipping and one step of torch's fused Adam kernel
+  on the flat vector, called directly, unless the minibatch's approximate KL exceeds its limit
+  (the released code's early stop) (`torch.optim.Adam` costs ~0.14 ms a step around it, and its
+  constructor imports torch._dynamo: ~0.8 s once per process).
 
 Weights are stored input-major, (in, out): torch's `nn.Linear.weight` transposed. The update's
 products are torch's (MKL; one thread under `torch.set_num_threads(1)`), the sampling's numpy's
 (OpenBLAS; the trainer limits it to as many threads), tanh is numpy's, in place on the same
 memory (torch 2.13's CPU tanh is ~10x slower than numpy's). Buffers are allocated once per batch
-size. The gradient equals autograd's on the released code's loss to float32 rounding. Heightmap
-rows that are all zero skip their first-layer product (`SPARSE`): the same arithmetic.
+size. The loss's terms and gradient equal autograd's on `derl.rl.loss.ppo_loss` to float32
+rounding (tests/test_ppo.py). Heightmap rows that are all zero skip their first-layer product
+(`SPARSE`): the same arithmetic.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from derl.rl.loss import PPOCoefficients
 from derl.rl.network import HIDDEN, ActorCritic, Encoder
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -259,18 +261,6 @@ def _tanh(x: torch.Tensor) -> None:
     x.sigmoid_()
     np.add(view, view, out=view)
     np.subtract(view, 1.0, out=view)
-
-
-@dataclass(frozen=True)
-class PPOCoefficients:
-    """The loss's constants (the config's values)."""
-
-    clip: float
-    value_clip: float
-    value_coef: float
-    entropy_coef: float
-    max_grad_norm: float
-    kl_stop: float
 
 
 class Minibatch:

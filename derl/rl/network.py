@@ -4,8 +4,8 @@ Each encoder runs one [dim -> 64 -> 64] tanh MLP per observation type; with seve
 concatenates their outputs and passes them through a 64-unit tanh layer, with one type (FT and the
 flat test tasks: proprioception only) that MLP's output is the encoding (the released code's
 `ConcatMLPEncoder` and `MLPObsEncoder`). This module defines and initialises the network and acts
-for `Policy`; training runs its arithmetic by hand on a flat copy of the weights
-(`derl.rl.fused`).
+for `Policy`; training minimises the PPO loss (`derl.rl.loss`) running the network's arithmetic
+by hand on a flat copy of the weights (`derl.rl.fused`).
 """
 
 from __future__ import annotations
@@ -51,7 +51,11 @@ class Encoder(nn.Module):
 class ActorCritic(nn.Module):
     """Separate actor and critic; Gaussian policy with a state-independent learned log-std."""
 
-    def __init__(self, obs_spaces: dict[str, int], action_dim: int) -> None:
+    def __init__(
+        self, obs_spaces: dict[str, int], action_dim: int, initialize: bool = True
+    ) -> None:
+        """`initialize`: draw the initial weights (orthogonal); False for a network whose weights
+        are loaded next (a checkpoint's), which skips the QR decompositions (most of its cost)."""
         super().__init__()
         self.obs_spaces = dict(obs_spaces)
         self.action_dim = action_dim
@@ -60,7 +64,7 @@ class ActorCritic(nn.Module):
         self.mean_head = nn.Linear(HIDDEN, action_dim)
         self.value_head = nn.Linear(HIDDEN, 1)
         self.log_std = nn.Parameter(torch.zeros(action_dim))
-        for module in self.modules():
+        for module in self.modules() if initialize else ():
             if isinstance(module, nn.Linear):
                 nn.init.orthogonal_(module.weight, gain=1.0)
                 nn.init.zeros_(module.bias)

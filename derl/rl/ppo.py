@@ -36,7 +36,8 @@ from derl.rl.checkpoint import Checkpoint, state_from_bytes, state_to_bytes
 from derl.rl.config import PPOConfig
 from derl.rl.env_api import BatchedEnv
 from derl.rl.episodes import EpisodeLog, EpisodeTracker, FitnessSource
-from derl.rl.fused import FusedActorCritic, Minibatch, PPOCoefficients
+from derl.rl.fused import FusedActorCritic, Minibatch
+from derl.rl.loss import PPOCoefficients
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer, RewardScaler
 
@@ -137,10 +138,6 @@ class TrainResult:
     """Every iteration's `Progress`, diagnostics included."""
     iterations: int = 0
     """Iterations done: `config.iterations`, or fewer where a `Saver` stopped the training."""
-
-    @property
-    def num_episodes(self) -> int:
-        return len(self.episodes)
 
 
 def compute_gae(

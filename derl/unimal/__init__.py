@@ -6,7 +6,7 @@ from derl.unimal.genome import Genome, Joint, Limb
 from derl.unimal.mjcf import agent_spec, standalone_spec, to_mjcf
 from derl.unimal.mutations import OPERATORS, Mutation, MutationFailed, applicable, mutate
 from derl.unimal.sampling import random_genome, sample_population, shape_key
-from derl.unimal.validity import InvalidBody, check_body, is_valid
+from derl.unimal.validity import InvalidBody, check_body
 
 __all__ = [
     "OPERATORS",
@@ -24,7 +24,6 @@ __all__ = [
     "canonical_genome",
     "check_body",
     "describe",
-    "is_valid",
     "mutate",
     "random_genome",
     "sample_population",

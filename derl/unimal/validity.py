@@ -37,13 +37,5 @@ def check_body(genome: Genome) -> None:
         raise InvalidBody(f"self-intersection at rest: {listed}")
 
 
-def is_valid(genome: Genome) -> bool:
-    try:
-        check_body(genome)
-    except InvalidBody:
-        return False
-    return True
-
-
 def _body_name(model: mujoco.MjModel, geom: int) -> str:
     return model.body(model.geom_bodyid[geom]).name

@@ -6,10 +6,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from derl.nodes.cli.options import fail, fail_invalid
 from derl.nodes.launch.identities import MONITOR, make_ca, write_identities
 from derl.nodes.launch.model import LaunchFile, load
-from pydantic import ValidationError
 
 
 def register(commands: argparse._SubParsersAction) -> None:

@@ -7,11 +7,12 @@ import logging
 import signal
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from derl.nodes.cli.options import fail, fail_invalid, profile_from
 from derl.nodes.launch.commands import dry_run_text, plan
 from derl.nodes.launch.model import LaunchFile, load
 from derl.nodes.launch.supervisor import Supervisor
-from pydantic import ValidationError
 
 log = logging.getLogger("derl.launch")
 

@@ -7,6 +7,7 @@ import argparse
 import logging
 import sys
 
+import derl
 from derl.nodes.cli import (
     certs,
     launch,
@@ -22,8 +23,6 @@ from derl.nodes.cli import (
 )
 from derl.nodes.errors import DerlError
 from derl.nodes.runtime import ratelimit
-
-import derl
 
 
 class Parser(argparse.ArgumentParser):

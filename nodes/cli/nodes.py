@@ -18,6 +18,7 @@ from functools import partial
 from pathlib import Path
 
 import zenoh
+
 from derl.nodes.cli.options import (
     add_bus_arguments,
     add_profile_arguments,

@@ -15,10 +15,10 @@ from typing import NamedTuple, NoReturn, TypeGuard, get_args
 
 import yaml
 import zenoh
-from derl.nodes.errors import IN_USE, DerlError
-from derl.nodes.runtime.bus import ZenohOptions
 from pydantic import BaseModel, ValidationError
 
+from derl.nodes.errors import IN_USE, DerlError
+from derl.nodes.runtime.bus import ZenohOptions
 from derl.validation import problems
 
 PROFILE_KEY = "profile"  # in a profile file: the built-in profile it starts from

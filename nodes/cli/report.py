@@ -13,9 +13,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rich.console import Console
+
 from derl.nodes.cli.options import fail, output_directory
 from derl.nodes.journal.history import load_runs
-from rich.console import Console
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog
@@ -135,8 +136,13 @@ def _report(args: argparse.Namespace) -> int:
         console.print(line, highlight=False)
     for run in runs:
         if run.fingerprint is not None:
-            console.print(f"{run.name}: fingerprint {run.fingerprint} ({len(run.bodies)} births)",
-                          highlight=False)  # fmt: skip
+            audits = f", {run.audited} audited" if run.audited else ""
+            console.print(f"{run.name}: fingerprint {run.fingerprint} ({len(run.bodies)} "
+                          f"births{audits})", highlight=False)  # fmt: skip
+        if run.quarantined:
+            liars = ", ".join(run.quarantined)
+            console.print(f"{run.name}: QUARANTINED as liars: {liars} (their unchecked births "
+                          "were trained again)", highlight=False)  # fmt: skip
     console.print(
         f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
         f"{len(files.tables)} tables) in "

@@ -25,6 +25,8 @@ import unicodedata
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rich.progress import TextColumn
+
 from derl.messages import RunStatus
 from derl.nodes.cli.options import (
     add_port_argument,
@@ -46,7 +48,6 @@ from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.rundir import lock_run_dir
-from rich.progress import TextColumn
 
 if TYPE_CHECKING:
     from derl.evolution import EvolutionConfig

@@ -17,6 +17,8 @@ import argparse
 import signal
 from pathlib import Path
 
+from rich.console import Console
+
 from derl.nodes.cli.options import (
     add_port_argument,
     add_set_argument,
@@ -30,7 +32,6 @@ from derl.nodes.launch.commands import build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.rundir import lock_run_dir
-from rich.console import Console
 
 console = Console()
 

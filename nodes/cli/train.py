@@ -19,10 +19,10 @@ import threading
 from pathlib import Path
 from typing import Any, ClassVar
 
-from derl.nodes.cli.options import at_least_one, fail, output_directory
-from derl.nodes.cli.progress import Shown, output_console
 from rich.progress import TextColumn
 
+from derl.nodes.cli.options import at_least_one, fail, output_directory
+from derl.nodes.cli.progress import Shown, output_console
 from derl.replay import CHECKPOINT, EPISODE_STEPS, GENOME, RESULT
 from derl.validation import problems
 

@@ -6,10 +6,11 @@ import argparse
 import json
 from pathlib import Path
 
-from derl.nodes.cli.options import fail
 from rich.console import Console
 from rich.progress import track
 from rich.table import Table
+
+from derl.nodes.cli.options import fail
 
 console = Console()
 

@@ -370,10 +370,17 @@ def _record(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from derl.nodes.tools.recorder import replay
+    from derl.nodes.tools.recorder import UNHEARD_S, replay
+
+    options = publish_options(args)
+
+    def unheard(published: int, ended: bool) -> None:
+        when = "" if ended else f" in its first {UNHEARD_S:g} s"
+        print(f"derl replay: nobody heard it: no subscriber matched the {published} messages "
+              f"published{when} ({how_joined(options)})", file=sys.stderr, flush=True)  # fmt: skip
 
     done = replay(
-        publish_options(args),
+        options,
         args.log,
         _stop_on_signals(),
         rate=args.rate,
@@ -384,6 +391,7 @@ def _replay(args: argparse.Namespace) -> int:
         only_run=args.run,
         force=args.force,
         skip_damaged=args.skip_damaged,
+        unheard=unheard,
     )
     speed = done.messages / done.seconds if done.seconds else 0.0
     print(

@@ -26,6 +26,9 @@ import logging
 from concurrent.futures import Future
 from pathlib import Path
 
+from pydantic import ValidationError
+
+from derl.evolution import EvolutionConfig
 from derl.messages import (
     Birth,
     Cancel,
@@ -34,10 +37,14 @@ from derl.messages import (
     EvalResult,
     FitnessReport,
     JobFailed,
+    JobLost,
     Member,
     PopulationSnapshot,
+    Quarantine,
+    Retrained,
     TrainJob,
 )
+from derl.nodes.coordinator.audits import Verdict, identity, journaled, trials, verdict
 from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_evaluation
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.policy import Progress
@@ -49,9 +56,6 @@ from derl.nodes.coordinator.run_files import (
 )
 from derl.nodes.coordinator.state import CoordinatorState, Job, tournament_message
 from derl.nodes.errors import Refused
-from pydantic import ValidationError
-
-from derl.evolution import EvolutionConfig
 from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
 
@@ -101,6 +105,10 @@ class EvolutionPolicy:
         """The next child to train for `node`; children whose body is born already are born as
         repeats on the way, without training, and children that cannot be bred are given up."""
         state, evolution = self.state, self.state.evolution
+        if identity(node) in state.quarantined:
+            return None
+        if trainers <= 1:
+            self._born_unchecked(node)
         window = self.config.in_flight
         if 0 < window < trainers and not self.said_window:
             self.said_window = True
@@ -136,6 +144,19 @@ class EvolutionPolicy:
         )
         log.debug("%s -> %s (%s)", child, node, job.job)
         return job
+
+    def _born_unchecked(self, node: str) -> None:
+        """`node` is the only trainer: an audited child it trained, that no other identity can
+        train now, is born from its training unchecked (the run would wait forever); a
+        disagreement waits for a third identity whatever the number of trainers."""
+        me = identity(node)
+        for child in [c for c in self.state.waiting if c in self.state.trials]:
+            counted = trials(self.state.trials[child])
+            if len(counted) == 1 and identity(counted[0].node) == me:
+                log.info("%s born unchecked: no other trainer is alive to audit it", child)
+                order = self.state.orders[counted[0].job]
+                assert isinstance(order, TrainJob)
+                self._birth(counted[0], order)
 
     def _bred(self, child: str) -> bool:
         """Whether `child` has its body (bred now if it is a tournament's new child); a child no
@@ -190,28 +211,41 @@ class EvolutionPolicy:
     def on_fitness(self, report: FitnessReport) -> None:
         state, ledger = self.state, self.ledger
         order = state.orders.get(report.job)
-        if not state.issued_to(report.job, report.node, report.child):
-            ledger.never_issued(report, report.child)  # whatever the child's state
-        elif report.child in state.born:
+        child = report.child
+        if not state.issued_to(report.job, report.node, child):
+            ledger.never_issued(report, child)  # whatever the child's state
+        elif identity(report.node) in state.quarantined:
+            ledger.reject(report, child, f"{identity(report.node)} is quarantined: it lied")
+        elif child in state.born and not (child in state.retraining and order is not None):
             saved = None  # a crash (or a failed write) may have lost its checkpoint file
-            born_from = state.born[report.child].job
-            if born_from == report.job and not ledger.checkpoints.path(report.child).exists():
-                saved = ledger.save(report.child, report.checkpoint)
-            ledger.answer_again(report, report.child, after=saved)
-        elif report.child in state.failed:
-            ledger.reject(report, report.child, "the child was given up")
+            born_from = state.born[child].job
+            if born_from == report.job and not ledger.checkpoints.path(child).exists():
+                saved = ledger.save(child, report.checkpoint)
+            ledger.answer_again(report, child, after=saved)
+        elif child in state.failed:
+            ledger.reject(report, child, "the child was given up")
         elif not isinstance(order, TrainJob):
-            ledger.never_issued(report, report.child)
+            ledger.never_issued(report, child)
+        elif any(trial.job == report.job for trial in state.trials.get(child, ())):
+            ledger.answer_again(report, child)  # a trial taken already
         elif wrong := self._wrong_report(report, order):
-            ledger.reject(report, report.child, wrong)
+            ledger.reject(report, child, wrong)
         else:
-            self._birth(report, order)
+            saved = ledger.save(child, report.checkpoint)
+            ledger.commit(journaled(report), publish=False)
+            if child in state.retraining:
+                self._retrained(report)
+            elif not state.is_audited(child):
+                self._birth(report, order)
+            elif decided := verdict(state.trials[child]):
+                self._decided(decided, order)
+            ledger.ack(report, child, after=saved)
+            if child in state.born:
+                self._end_other_job(child, report.job)
 
     def _birth(self, report: FitnessReport, order: TrainJob) -> None:
-        """The first valid report for a child: its birth (and the end of any other job for it)."""
-        state, ledger = self.state, self.ledger
-        saved = ledger.save(report.child, report.checkpoint)
-        ledger.commit(report.model_copy(update={"checkpoint": b""}), publish=False)
+        """`child` is born from `report` (its trials', if audited)."""
+        state = self.state
         birth = Birth(
             run=self.run,
             child=report.child,
@@ -228,14 +262,54 @@ class EvolutionPolicy:
             mutation_detail=order.mutation_detail,
             genome=order.genome,
         )
-        other = state.by_child.get(report.child)
-        ledger.commit(birth)
+        self.ledger.commit(birth)
         log.debug("born %s fitness %.2f", report.child, report.fitness)
-        ledger.ack(report, report.child, after=saved)
-        if other is not None and other != report.job:
-            node = state.jobs[other].node
-            ledger.commit(Cancel(run=self.run, job=other, node=node,
-                                 reason=f"{report.child} was born from {report.job}"))  # fmt: skip
+
+    def _end_other_job(self, child: str, done: str) -> None:
+        """A report for `child` was taken from job `done`: another job for it is cancelled."""
+        other = self.state.by_child.get(child)
+        if other is not None and other != done:
+            node = self.state.jobs[other].node
+            self.ledger.commit(Cancel(run=self.run, job=other, node=node,
+                                      reason=f"{child} was answered by {done}"))  # fmt: skip
+
+    def _decided(self, decided: Verdict, order: TrainJob) -> None:
+        """An audit's trials decided: the birth, and the liar's quarantine (`audits`)."""
+        state, child = self.state, order.child
+        jobs = tuple(r.job for r in trials(state.trials[child]))
+        if decided.undecided:
+            log.warning("%s: its trainings %s disagree, none alike: the trainers do not train "
+                        "alike (other machines or library versions?); born from %s, nobody "
+                        "quarantined", child, ", ".join(jobs), decided.born_from.job)  # fmt: skip
+        self._birth(decided.born_from, order)
+        if decided.liar is None:
+            return
+        liar = decided.liar
+        retrain = tuple(b.child for b in state.births if b.repeat_of is None
+                        and identity(b.node) == liar and b.child not in state.checked)  # fmt: skip
+        log.error("%s lied about %s (trainings %s): quarantined; %d of its births are trained "
+                  "again", liar, child, ", ".join(jobs), len(retrain))  # fmt: skip
+        self.ledger.commit(
+            Quarantine(run=self.run, node=liar, child=child, jobs=jobs, retrain=retrain)
+        )
+        for job in list(state.jobs.values()):
+            if identity(job.node) == liar:
+                self.ledger.commit(JobLost(run=self.run, job=job.id, node=job.node,
+                                           reason=f"{liar} is quarantined"))  # fmt: skip
+
+    def _retrained(self, report: FitnessReport) -> None:
+        """A child born from a liar's report, trained again: its result is this one's."""
+        was = self.state.born[report.child].fitness
+        same = ("child", "job", "node", "fitness", "cost_of_work", "energy", "mass")
+        result = {k: getattr(report, k) for k in same}
+        self.ledger.commit(Retrained(run=self.run, was=was, **result))
+        for birth in self.state.births:  # its repeats' files: links to the new one
+            if birth.repeat_of == report.child:
+                self.ledger.checkpoints.link(birth.child, report.child).add_done_callback(
+                    _log_failed_link
+                )
+        log.info("%s trained again: fitness %.2f (it was born with %.2f)", report.child,
+                 report.fitness, was)  # fmt: skip
 
     def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
         """Why `report` cannot be accepted for `order` ("" if it can): the body is the job's

@@ -16,12 +16,17 @@ commits nothing and tries `recover` every second, which writes what was not on t
 journal's messages into a new segment, the checkpoints kept in memory into their files) and
 releases what was held; the trainers' re-sent reports are then acknowledged. What failed, and
 that it works again, is said once a minute (`DiskFaults`).
+
+A refusal (a Reject, a Rejection) is journaled for the first `JOURNALED_REFUSALS` a minute of its
+sender's identity; the rest are counted (`RunStatus.rejected`) and a Reject is still published,
+so a certificate that floods refused messages cannot grow the journal without bound.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from concurrent.futures import Future
 from pathlib import Path
 
@@ -34,6 +39,7 @@ from derl.messages import (
     Rejection,
     encode,
 )
+from derl.nodes.coordinator.audits import incarnation
 from derl.nodes.coordinator.disk_faults import DiskFaults
 from derl.nodes.coordinator.outbox import Outbox, Reply
 from derl.nodes.coordinator.state import CoordinatorState
@@ -49,6 +55,8 @@ STALLED = (
     "second to write it again"
 )
 CHECKPOINT_WAIT_S = 30.0  # the longest `recover` waits for a checkpoint file written again
+JOURNALED_REFUSALS = 60  # refusals of one sender's identity journaled per `REFUSALS_S`; the
+REFUSALS_S = 60.0  # rest are counted and answered, not journaled: a flood cannot fill the disk
 
 
 class Ledger:
@@ -77,6 +85,8 @@ class Ledger:
         self.unwritten: dict[str, bytes] = {}  # child -> its checkpoint, whose file failed
         self._recovered: list[str] = []  # what `recover` wrote again since writing failed
         self.rejected = 0  # messages refused, counted for `RunStatus`
+        self.unjournaled = 0  # refusals over an identity's share, counted only
+        self._refusals: dict[str, tuple[float, int]] = {}  # identity -> (window start, count)
 
     @property
     def stalled(self) -> bool:
@@ -179,7 +189,10 @@ class Ledger:
         reject = Reject(
             run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node, reason=reason
         )
-        self.commit(reject)
+        if self._journal_refusal(msg.node):
+            self.commit(reject)
+        else:
+            self.send(reject)
 
     def never_issued(self, msg: FitnessReport | EvalResult, subject: str, also: str = "") -> None:
         """Reject a result of a job its sender was never given for `subject`."""
@@ -192,6 +205,8 @@ class Ledger:
         """Journal (unpublished) and count a message refused before any handler took it (or,
         without `msg`, what `sender` did on `key`)."""
         self.rejected += 1
+        if not self._journal_refusal(getattr(msg, "node", sender)):
+            return
         self.commit(
             Rejection(
                 run=self.run,
@@ -203,6 +218,23 @@ class Ledger:
             ),
             publish=False,
         )
+
+    def _journal_refusal(self, sender: str | None) -> bool:
+        """Whether a refusal of `sender`'s is journaled: the first `JOURNALED_REFUSALS` of its
+        identity (`<id>.r<n>` is `<id>`) per `REFUSALS_S`, so that a flood of refused messages
+        from one certificate grows the journal by a bounded amount a minute."""
+        identity = incarnation(sender or "")[0]
+        now = time.monotonic()
+        start, count = self._refusals.get(identity, (now, 0))
+        if now - start >= REFUSALS_S:
+            start, count = now, 0
+        if len(self._refusals) > 10_000:  # senders without a certificate may be any names
+            self._refusals.clear()
+        self._refusals[identity] = (start, count + 1)
+        if count < JOURNALED_REFUSALS:
+            return True
+        self.unjournaled += 1
+        return False
 
     def close(self) -> None:
         """Close the checkpoint files and the journal (the outbox is closed before)."""

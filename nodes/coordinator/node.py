@@ -26,7 +26,6 @@ from __future__ import annotations
 import gc
 import logging
 import queue
-import re
 import signal
 import threading
 import time
@@ -35,6 +34,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
+
 from derl.messages import (
     Birth,
     ChildFailed,
@@ -49,9 +49,17 @@ from derl.messages import (
     WorkerReady,
     encode,
 )
+from derl.nodes.coordinator.audits import incarnation
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.policy import Policy
-from derl.nodes.runtime.bus import MSGPACK, Bus, Inlet, ZenohOptions, open_session
+from derl.nodes.runtime.bus import (
+    INLET_CAPACITY,
+    MSGPACK,
+    Bus,
+    Inlet,
+    ZenohOptions,
+    open_session,
+)
 from derl.nodes.runtime.rundir import lock_run_dir
 
 log = logging.getLogger("derl.coordinator")
@@ -67,12 +75,13 @@ RESEND_AFTER_S = 2.0  # a job order is sent again for a WorkerReady that came in
 IDLE_S = (0.0005, 0.01)  # the wait when nothing came: the first, doubled up to the last
 RETRY_S = 1.0  # a coordinator whose journal cannot be written tries again this often
 RECENT_BIRTHS = 1000  # births a late monitor gets by query
-INLETS = (  # what the loop takes, in this order in each pass
-    ("ready", (WorkerReady,)),
-    ("fitness", (FitnessReport,)),
-    ("progress", (TrainProgress,)),
-    ("eval", (EvalResult,)),
-    ("failure", (JobFailed,)),
+REPORTS_HELD = 256  # reports an inlet holds (each up to 8 MiB: 2 GiB at most; ~100 kB usually)
+INLETS = (  # what the loop takes, in this order in each pass, and how many each holds
+    ("ready", (WorkerReady,), INLET_CAPACITY),
+    ("fitness", (FitnessReport,), REPORTS_HELD),
+    ("progress", (TrainProgress,), INLET_CAPACITY),
+    ("eval", (EvalResult,), REPORTS_HELD),
+    ("failure", (JobFailed,), INLET_CAPACITY),
 )
 
 
@@ -114,7 +123,7 @@ class Coordinator:
         """Run until the run is finished (True) or `stop` is set (False)."""
         with open_session(options) as session:
             self.bus = bus = Bus(session, self.run, on_reject=self._bus_rejected)
-            inlets = [bus.inlet(bus.keys.all(kind), types) for kind, types in INLETS]
+            inlets = [bus.inlet(bus.keys.all(kind), types, held) for kind, types, held in INLETS]
             self.ready_inlet = inlets[0]
             changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
             bus.watch_alive(lambda role, node, up: changes.put((role, node, up)))
@@ -235,7 +244,12 @@ class Coordinator:
                 self._handle(item)
         except Exception:  # one message must never stop the run: log it and go on
             self.ledger.rejected += 1
-            log.exception("handling %r failed", item)
+            what = (
+                item
+                if not isinstance(item, MessageBase)
+                else (f"{item.type} {getattr(item, 'job', '')} from {getattr(item, 'node', '?')}")
+            )
+            log.exception("handling %s failed", what)
 
     def _handle(self, msg: object) -> None:
         if isinstance(msg, WorkerReady):
@@ -305,7 +319,8 @@ class Coordinator:
         waits among the idle workers (keeping its place if it waited already)."""
         job = self.policy.next_job(node, role, self.trainers)
         if job is None:
-            self.idle[role][node] = None
+            if incarnation(node)[0] not in self.state.quarantined:  # those never get work
+                self.idle[role][node] = None
             return False
         self.ledger.commit(job)
         self.heard[job.job] = self.ordered[node] = time.monotonic()
@@ -319,8 +334,11 @@ class Coordinator:
         would otherwise hold the loop for seconds."""
         until = time.monotonic() + GROUP_S
         for role, waiting in self.idle.items():
-            while waiting and time.monotonic() < until:
-                if not self._assign(next(iter(waiting)), role):
+            for node in list(waiting):
+                if time.monotonic() >= until:
+                    return
+                others = role == "trainer" and self.state.waiting  # a child another may take
+                if not self._assign(node, role) and not others:
                     break  # no work for this role now
 
     # --- failures, rejections ----------------------------------------------------------------
@@ -428,16 +446,13 @@ class Coordinator:
             eval_target=state.eval_target,
             failed=len(state.failed),
             repeats=state.repeats,
+            audited=len(state.checked),
+            quarantined=tuple(state.quarantined),
+            retraining=len(state.retraining),
             rejected=self.ledger.rejected,
             steps_per_s=sum(self.rates.values()),
             done=state.finished,
         )
-
-
-def incarnation(node: str) -> tuple[str, int]:
-    """A worker's identity and incarnation: ``<id>.r<n>`` is restart n of ``<id>`` (0: itself)."""
-    restart = re.fullmatch(r"(.+)\.r(\d+)", node)
-    return (node, 0) if restart is None else (restart[1], int(restart[2]))
 
 
 def serve(run: str, run_dir: Path, policy: Callable[[], Policy], options: ZenohOptions) -> bool:

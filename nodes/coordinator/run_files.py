@@ -16,13 +16,13 @@ import json
 import logging
 from pathlib import Path
 
+from pydantic import ValidationError
+
+from derl.evolution import EvolutionConfig
 from derl.nodes.coordinator.state import CoordinatorState
 from derl.nodes.errors import Refused
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 from derl.nodes.runtime.rundir import write_atomic
-from pydantic import ValidationError
-
-from derl.evolution import EvolutionConfig
 from derl.rl.config import SAVED
 from derl.unimal import Genome, to_mjcf
 from derl.validation import problems
@@ -104,6 +104,11 @@ def write_results(
         "born": len(evolution.born),
         "fingerprint": state.fingerprint(),
         "failed": sorted(state.failed),
+        "audited": len(state.checked),
+        "quarantined": {
+            q.node: {"caught_at": q.child, "retrained": list(q.retrain)}
+            for q in state.quarantined.values()
+        },
         "best": [vars(m) for m in ranked[:10]],
         "evaluations": [r.model_dump(exclude={"curve"}) for r in state.evaluations.values()],
     }

@@ -28,6 +28,7 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from derl.evolution import Child, Evolution, EvolutionConfig, Member
 from derl.messages import (
     Birth,
     Cancel,
@@ -38,12 +39,13 @@ from derl.messages import (
     JobFailed,
     JobLost,
     MessageBase,
+    Quarantine,
+    Retrained,
     Tournament,
     TrainJob,
 )
+from derl.nodes.coordinator.audits import audited, identity, trials
 from derl.nodes.journal.history import EvalKey, RunHistory
-
-from derl.evolution import Child, Evolution, EvolutionConfig, Member
 from derl.rl import PPOConfig
 from derl.unimal import Genome, Mutation
 
@@ -97,6 +99,12 @@ class CoordinatorState(RunHistory):
         self.in_training: dict[str, str] = {}  # body_hash -> the child in training with it
         self.held: dict[str, str] = {}  # child -> the child in training with its body
         self.holding: dict[str, list[str]] = {}  # that child in training -> the children held
+        # audits (`audits`): an audited child's reports until its birth, the identities caught
+        # lying, and the born children of theirs to train again
+        self.trials: dict[str, list[FitnessReport]] = {}
+        self.quarantined: dict[str, Quarantine] = {}
+        self.retraining: dict[str, None] = {}
+        self.checked: set[str] = set()  # children born from trials that agreed
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
@@ -163,11 +171,22 @@ class CoordinatorState(RunHistory):
         self._add(Job(msg.job, msg.agent, msg.node, msg, key[1:]))
 
     def on_FitnessReport(self, msg: FitnessReport) -> None:
-        """Nothing kept: the coordinator needs no learning curve (the journal holds them for
-        `derl report`), and keeping each report's was most of its memory's growth per birth."""
+        """An audited child's report is one of its trials: its job is done and, until the trials
+        decide (its Birth follows in the same group when they do), the child waits for a
+        training by another identity. Nothing else is kept: the coordinator needs no learning
+        curve (the journal holds them for `derl report`), and keeping each report's was most of
+        its memory's growth per birth."""
+        if not self.is_audited(msg.child) or msg.child in self.evolution.fitness:
+            return
+        self.trials.setdefault(msg.child, []).append(msg)
+        self._remove(msg.job)
+        if msg.child not in self.by_child and msg.child not in self.waiting:
+            self.waiting.appendleft(msg.child)
 
     def on_Birth(self, msg: Birth) -> None:
         super().on_Birth(msg)
+        if len(trials(self.trials.pop(msg.child, []))) > 1:
+            self.checked.add(msg.child)
         self._forget_orders(msg.child)
         self.evolution.birth(msg.child, msg.fitness, msg.genome, msg.repeat_of)
         self._remove(msg.job)
@@ -176,6 +195,25 @@ class CoordinatorState(RunHistory):
         self._release(msg.child)
 
     def on_Cancel(self, msg: Cancel) -> None:
+        self._remove(msg.job)
+
+    def on_Quarantine(self, msg: Quarantine) -> None:
+        """`msg.node` lied: its trials of children not born yet no longer count, and its
+        unchecked births wait first in the queue to be trained again."""
+        super().on_Quarantine(msg)
+        self.quarantined[msg.node] = msg
+        for reports in self.trials.values():
+            reports[:] = [r for r in reports if identity(r.node) != msg.node]
+        for child in reversed(msg.retrain):
+            if child not in self.retraining:
+                self.retraining[child] = None
+                self.waiting.appendleft(child)
+
+    def on_Retrained(self, msg: Retrained) -> None:
+        super().on_Retrained(msg)
+        self.retraining.pop(msg.child, None)
+        self.evolution.correct(msg.child, msg.fitness)
+        self._forget_orders(msg.child)
         self._remove(msg.job)
 
     def on_JobLost(self, msg: JobLost) -> None:
@@ -218,7 +256,8 @@ class CoordinatorState(RunHistory):
         if job is None:
             return
         if job.evaluation is None:
-            if job.subject not in self.evolution.fitness and job.subject not in self.failed:
+            unborn = job.subject not in self.evolution.fitness and job.subject not in self.failed
+            if unborn or job.subject in self.retraining:
                 self.waiting.appendleft(job.subject)
         else:
             key = (job.subject, *job.evaluation)
@@ -277,20 +316,36 @@ class CoordinatorState(RunHistory):
 
     def next_child_for(self, node: str, trainers_alive: int) -> str | None:
         """The first waiting child for `node`: one whose training failed on another node, or on
-        this one only if no other trainer is alive to try it."""
+        this one only if no other trainer is alive to try it; an audited one that another
+        identity trained (`tried_by`)."""
+        me = identity(node)
         for child in self.waiting:
+            if me in self.tried_by(child):
+                continue
             if node not in self.failed_on.get(child, ()) or trainers_alive <= 1:
                 return child
         return None
 
+    def is_audited(self, child: str) -> bool:
+        """Whether `child` is born only once two identities' trainings agree (`audits`)."""
+        return audited(self.config.seed, child, self.config.audit)
+
+    def tried_by(self, child: str) -> set[str]:
+        """The identities whose training of `child` counts in its audit (or, for a child to
+        train again, that lied about it)."""
+        if child in self.retraining:
+            return {identity(self.born[child].node)}
+        return {identity(r.node) for r in trials(self.trials.get(child, []))}
+
     def wants_tournament(self) -> bool:
         """Whether a new child may be decided for an idle trainer now: once no child waits
-        (every initial body is assigned: those still training are born when they finish),
-        while fewer than the run's total are started (`Evolution.tournament` says whether its
-        population is known yet)."""
+        for it (every initial body is assigned: those still training are born when they
+        finish), while fewer than the run's total are started (`Evolution.tournament` says
+        whether its population is known yet)."""
         evolution = self.evolution
-        started = evolution.settled + self.training_in_flight() + len(self.waiting) + len(self.held)
-        return not self.waiting and started < self.config.total
+        unborn = [c for c in (*self.by_child, *self.waiting) if c not in self.retraining]
+        started = evolution.settled + len(unborn) + len(self.held)
+        return started < self.config.total
 
     def next_job_id(self, child: str) -> str:
         return f"{child}.{self.attempts.get(child, 0) + 1}"
@@ -301,8 +356,9 @@ class CoordinatorState(RunHistory):
     # --- evaluation stage --------------------------------------------------------------------
 
     def _plan_evaluations(self) -> None:
-        """Once evolution is over: the best `eval_top` bodies on every test task and seed."""
-        if self.planned or not self.evolution.complete:
+        """Once evolution is over (and no child waits to be trained again): the best `eval_top`
+        bodies on every test task and seed."""
+        if self.planned or not self.evolution.complete or self.retraining:
             return
         for member in self.best()[: self.config.eval_top]:
             for task in self.config.eval_tasks:
@@ -347,4 +403,5 @@ class CoordinatorState(RunHistory):
     def finished(self) -> bool:
         """Evolution and the evaluations of the run are over."""
         self._plan_evaluations()
-        return self.evolution.complete and self.evaluations_over(self.planned)
+        over = self.evolution.complete and not self.retraining
+        return over and self.evaluations_over(self.planned)

@@ -17,6 +17,8 @@ import logging
 from functools import partial
 from pathlib import Path
 
+from derl.analysis.selection import RetrainJob, RetrainPlan, kept_bodies
+from derl.analysis.study import StudyConfig
 from derl.messages import (
     EvalJob,
     EvalResult,
@@ -43,9 +45,6 @@ from derl.nodes.errors import Refused
 from derl.nodes.journal.history import EvalKey
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.nodes.runtime.rundir import write_atomic
-
-from derl.analysis.selection import RetrainJob, RetrainPlan, kept_bodies
-from derl.analysis.study import StudyConfig
 from derl.rl import PPOConfig
 from derl.unimal import Genome
 

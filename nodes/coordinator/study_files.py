@@ -15,13 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from derl.nodes.errors import DerlError, Refused
-from derl.nodes.journal.history import load_history, load_runs
-from derl.nodes.runtime.rundir import write_atomic
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from derl.analysis.selection import RetrainJob, RetrainPlan
 from derl.analysis.study import StudyConfig
+from derl.nodes.errors import DerlError, Refused
+from derl.nodes.journal.history import load_history, load_runs
+from derl.nodes.runtime.rundir import write_atomic
 from derl.rl.config import SAVED
 from derl.validation import problems
 

@@ -15,6 +15,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from derl.evolution.fingerprint import child_order, fingerprint
 from derl.messages import (
     Birth,
     ChildFailed,
@@ -24,6 +25,8 @@ from derl.messages import (
     JobFailed,
     JobLost,
     MessageBase,
+    Quarantine,
+    Retrained,
     TrainJob,
 )
 from derl.nodes.errors import DerlError
@@ -35,8 +38,6 @@ from derl.nodes.journal.segments import (
     segments,
 )
 from derl.nodes.runtime.checkpoints import FOLDER as CHECKPOINTS
-
-from derl.evolution.fingerprint import child_order, fingerprint
 
 if TYPE_CHECKING:
     from derl.analysis import RunLog
@@ -61,8 +62,11 @@ class RunHistory:
         self.failures: dict[str, list[JobFailed]] = {}  # subject -> its failed jobs
         self.lost: list[JobLost] = []
         self.evaluations: dict[EvalKey, EvalResult] = {}
+        self.audited = 0  # births from two or more trainings (an audit: `EvolutionConfig.audit`)
+        self.quarantines: list[Quarantine] = []
+        self.retrained: dict[str, Retrained] = {}  # child -> its result's replacement
         self.other_runs = 0
-        self._accepted: dict[str, FitnessReport] = {}  # job -> accepted report, until its Birth
+        self._accepted: dict[str, list[FitnessReport]] = {}  # child -> its reports, until born
 
     def fingerprint(self) -> str:
         """The run's fingerprint (`derl.evolution.fingerprint`) over its births so far."""
@@ -95,14 +99,16 @@ class RunHistory:
         self.issued[msg.job] = (msg.node, msg.agent)
 
     def on_FitnessReport(self, msg: FitnessReport) -> None:
-        self._accepted[msg.job] = msg
+        self._accepted.setdefault(msg.child, []).append(msg)
 
     def on_Birth(self, msg: Birth) -> None:
         if msg.child in self.born:
             return
         self.births.append(msg)
         self.born[msg.child] = msg
-        report = self._accepted.pop(msg.job, None)
+        reports = self._accepted.pop(msg.child, [])
+        self.audited += len(reports) > 1
+        report = next((r for r in reports if r.job == msg.job), None)
         if msg.repeat_of is not None:
             self.repeats += 1
             if report is None:
@@ -112,6 +118,23 @@ class RunHistory:
 
     def on_ChildFailed(self, msg: ChildFailed) -> None:
         self.failed.setdefault(msg.child, msg)
+
+    def on_Quarantine(self, msg: Quarantine) -> None:
+        self.quarantines.append(msg)
+
+    def on_Retrained(self, msg: Retrained) -> None:
+        """The child's result, and its repeats', is the new training's from now on."""
+        if msg.child not in self.born:
+            return
+        self.retrained[msg.child] = msg
+        report = next((r for r in self._accepted.pop(msg.child, []) if r.job == msg.job), None)
+        fields = ("job", "node", "fitness", "cost_of_work", "energy", "mass")
+        result = {k: getattr(msg, k) for k in fields}
+        for k, birth in enumerate(self.births):
+            if msg.child in (birth.child, birth.repeat_of):
+                self.births[k] = self.born[birth.child] = birth.model_copy(update=result)
+                if report is not None:
+                    self.reports[birth.child] = report
 
     def on_JobFailed(self, msg: JobFailed) -> None:
         self.failures.setdefault(msg.subject, []).append(msg)
@@ -215,6 +238,8 @@ def run_log(path: Path) -> RunLog:
         training_seed=first.seed,
         checkpoints=path / CHECKPOINTS if (path / CHECKPOINTS).is_dir() else None,
         fingerprint=history.fingerprint(),
+        audited=history.audited,
+        quarantined=tuple(q.node for q in history.quarantines),
     )
 
 

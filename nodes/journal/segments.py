@@ -35,6 +35,10 @@ from pathlib import Path
 from types import TracebackType
 from typing import NamedTuple
 
+from mcap.records import Channel, Footer, Message, Schema
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+
 from derl.messages import (
     SCHEMA_VERSION,
     DecodeError,
@@ -47,9 +51,6 @@ from derl.messages import (
 from derl.nodes.errors import REFUSED, DerlError
 from derl.nodes.journal.reader import Damage, JournalDamaged, records
 from derl.nodes.runtime.rundir import sync_folder
-from mcap.records import Channel, Footer, Message, Schema
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 log = logging.getLogger(__name__)
 

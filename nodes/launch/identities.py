@@ -24,6 +24,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
 from derl.messages.keys import ARITY, PUBLISHERS, ROOT
 from derl.nodes.launch.commands import NODE_CONFIG, NodeCommand, build_commands
 from derl.nodes.launch.model import LaunchFile, split_endpoint

@@ -30,9 +30,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+
 from derl.messages.types import Id
 from derl.nodes.runtime.bus import LOOPBACK_ANY_PORT
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 ROLES = ("router", "coordinator", "trainer", "evaluator")  # also the start order on a host
 LOCAL_ADDRESSES = {"localhost", "local", "127.0.0.1", "::1"}

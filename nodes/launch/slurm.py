@@ -33,10 +33,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
 from derl.nodes.launch.commands import NodeCommand, build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.model import LaunchFile
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 TOKEN_CHARS = string.ascii_lowercase + string.digits
 COUNT = re.compile(r"^(\d+)(?:\(x(\d+)\))?$")  # one item of SLURM_TASKS_PER_NODE: 2 or 2(x3)

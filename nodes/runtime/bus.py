@@ -26,9 +26,10 @@ from pathlib import Path
 from typing import Final, Literal
 
 import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
 from derl.messages import DecodeError, InvalidKey, KeySpace, MessageBase, decode, encode, parse
 from derl.messages.types import MAX_MESSAGE_BYTES
-from pydantic import BaseModel, ConfigDict, Field
 
 log = logging.getLogger("derl.bus")
 
@@ -37,8 +38,9 @@ LEASE_MS = 2500
 # default an ephemeral loopback port; across hosts, give --listen with a routable address.
 LOOPBACK_ANY_PORT = ("tcp/127.0.0.1:0",)
 MSGPACK = zenoh.Encoding("application/msgpack")
-INLET_CAPACITY = 1 << 20  # samples an `Inlet` holds (allocated as they come): a full one would
-# stall the session's whole receive path, so it is sized never to fill (docs/bus.md)
+INLET_CAPACITY = 1 << 16  # samples an `Inlet` holds (allocated as they come); when full, the
+# oldest are dropped: a worker sends its asks and results again until answered (a lost JobFailed's
+# job comes back when its lease runs out), and a flood must not fill the coordinator (docs/bus.md)
 
 
 DROPPABLE: Final = frozenset({"TrainProgress", "PopulationSnapshot", "RunStatus"})
@@ -158,12 +160,16 @@ class Bus:
         self.subscribe(key_expr, box.put, kinds)
         return box
 
-    def inlet(self, key_expr: str, kinds: tuple[type[MessageBase], ...] = ()) -> Inlet:
-        """The valid messages on `key_expr`, queued by Zenoh and decoded by the thread that
+    def inlet(
+        self,
+        key_expr: str,
+        kinds: tuple[type[MessageBase], ...] = (),
+        capacity: int = INLET_CAPACITY,
+    ) -> Inlet:
+        """The valid messages on `key_expr`, queued by Zenoh (up to `capacity`, then the oldest
+        dropped: a `RingChannel`, which never stalls the session) and decoded by the thread that
         takes them (`Inlet.take`)."""
-        subscriber = self.session.declare_subscriber(
-            key_expr, zenoh.handlers.FifoChannel(INLET_CAPACITY)
-        )
+        subscriber = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(capacity))
         self._subscribers.append(subscriber)
         return Inlet(self, subscriber, kinds)
 

@@ -27,13 +27,14 @@ from itertools import accumulate
 
 import foxglove
 import zenoh
+from foxglove.websocket import WebSocketServer
+from pydantic import BaseModel
+
 from derl.messages import Birth, ChildFailed, KeySpace, MessageBase, RunStatus, TrainProgress
 from derl.nodes.runtime.bus import ZenohOptions, open_session
 from derl.nodes.tools.logs import base64_text, json_form, json_schema
 from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
 from derl.nodes.tools.viewer_schema import viewer_schema
-from foxglove.websocket import WebSocketServer
-from pydantic import BaseModel
 
 KINDS = ("births", "status", "progress")
 """The key families the bridge serves."""

@@ -23,14 +23,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
 
-from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
-from derl.nodes.journal.reader import JournalDamaged, records
-from derl.nodes.journal.segments import Logged, compact, is_mcap, read_logged, segments
-from derl.nodes.tools.viewer_schema import viewer_schema
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
+
+from derl.messages import MESSAGE_TYPES, DecodeError, MessageBase, decode
+from derl.nodes.journal.reader import JournalDamaged, records
+from derl.nodes.journal.segments import Logged, compact, is_mcap, read_logged, segments
+from derl.nodes.tools.viewer_schema import viewer_schema
 
 log = logging.getLogger("derl.mcap")
 

@@ -25,6 +25,12 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import zenoh
+from rich.console import Console, Group
+from rich.live import Live
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
 from derl.messages import (
     Ack,
     Birth,
@@ -43,11 +49,6 @@ from derl.messages import (
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
-from rich.console import Console, Group
-from rich.live import Live
-from rich.panel import Panel
-from rich.table import Table
-from rich.text import Text
 
 REFRESH_S = 0.5
 RECENT_BIRTHS = 8
@@ -193,6 +194,11 @@ class RunView:
                 f"workers {s.workers_alive}",
                 f"rejected {s.rejected}",
             ]
+            if s.audited or s.quarantined:
+                fields.append(f"audited {s.audited}")
+            if s.quarantined:
+                fields.append(f"QUARANTINED {', '.join(s.quarantined)} "
+                              f"(retraining {s.retraining})")  # fmt: skip
         if self.population:
             fields.append(f"population {self.population}")
         if self.rejected:

@@ -15,7 +15,9 @@ unless told to skip the damage; a torn tail is no damage. It reads the log with 
 subscriber that cannot keep up slows the replay, never loses messages; monitors read through rings
 and are never slowed. A replay must not pose as a live run: jobs and acks published under a run that
 has live nodes would be taken as real. So it refuses a run that has a live node or coordinator on
-the bus (unless forced), and `as_run` publishes everything under another run id.
+the bus (unless forced), and `as_run` publishes everything under another run id. A replay nobody
+hears (no subscriber matched any key it published on: Zenoh's matching status) says so once, after
+`UNHEARD_S` or at its end.
 """
 
 from __future__ import annotations
@@ -24,10 +26,12 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
+
 from derl.messages import MessageBase, kind_of
 from derl.nodes.journal.segments import JournalWriter
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
@@ -38,6 +42,14 @@ log = logging.getLogger("derl.recorder")
 
 RECORD_RING = 16_384
 """Samples the recorder may fall behind by before the oldest are dropped."""
+
+UNHEARD_S = 5.0
+"""A replay that nobody has heard for this long since it began says so (a shorter one, at its
+end)."""
+
+SETTLE_S = 0.5
+"""How long a replay that nobody heard waits at its end for late news of subscribers (a client
+session learns of them from its router a round trip after asking)."""
 
 
 @dataclass
@@ -103,6 +115,46 @@ class Replayed:
     seconds: float
 
 
+class Audience:
+    """Whether any subscriber matches what a session publishes: a probe publisher (never put on)
+    for each key published on, read as each message goes out, until one matches."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.session = session
+        self.probes: dict[str, zenoh.Publisher] = {}
+        self.heard = False
+
+    def published(self, key: str) -> None:
+        if self.heard:
+            return
+        probe = self.probes.get(key)
+        if probe is None:
+            probe = self.probes[key] = self.session.declare_publisher(key)
+        if probe.matching_status.matching:
+            self._found()
+
+    def settle(self, timeout: float) -> bool:
+        """Whether a subscriber matched, asking the probes again for up to `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not self.heard:
+            if any(probe.matching_status.matching for probe in self.probes.values()):
+                self._found()
+            elif time.monotonic() >= deadline:
+                break
+            else:
+                time.sleep(0.05)
+        return self.heard
+
+    def _found(self) -> None:
+        self.heard = True
+        self.close()
+
+    def close(self) -> None:
+        for probe in self.probes.values():
+            probe.undeclare()
+        self.probes.clear()
+
+
 def replay(
     options: ZenohOptions,
     source: Path,
@@ -115,12 +167,14 @@ def replay(
     only_run: str | None = None,
     force: bool = False,
     skip_damaged: bool = False,
+    unheard: Callable[[int, bool], None] = lambda published, ended: None,
 ) -> Replayed:
     """Publish the messages of `source` with their original timing divided by `rate` (0: at
     once), skipping the first `start_offset` seconds; only `kinds` (key kinds) if given, only
     `only_run` if given, under run `as_run` if given; again and again with `loop`. A damaged
     log (`derl log info` says corrupt) is refused unless `skip_damaged`: then what can be read
-    of it is replayed."""
+    of it is replayed. `unheard(published, ended)` is told once when no subscriber has matched
+    what was published: `UNHEARD_S` after the start, or at the end of a shorter replay."""
     for file in info(source):  # a bad log fails before joining the bus
         if file.integrity == "corrupt" and not skip_damaged:
             raise LogError(
@@ -128,9 +182,11 @@ def replay(
                 "writes a clean copy of what can be read; --skip-damaged replays that as it is"
             )
     published = passes = 0
+    told = False
     with open_session(options) as session:
         live = set() if force else set(live_runs(session))
         buses: dict[str, Bus] = {}
+        audience = Audience(session)
         start = time.monotonic()
 
         def publish(message: MessageBase) -> None:
@@ -143,6 +199,7 @@ def replay(
                 )
             bus = buses.get(message.run) or buses.setdefault(message.run, Bus(session, message.run))
             bus.publish(message)
+            audience.published(bus.keys.key_for(message))
 
         while not stop.is_set():
             first: int | None = None  # log time of the log's first message
@@ -165,8 +222,15 @@ def replay(
                     break
                 publish(message)
                 published += 1
+                if not (told or audience.heard) and time.monotonic() - start >= UNHEARD_S:
+                    told = True
+                    unheard(published, False)
             passes += 1
             log.info("pass %d: %d messages published so far", passes, published)
             if not loop or published == before:
                 break
-    return Replayed(published, passes, time.monotonic() - start)
+        seconds = time.monotonic() - start
+        if published and not told and not audience.settle(SETTLE_S):
+            unheard(published, True)
+        audience.close()
+    return Replayed(published, passes, seconds)

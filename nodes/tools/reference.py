@@ -14,10 +14,17 @@ import math
 from collections.abc import Callable
 from typing import Final
 
+from pydantic import BaseModel
+from pydantic_core import to_jsonable_python
+
+import derl.analysis.study
+import derl.evolution.config
 import derl.messages.codec
 import derl.messages.keys
 import derl.messages.schema
 import derl.messages.types
+from derl.analysis.study import STUDY_PROFILES, StudyConfig
+from derl.evolution.config import PROFILES, EvolutionConfig
 from derl.messages import (
     MESSAGE_TYPES,
     SCHEMA_CHANGES,
@@ -34,13 +41,6 @@ from derl.nodes.launch.model import HostSpec, LaunchFile, NodeSpec, PeerMesh, Ro
 from derl.nodes.runtime.bus import congestion_control
 from derl.nodes.tools.logs import base64_text, json_form
 from derl.nodes.tools.module_tree import FOLDERS, module_tree
-from pydantic import BaseModel
-from pydantic_core import to_jsonable_python
-
-import derl.analysis.study
-import derl.evolution.config
-from derl.analysis.study import STUDY_PROFILES, StudyConfig
-from derl.evolution.config import PROFILES, EvolutionConfig
 from derl.rl.config import PPOConfig, PPOHyperparameters
 from derl.unimal.genome import Genome, Joint, Limb
 

@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import zenoh
+
 from derl.messages import (
     Birth,
     ChildFailed,

@@ -24,6 +24,7 @@ from itertools import pairwise
 
 import msgpack
 import zenoh
+
 from derl.messages import InvalidKey, KeySpace, MessageBase, RunStatus, parse
 from derl.messages.keys import ROOT
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session

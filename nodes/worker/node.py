@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable
 from typing import Literal
 
+from derl.lifetime import LifetimeResult, learn
 from derl.messages import (
     Ack,
     Cancel,
@@ -42,8 +43,6 @@ from derl.messages import (
     WorkerReady,
 )
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-
-from derl.lifetime import LifetimeResult, learn
 from derl.rl import Progress
 
 log = logging.getLogger("derl.worker")

@@ -1,0 +1,235 @@
+"""Audits (`nodes.coordinator.audits`): a share of the children trained twice by two identities,
+a disagreement decided by a third, the liar quarantined and its unchecked births trained again.
+The coordinator's own handlers are driven in this process by simulated trainers whose results
+depend only on the child (training is deterministic), one of which adds 1.0 to every fitness."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+from derl.evolution import load_profile
+from derl.messages import (
+    Ack,
+    Birth,
+    Cancel,
+    Curve,
+    FitnessReport,
+    MessageBase,
+    Quarantine,
+    Reject,
+    Retrained,
+    TrainJob,
+    WorkerReady,
+    decode,
+    encode,
+)
+from derl.nodes.coordinator.audits import audited, journaled, verdict
+from derl.nodes.coordinator.evolution import EvolutionPolicy
+from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.journal.history import load_history
+from derl.nodes.journal.segments import replay
+from derl.policy_check import untrained_policy
+from derl.unimal import Genome
+
+RUN = "audit"
+LIAR = "t3"
+
+
+def _config(audit: float):
+    return load_profile("smoke").model_copy(
+        update={
+            "population": 6,
+            "total": 30,
+            "in_flight": 4,
+            "audit": audit,
+            "eval_top": 0,
+            "eval_tasks": (),
+        }
+    )
+
+
+def honest_fitness(child: str) -> float:
+    return int.from_bytes(hashlib.sha256(child.encode()).digest()[:2], "little") / 100
+
+
+@cache
+def _policy(child: str, genome: Genome, world: str) -> bytes:
+    seed = int.from_bytes(hashlib.sha256(child.encode()).digest()[:4], "little")
+    return untrained_policy(genome, world, seed)
+
+
+def _report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
+    """What a training of `job` gives: a function of its child alone, plus `lie`."""
+    return FitnessReport(
+        run=RUN, child=job.child, job=job.job, node=job.node, genome=job.genome,
+        fitness=honest_fitness(job.child) + lie, fitness_source="window", fitness_episodes=4,
+        curve=Curve(env_steps=(job.steps,), returns=(1.0,)), energy=2.0, cost_of_work=0.5,
+        mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
+        checkpoint=_policy(job.child, job.genome, job.task),
+    )  # fmt: skip
+
+
+@dataclass
+class Trainers:
+    """Simulated trainers: each answers its job at once and, once answered, asks for work once:
+    an idle one then waits among the coordinator's idle workers for its next job."""
+
+    names: list[str]
+    liar: str | None = None
+    jobs: dict[str, TrainJob] = field(default_factory=dict)  # node -> its unanswered job
+    asked: set[str] = field(default_factory=set)  # idle nodes that asked
+
+    def answer(self, heard: list[MessageBase]) -> list[MessageBase]:
+        out: list[MessageBase] = []
+        for msg in heard:
+            node = getattr(msg, "node", None)
+            if node not in self.names:
+                continue
+            if isinstance(msg, TrainJob):
+                self.jobs[node] = msg
+                self.asked.discard(node)
+                out.append(_report(msg, 1.0 if node == self.liar else 0.0))
+            elif isinstance(msg, Ack | Reject | Cancel) and msg.job == self.jobs.get(node, msg).job:
+                del self.jobs[node]
+        return out
+
+    def asking(self) -> list[MessageBase]:
+        new = [n for n in self.names if n not in self.jobs and n not in self.asked]
+        self.asked.update(new)
+        return [WorkerReady(run=RUN, node=n, role="trainer", host="sim", pid=1) for n in new]
+
+
+class Heard:
+    """In place of the bus: what the coordinator publishes."""
+
+    def __init__(self) -> None:
+        self.messages: list[MessageBase] = []
+
+    def publish(self, msg: MessageBase, data: bytes | None = None) -> None:
+        self.messages.append(msg)
+
+
+def run_with(folder: Path, audit: float, liar: str | None, rounds: int = 400) -> Coordinator:
+    """The run to its end (every child born, none waiting to be trained again)."""
+    coordinator = Coordinator(RUN, folder, EvolutionPolicy(RUN, folder, _config(audit)))
+    heard = Heard()
+    coordinator.bus = heard  # type: ignore[assignment]
+    trainers = Trainers(["t0", "t1", "t2", "t3"], liar)
+    for node in trainers.names:
+        coordinator._liveliness("trainer", node, True)
+    try:
+        inbox = trainers.asking()
+        for _ in range(rounds):
+            if coordinator.state.finished:
+                coordinator.policy.finish()
+                return coordinator
+            for msg in inbox:
+                coordinator._take(decode(encode(msg)))
+            coordinator._assign_idle()
+            coordinator.settle()
+            inbox = trainers.answer(heard.messages) + trainers.asking()
+            heard.messages.clear()
+        raise AssertionError(f"the run did not finish: {coordinator.policy.born} born")
+    finally:
+        coordinator.close()
+
+
+def test_the_same_children_are_audited_in_every_run_of_a_seed_and_about_the_share() -> None:
+    children = [f"c{k:05d}" for k in range(20_000)]
+    chosen = [c for c in children if audited(7, c, 0.05)]
+    assert chosen == [c for c in children if audited(7, c, 0.05)]
+    assert 0.045 < len(chosen) / len(children) < 0.055
+    assert not any(audited(7, c, 0.0) for c in children[:1000])
+    assert all(audited(7, c, 1.0) for c in children[:1000])
+
+
+def _trial(node: str, fitness: float, checkpoint: bytes = b"policy") -> FitnessReport:
+    job = TrainJob(run=RUN, job=f"c.{node}", child="c", node=node, genome=_genome(),
+                   task="ft", ppo=_config(0).training_ppo(), lease_s=30)  # fmt: skip
+    report = _report(job).model_copy(update={"fitness": fitness, "checkpoint": checkpoint})
+    return journaled(report)
+
+
+@cache
+def _genome() -> Genome:
+    return CoordinatorState.start(_config(0), None).evolution.initial[0].genome
+
+
+def test_a_verdict_needs_two_identities_alike_and_a_third_decides_a_disagreement() -> None:
+    a, b, c = _trial("a", 1.0), _trial("b.r2", 1.0), _trial("c", 2.0)
+    assert verdict([a]) is None
+    assert verdict([a, _trial("a.r1", 1.0)]) is None  # one identity twice: one trial
+    assert verdict([a, b]).born_from is a and verdict([a, b]).liar is None
+    assert verdict([a, c]) is None  # a disagreement waits for a third
+    assert verdict([a, c, b]).liar == "c" and verdict([a, c, b]).born_from is a
+    assert verdict([c, a, b]).liar == "c" and verdict([c, a, b]).born_from is a
+    odd = verdict([a, c, _trial("d", 3.0)])
+    assert odd.undecided and odd.liar is None and odd.born_from.node == "d"
+    other_policy = _trial("b", 1.0, checkpoint=b"another policy")  # the same fitness
+    assert verdict([a, other_policy]) is None
+
+
+@pytest.mark.parametrize("audit", [0.0, 0.3])
+def test_honest_trainers_give_the_births_of_an_unaudited_run(tmp_path: Path, audit: float) -> None:
+    """An audit changes which trainings are done, never a birth: honest trainings agree."""
+    coordinator = run_with(tmp_path / "run", audit, liar=None)
+    state = coordinator.state
+    assert not state.quarantined
+    assert (len(state.checked) > 0) == (audit > 0)
+    fitness = {b.child: b.fitness for b in state.births}
+    assert fitness == {child: honest_fitness(b.repeat_of or child)
+                       for child, b in state.born.items()}  # fmt: skip
+    assert len(fitness) == _config(audit).total
+
+
+def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
+    tmp_path: Path,
+) -> None:
+    """The liar is caught at the first audited child it trains; each of its births that no audit
+    checked is trained again, so no lie stays in the population, the births or the results;
+    after the catch it gets no job, and a coordinator started on the journal knows all of it."""
+    folder = tmp_path / "run"
+    coordinator = run_with(folder, 0.3, liar=LIAR)
+    state, journal = coordinator.state, list(replay(folder))
+    assert list(state.quarantined) == [LIAR]
+    (caught,) = [m for m in journal if isinstance(m, Quarantine)]
+    tried = [m for m in journal if isinstance(m, FitnessReport) and m.node == LIAR]
+    first = next(m.child for m in tried if state.is_audited(m.child))
+    assert caught.child == first  # its first audited training
+    liar_births = {m.child for m in journal if isinstance(m, Birth) and m.node == LIAR}
+    assert set(caught.retrain) == liar_births and liar_births  # every one trained again
+    retrained = {m.child: m for m in journal if isinstance(m, Retrained)}
+    assert set(retrained) == liar_births
+    assert all(r.was == honest_fitness(c) + 1.0 for c, r in retrained.items())
+    assert all(r.fitness == honest_fitness(c) and r.node != LIAR for c, r in retrained.items())
+    after = journal.index(caught)
+    assert not [m for m in journal[after:] if isinstance(m, TrainJob) and m.node == LIAR]
+    assert LIAR not in coordinator.idle["trainer"]  # it would stand before the others' turn
+
+    honest = {child: honest_fitness(b.repeat_of or child) for child, b in state.born.items()}
+    assert {b.child: b.fitness for b in state.births} == honest
+    assert {m.agent: m.fitness for m in state.evolution.born} == honest
+    assert all(m.fitness == honest[m.agent] for m in state.evolution.population)
+    assert state.evolution.best().fitness == max(honest.values())
+    history = load_history(folder)  # what `derl report` reads
+    assert {b.child: b.fitness for b in history.births} == honest
+    assert [q.node for q in history.quarantines] == [LIAR]
+    summary = json.loads((folder / "summary.json").read_text())
+    assert list(summary["quarantined"]) == [LIAR]
+    assert all(b["fitness"] == honest[b["agent"]] for b in summary["best"])
+
+    resumed = CoordinatorState.start(_config(0.3), None)
+    for msg in journal:
+        resumed.apply(msg)
+    assert list(resumed.quarantined) == [LIAR] and not resumed.retraining
+    assert resumed.evolution.fitness == state.evolution.fitness
+    assert resumed.checked == state.checked
+    status = coordinator._status()
+    assert status.quarantined == (LIAR,) and status.audited == len(state.checked) > 0
