@@ -547,7 +547,7 @@ class Driver:
             if profiler is not None:
                 profiler.enable()
             start = time.thread_time()
-            coordinator._handle(decode(data))  # decoding is the coordinator's part
+            coordinator.dispatch(decode(data))  # decoding is the coordinator's part
             coordinator.ledger.flush()
             coordinator._publish_released()
             following = self._ready(job.node)

@@ -177,7 +177,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(heard.get(timeout=10), TrainJob)
 
     # accepted: the Ack comes, and the checkpoint file is whole by then
-    coordinator._handle(_report(first, 1))
+    coordinator.dispatch(_report(first, 1))
     coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)  # the birth stream: journaled, published
     ack = heard.get(timeout=10)
@@ -190,7 +190,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     folder.write_text("not a folder")
     report = _report(second, 2)
     with caplog.at_level(logging.ERROR, logger="derl.coordinator"):
-        coordinator._handle(report)
+        coordinator.dispatch(report)
         coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)
     assert second.child in coordinator.state.evolution.fitness
@@ -202,7 +202,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     # the trainer sends its report again: the checkpoint is written, then acknowledged
     folder.unlink()
     folder.mkdir()
-    coordinator._handle(report)
+    coordinator.dispatch(report)
     coordinator.settle()
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.child == second.child
@@ -237,7 +237,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
 
     with _serving(run, tmp_path, config, initial) as (coordinator, heard):
         for node, weights in (("w1", 1), ("w2", 2)):
-            coordinator._handle(_report(_job_for(coordinator, node), weights))
+            coordinator.dispatch(_report(_job_for(coordinator, node), weights))
         _ready(coordinator, "w1")
         coordinator.settle()
         journaled = _journaled(coordinator)
@@ -293,7 +293,7 @@ def _grows_by_births(coordinator: Coordinator, heard: queue.Queue[MessageBase]) 
         for _ in range(count):
             node = turns.popleft()
             report = _report(jobs.pop(node), 0).model_copy(update={"curve": curve})
-            coordinator._handle(decode(encode(report)))  # as it comes off the bus
+            coordinator.dispatch(decode(encode(report)))  # as it comes off the bus
             for idle in ("w1", "w2"):  # a child held behind its twin in training may hold
                 if idle not in jobs:  # the next tournament back: that worker waits
                     _ready(coordinator, idle)
@@ -363,7 +363,7 @@ def test_tournaments_start_once_every_initial_body_is_assigned(
     coordinator = coordinator_of(population=4, total=8, tournament=2)
     jobs = {w: _job_for(coordinator, w) for w in ("w1", "w2")}  # i0000, i0001
     for worker in ("w1", "w2", "w1"):  # i0000, i0001, i0002 born; i0003 is given to w2
-        coordinator._handle(_report(jobs[worker], 0))
+        coordinator.dispatch(_report(jobs[worker], 0))
         jobs[worker] = _job_for(coordinator, worker)
     child = jobs["w1"].child
     assert child.startswith("c") and jobs["w2"].child == "i0003"
@@ -371,7 +371,7 @@ def test_tournaments_start_once_every_initial_body_is_assigned(
     assert all("i0003" not in t.contestants for t in tournaments.values())  # not born yet
     assert jobs["w1"].parent == tournaments[child].parent and jobs["w1"].mutation is not None
     for worker in ("w2", "w1"):  # the initial body is born first, then the child
-        coordinator._handle(_report(jobs[worker], 0))
+        coordinator.dispatch(_report(jobs[worker], 0))
     coordinator.settle()
     births = [m for m in _journaled(coordinator) if isinstance(m, Birth)]
     births = [m.child for m in births]
@@ -394,7 +394,7 @@ def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
         for length in (0.3, 0.4)]  # fmt: skip
     coordinator = coordinator_of(population=2, total=3, initial=stacked)
     for worker in ("w1", "w2"):
-        coordinator._handle(_report(_job_for(coordinator, worker), 0))
+        coordinator.dispatch(_report(_job_for(coordinator, worker), 0))
     _ready(coordinator, "w1")
     coordinator.settle()
     assert coordinator.state.job_of("w1") is None
@@ -626,18 +626,18 @@ def test_who_comes_before_what_and_copies_of_a_taken_report_leave_the_journal_as
     journal write each (a flood of them grew the journal by an Ack each)."""
     coordinator = coordinator_of(population=2, total=3)
     job = _job_for(coordinator, "w1")
-    coordinator._handle(decode(encode(_report(job, 0))))
+    coordinator.dispatch(decode(encode(_report(job, 0))))
     coordinator.settle()
     assert job.child in coordinator.state.born
     forged = _report(job, b"forged").model_copy(update={"node": "w2"})
-    coordinator._handle(decode(encode(forged)))
+    coordinator.dispatch(decode(encode(forged)))
     coordinator.settle()
     answers = [m for m in _journaled(coordinator) if isinstance(m, Ack | Reject)]
     assert isinstance(answers[-1], Reject) and answers[-1].node == "w2", answers
     assert "never issued to w2" in answers[-1].reason
     before = len(_journaled(coordinator))
     for _ in range(300):
-        coordinator._handle(decode(encode(_report(job, 0))))
+        coordinator.dispatch(decode(encode(_report(job, 0))))
     coordinator.settle()
     assert len(_journaled(coordinator)) == before
 
@@ -656,8 +656,8 @@ def test_a_flood_of_refused_messages_from_one_identity_journals_a_bounded_share(
     for k in range(3 * JOURNALED_REFUSALS):
         name = "evil" if k % 3 == 0 else f"evil.r{k % 3}"
         forged = report.model_copy(update={"node": name, "job": f"forged.{k}"})
-        coordinator._handle(decode(encode(forged)))
-    coordinator._handle(decode(encode(report.model_copy(update={"node": "other"}))))
+        coordinator.dispatch(decode(encode(forged)))
+    coordinator.dispatch(decode(encode(report.model_copy(update={"node": "other"}))))
     coordinator.settle()
     refusals = [m for m in _journaled(coordinator)[before:] if isinstance(m, Reject)]
     assert [m.node.split(".")[0] for m in refusals] == ["evil"] * JOURNALED_REFUSALS + ["other"]
@@ -678,13 +678,13 @@ def test_a_checkpoint_that_is_not_a_policy_of_its_body_is_never_born(
         (first, b"FORGED-CHECKPOINT", "does not load"),
         (first, _weights(second, 0), "the body in ft"),
     ):
-        coordinator._handle(_report(job, checkpoint))
+        coordinator.dispatch(_report(job, checkpoint))
         coordinator.settle()
         rejects = [m for m in _journaled(coordinator) if isinstance(m, Reject)]
         assert why in rejects[-1].reason, rejects[-1].reason
     assert not coordinator.state.born
     assert not coordinator.ledger.checkpoints.path(first.child).exists()
-    coordinator._handle(_report(second, 3))
+    coordinator.dispatch(_report(second, 3))
     coordinator.settle()
     assert list(coordinator.state.born) == [second.child]
 

@@ -317,10 +317,10 @@ def _restore(live: object, saved: object, base: mujoco.MjModel) -> object:
             return live
         return cls(items) if kind == "tuple" else cls(*items)
     if kind == "object":
-        for key, item in saved["attrs"].items():
-            now = getattr(live, key)
+        for key, item in saved["attrs"].items():  # one set in an episode may not be there yet
+            now = getattr(live, key, None)
             new = _restore(now, item, base)
-            if new is not now:
+            if new is not now or not hasattr(live, key):
                 setattr(live, key, new)
         return live
     raise ValueError(f"unknown node {kind!r} in an environment state")

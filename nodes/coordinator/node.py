@@ -49,6 +49,7 @@ from derl.messages import (
     WorkerReady,
     encode,
 )
+from derl.messages.dispatch import Handler, handles
 from derl.nodes.coordinator.audits import incarnation
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.policy import Policy
@@ -85,7 +86,7 @@ INLETS = (  # what the loop takes, in this order in each pass, and how many each
 )
 
 
-class Coordinator:
+class Coordinator(Handler):
     """The node loop of run `run` in `run_dir`, with `policy` deciding what messages mean."""
 
     def __init__(self, run: str, run_dir: Path, policy: Policy) -> None:
@@ -177,8 +178,8 @@ class Coordinator:
         every `RETRY_S` try to write again. Once it works, the leases start afresh."""
         for inlet in inlets:
             for msg in inlet.take(TAKE):
-                if isinstance(msg, TrainProgress):
-                    self._handle(msg)
+                if isinstance(msg, TrainProgress):  # the one kind taken while stalled
+                    self.dispatch(msg)
                 elif isinstance(msg, JobFailed):
                     self.failures_held.append(msg)
         self._publish_released()  # what was on the disk before goes out
@@ -241,7 +242,7 @@ class Coordinator:
             if isinstance(item, tuple):
                 self._liveliness(*item)
             else:
-                self._handle(item)
+                self.dispatch(item)
         except Exception:  # one message must never stop the run: log it and go on
             self.ledger.rejected += 1
             what = (
@@ -251,20 +252,22 @@ class Coordinator:
             )
             log.exception("handling %s failed", what)
 
-    def _handle(self, msg: object) -> None:
-        if isinstance(msg, WorkerReady):
-            self._ready(msg)
-        elif isinstance(msg, TrainProgress):
-            job = self.state.jobs.get(msg.job)
-            if job is not None and job.node == msg.node:
-                self.heard[msg.job] = time.monotonic()
-                self.rates[msg.node] = msg.steps_per_s
-        elif isinstance(msg, FitnessReport):
-            self.policy.on_fitness(msg)
-        elif isinstance(msg, EvalResult):
-            self.policy.on_evaluation(msg)
-        elif isinstance(msg, JobFailed):
-            self._job_failed(msg)
+    # --- what the workers send (`dispatch`) ---------------------------------------------------
+
+    @handles(TrainProgress)
+    def _progress(self, msg: TrainProgress) -> None:
+        job = self.state.jobs.get(msg.job)
+        if job is not None and job.node == msg.node:
+            self.heard[msg.job] = time.monotonic()
+            self.rates[msg.node] = msg.steps_per_s
+
+    @handles(FitnessReport)
+    def _fitness(self, msg: FitnessReport) -> None:
+        self.policy.on_fitness(msg)
+
+    @handles(EvalResult)
+    def _evaluation(self, msg: EvalResult) -> None:
+        self.policy.on_evaluation(msg)
 
     def settle(self) -> None:
         """Flush the group, wait until it is on the disk and publish its replies (the loop does
@@ -293,6 +296,7 @@ class Coordinator:
 
     # --- assignments -------------------------------------------------------------------------
 
+    @handles(WorkerReady)
     def _ready(self, ready: WorkerReady) -> None:
         if ready.node not in self.tokens:  # no work without a liveliness token (it asks again)
             log.debug("%s asked for work before its liveliness token came", ready.node)
@@ -343,6 +347,7 @@ class Coordinator:
 
     # --- failures, rejections ----------------------------------------------------------------
 
+    @handles(JobFailed)
     def _job_failed(self, failure: JobFailed) -> None:
         job = self.state.jobs.get(failure.job)
         if job is None or job.node != failure.node or job.subject != failure.subject:

@@ -44,6 +44,7 @@ from derl.messages import (
     Tournament,
     TrainJob,
 )
+from derl.messages.dispatch import handles
 from derl.nodes.coordinator.audits import audited, identity, trials
 from derl.nodes.journal.history import EvalKey, RunHistory
 from derl.rl import PPOConfig
@@ -54,7 +55,7 @@ log = logging.getLogger("derl.coordinator")
 
 def tournament_message(run: str, decided: Child) -> Tournament:
     """A decided tournament (`Evolution.tournament`) as the fact the coordinator journals;
-    `on_Tournament` turns it back into the `Child` it records."""
+    `on_tournament` turns it back into the `Child` it records."""
     return Tournament(
         run=run,
         child=decided.name,
@@ -131,7 +132,8 @@ class CoordinatorState(RunHistory):
         log.warning("journal: %s (lost with a damaged segment?): skipped", what)
         return False
 
-    def on_Tournament(self, msg: Tournament) -> None:
+    @handles(Tournament)
+    def on_tournament(self, msg: Tournament) -> None:
         self.evolution.record(
             Child(
                 msg.child,
@@ -146,8 +148,9 @@ class CoordinatorState(RunHistory):
         if msg.child not in self.by_child and msg.child not in self.waiting:
             self.waiting.append(msg.child)  # until its TrainJob (lost if the node died)
 
-    def on_TrainJob(self, msg: TrainJob) -> None:
-        super().on_TrainJob(msg)
+    @handles(TrainJob)
+    def on_train_job(self, msg: TrainJob) -> None:
+        super().on_train_job(msg)
         self.orders[msg.job] = msg
         child = msg.child
         self.orders_of.setdefault(child, []).append(msg.job)
@@ -160,8 +163,9 @@ class CoordinatorState(RunHistory):
         self.attempts[child] = self.attempts.get(child, 0) + 1
         self._add(Job(msg.job, child, msg.node, msg))
 
-    def on_EvalJob(self, msg: EvalJob) -> None:
-        super().on_EvalJob(msg)
+    @handles(EvalJob)
+    def on_eval_job(self, msg: EvalJob) -> None:
+        super().on_eval_job(msg)
         self.orders[msg.job] = msg
         key = (msg.agent, msg.task, msg.seed, msg.steps)
         self.orders_of.setdefault(key, []).append(msg.job)
@@ -170,7 +174,8 @@ class CoordinatorState(RunHistory):
             self.eval_waiting.remove(key)
         self._add(Job(msg.job, msg.agent, msg.node, msg, key[1:]))
 
-    def on_FitnessReport(self, msg: FitnessReport) -> None:
+    @handles(FitnessReport)
+    def on_fitness_report(self, msg: FitnessReport) -> None:
         """An audited child's report is one of its trials: its job is done and, until the trials
         decide (its Birth follows in the same group when they do), the child waits for a
         training by another identity. Nothing else is kept: the coordinator needs no learning
@@ -183,8 +188,9 @@ class CoordinatorState(RunHistory):
         if msg.child not in self.by_child and msg.child not in self.waiting:
             self.waiting.appendleft(msg.child)
 
-    def on_Birth(self, msg: Birth) -> None:
-        super().on_Birth(msg)
+    @handles(Birth)
+    def on_birth(self, msg: Birth) -> None:
+        super().on_birth(msg)
         if len(trials(self.trials.pop(msg.child, []))) > 1:
             self.checked.add(msg.child)
         self._forget_orders(msg.child)
@@ -194,13 +200,15 @@ class CoordinatorState(RunHistory):
             self.waiting.remove(msg.child)
         self._release(msg.child)
 
-    def on_Cancel(self, msg: Cancel) -> None:
+    @handles(Cancel)
+    def on_cancel(self, msg: Cancel) -> None:
         self._remove(msg.job)
 
-    def on_Quarantine(self, msg: Quarantine) -> None:
+    @handles(Quarantine)
+    def on_quarantine(self, msg: Quarantine) -> None:
         """`msg.node` lied: its trials of children not born yet no longer count, and its
         unchecked births wait first in the queue to be trained again."""
-        super().on_Quarantine(msg)
+        super().on_quarantine(msg)
         self.quarantined[msg.node] = msg
         for reports in self.trials.values():
             reports[:] = [r for r in reports if identity(r.node) != msg.node]
@@ -209,19 +217,22 @@ class CoordinatorState(RunHistory):
                 self.retraining[child] = None
                 self.waiting.appendleft(child)
 
-    def on_Retrained(self, msg: Retrained) -> None:
-        super().on_Retrained(msg)
+    @handles(Retrained)
+    def on_retrained(self, msg: Retrained) -> None:
+        super().on_retrained(msg)
         self.retraining.pop(msg.child, None)
         self.evolution.correct(msg.child, msg.fitness)
         self._forget_orders(msg.child)
         self._remove(msg.job)
 
-    def on_JobLost(self, msg: JobLost) -> None:
-        super().on_JobLost(msg)
+    @handles(JobLost)
+    def on_job_lost(self, msg: JobLost) -> None:
+        super().on_job_lost(msg)
         self._take_back(msg.job)
 
-    def on_JobFailed(self, msg: JobFailed) -> None:
-        super().on_JobFailed(msg)
+    @handles(JobFailed)
+    def on_job_failed(self, msg: JobFailed) -> None:
+        super().on_job_failed(msg)
         self.failed_on.setdefault(msg.subject, set()).add(msg.node)
         job = self.jobs.get(msg.job)
         if job is not None and job.evaluation is not None:
@@ -231,16 +242,18 @@ class CoordinatorState(RunHistory):
                 self.eval_given_up.add(key)
         self._take_back(msg.job)
 
-    def on_ChildFailed(self, msg: ChildFailed) -> None:
-        super().on_ChildFailed(msg)
+    @handles(ChildFailed)
+    def on_child_failed(self, msg: ChildFailed) -> None:
+        super().on_child_failed(msg)
         self._forget_orders(msg.child)
         self.evolution.give_up(msg.child)
         if msg.child in self.waiting:
             self.waiting.remove(msg.child)
         self._release(msg.child)
 
-    def on_EvalResult(self, msg: EvalResult) -> None:
-        super().on_EvalResult(msg)
+    @handles(EvalResult)
+    def on_eval_result(self, msg: EvalResult) -> None:
+        super().on_eval_result(msg)
         self._forget_orders((msg.agent, msg.task, msg.seed, msg.steps))
         self._remove(msg.job)
         self._plan_evaluations()

@@ -1,10 +1,11 @@
 """The one reading of a run's journal: its messages folded, in order, into the run's facts.
 
-`RunHistory.apply` dispatches each message to one handler (`on_<Type>`), which records what it
-means: a TrainJob or EvalJob assigns work (the first one says the run's world and budget), the
-FitnessReport the coordinator accepted is the evidence of a birth (its learning curve is kept)
-and the Birth that follows it is the birth (index, generation, fitness), a ChildFailed gives a
-child up, an EvalResult completes an evaluation. Every reader uses it: the coordinator's state
+`RunHistory.apply` dispatches each message to its handler (`derl.messages.dispatch`), which
+records what it means: a TrainJob or EvalJob assigns work (the first one says the run's world and
+budget), the FitnessReport the coordinator accepted is the evidence of a birth (its learning curve
+is kept) and the Birth that follows it is the birth (index, generation, fitness), a ChildFailed
+gives a child up, an EvalResult completes an evaluation, a Quarantine names a trainer caught
+lying and a Retrained replaces a child's result. Every reader uses it: the coordinator's state
 (`nodes.coordinator.state` overrides the handlers to keep its jobs in flight, and keeps no
 learning curves), `derl report` and `derl study` (`run_log`), the monitor.
 """
@@ -29,6 +30,7 @@ from derl.messages import (
     Retrained,
     TrainJob,
 )
+from derl.messages.dispatch import Handler, handles
 from derl.nodes.errors import DerlError
 from derl.nodes.journal.segments import (
     JournalDamaged,
@@ -47,7 +49,7 @@ log = logging.getLogger("derl.history")
 EvalKey = tuple[str, str, int, int]  # (agent, task, seed, steps)
 
 
-class RunHistory:
+class RunHistory(Handler):
     """What a run's journal says happened; `apply` its messages in journal order."""
 
     def __init__(self) -> None:
@@ -80,28 +82,30 @@ class RunHistory:
         elif msg.run != self.run:
             self.other_runs += 1
             return
-        handler = getattr(self, f"on_{msg.type}", None)
-        if handler is not None:
-            handler(msg)
+        self.dispatch(msg)
 
-    # --- handlers, one per message type, named after it (the coordinator extends them) ----
+    # --- handlers (the coordinator's state extends them) -------------------------------------
 
     def issued_to(self, job: str, node: str, subject: str) -> bool:
         """Whether `job` was given to `node` for `subject` (a child, or an evaluated agent)."""
         return self.issued.get(job) == (node, subject)
 
-    def on_TrainJob(self, msg: TrainJob) -> None:
+    @handles(TrainJob)
+    def on_train_job(self, msg: TrainJob) -> None:
         self.issued[msg.job] = (msg.node, msg.child)
         if self.first_job is None:
             self.first_job = msg
 
-    def on_EvalJob(self, msg: EvalJob) -> None:
+    @handles(EvalJob)
+    def on_eval_job(self, msg: EvalJob) -> None:
         self.issued[msg.job] = (msg.node, msg.agent)
 
-    def on_FitnessReport(self, msg: FitnessReport) -> None:
+    @handles(FitnessReport)
+    def on_fitness_report(self, msg: FitnessReport) -> None:
         self._accepted.setdefault(msg.child, []).append(msg)
 
-    def on_Birth(self, msg: Birth) -> None:
+    @handles(Birth)
+    def on_birth(self, msg: Birth) -> None:
         if msg.child in self.born:
             return
         self.births.append(msg)
@@ -116,13 +120,16 @@ class RunHistory:
         if report is not None:
             self.reports[msg.child] = report
 
-    def on_ChildFailed(self, msg: ChildFailed) -> None:
+    @handles(ChildFailed)
+    def on_child_failed(self, msg: ChildFailed) -> None:
         self.failed.setdefault(msg.child, msg)
 
-    def on_Quarantine(self, msg: Quarantine) -> None:
+    @handles(Quarantine)
+    def on_quarantine(self, msg: Quarantine) -> None:
         self.quarantines.append(msg)
 
-    def on_Retrained(self, msg: Retrained) -> None:
+    @handles(Retrained)
+    def on_retrained(self, msg: Retrained) -> None:
         """The child's result, and its repeats', is the new training's from now on."""
         if msg.child not in self.born:
             return
@@ -136,13 +143,16 @@ class RunHistory:
                 if report is not None:
                     self.reports[birth.child] = report
 
-    def on_JobFailed(self, msg: JobFailed) -> None:
+    @handles(JobFailed)
+    def on_job_failed(self, msg: JobFailed) -> None:
         self.failures.setdefault(msg.subject, []).append(msg)
 
-    def on_JobLost(self, msg: JobLost) -> None:
+    @handles(JobLost)
+    def on_job_lost(self, msg: JobLost) -> None:
         self.lost.append(msg)
 
-    def on_EvalResult(self, msg: EvalResult) -> None:
+    @handles(EvalResult)
+    def on_eval_result(self, msg: EvalResult) -> None:
         self.evaluations.setdefault((msg.agent, msg.task, msg.seed, msg.steps), msg)
 
     # --- questions --------------------------------------------------------------------------

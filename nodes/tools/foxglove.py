@@ -31,6 +31,7 @@ from foxglove.websocket import WebSocketServer
 from pydantic import BaseModel
 
 from derl.messages import Birth, ChildFailed, KeySpace, MessageBase, RunStatus, TrainProgress
+from derl.messages.dispatch import Handler, handles
 from derl.nodes.runtime.bus import ZenohOptions, open_session
 from derl.nodes.tools.logs import base64_text, json_form, json_schema
 from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
@@ -85,7 +86,7 @@ class RunSummary(BaseModel):
     """One slot per worker, in the order first heard."""
 
 
-class Bridge:
+class Bridge(Handler):
     """Messages of one run onto Foxglove channels of `context`; thread-safe."""
 
     def __init__(self, run: str, context: foxglove.Context) -> None:
@@ -107,17 +108,28 @@ class Bridge:
         if msg.run != self.run or msg.type not in self._channels:
             return
         with self._lock:
-            if isinstance(msg, Birth):
-                if msg.birth in self._births:
-                    return
-                self._births[msg.birth] = msg
-            elif isinstance(msg, ChildFailed):
-                if msg.child in self._failed:
-                    return
-                self._failed.add(msg.child)
-            elif isinstance(msg, TrainProgress):
-                self._workers[msg.node] = (msg, now)
+            if self.dispatch(msg, now) is False:
+                return
         self._channels[msg.type].log(json_form(msg, base64_text))
+
+    @handles(Birth)
+    def _birth(self, msg: Birth, now: float) -> bool:
+        """Whether it is new (kept for the summary)."""
+        new = msg.birth not in self._births
+        self._births.setdefault(msg.birth, msg)
+        return new
+
+    @handles(ChildFailed)
+    def _failure(self, msg: ChildFailed, now: float) -> bool:
+        """Whether it is new."""
+        new = msg.child not in self._failed
+        self._failed.add(msg.child)
+        return new
+
+    @handles(TrainProgress)
+    def _progress(self, msg: TrainProgress, now: float) -> bool:
+        self._workers[msg.node] = (msg, now)
+        return True
 
     def summary(self, now: float) -> RunSummary:
         with self._lock:

@@ -46,6 +46,7 @@ from derl.messages import (
     TrainProgress,
     WorkerReady,
 )
+from derl.messages.dispatch import Handler, handles
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
@@ -87,7 +88,7 @@ class WorkerRow:
     heard: float = 0.0
 
 
-class RunView:
+class RunView(Handler):
     """What is known of a run, folded from its messages; `render` draws it."""
 
     def __init__(self, run: str) -> None:
@@ -122,36 +123,51 @@ class RunView:
         if msg.run != self.run:
             return
         self.history.apply(msg)
-        if isinstance(msg, RunStatus):
-            self.status, self.status_at = msg, now
-        elif isinstance(msg, PopulationSnapshot):
-            self.population = len(msg.members)
-        elif isinstance(msg, WorkerReady):
-            row = self._row(msg.node, now)
-            row.role, row.state, row.job = msg.role, "idle", ""
-        elif isinstance(msg, TrainJob | EvalJob):
-            row = self._row(msg.node, now)
-            row.role = "trainer" if isinstance(msg, TrainJob) else "evaluator"
-            row.state, row.job, row.env_steps, row.total_steps = "working", msg.job, 0, msg.steps
-            row.subject = msg.child if isinstance(msg, TrainJob) else f"{msg.agent}/{msg.task}"
-            row.recent_return = None
-        elif isinstance(msg, TrainProgress):
-            row = self._row(msg.node, now)
-            row.state, row.job, row.env_steps, row.total_steps = (
-                "working",
-                msg.job,
-                msg.env_steps,
-                msg.total_steps,
-            )
-            if not row.subject.startswith(msg.child):  # keeps an evaluation's "agent/task"
-                row.subject = msg.child
-            row.steps_per_s = msg.steps_per_s
-            if msg.recent_return is not None:
-                row.recent_return = msg.recent_return
-        elif isinstance(msg, FitnessReport | EvalResult):
-            self._row(msg.node, now).state = "delivering"
-        elif isinstance(msg, Ack | Reject):
-            self._row(msg.node, now).state = "idle"
+        self.dispatch(msg, now)
+
+    @handles(RunStatus)
+    def _status(self, msg: RunStatus, now: float) -> None:
+        self.status, self.status_at = msg, now
+
+    @handles(PopulationSnapshot)
+    def _population(self, msg: PopulationSnapshot, now: float) -> None:
+        self.population = len(msg.members)
+
+    @handles(WorkerReady)
+    def _ready(self, msg: WorkerReady, now: float) -> None:
+        row = self._row(msg.node, now)
+        row.role, row.state, row.job = msg.role, "idle", ""
+
+    @handles(TrainJob, EvalJob)
+    def _job(self, msg: TrainJob | EvalJob, now: float) -> None:
+        row = self._row(msg.node, now)
+        row.role = "trainer" if isinstance(msg, TrainJob) else "evaluator"
+        row.state, row.job, row.env_steps, row.total_steps = "working", msg.job, 0, msg.steps
+        row.subject = msg.child if isinstance(msg, TrainJob) else f"{msg.agent}/{msg.task}"
+        row.recent_return = None
+
+    @handles(TrainProgress)
+    def _progress(self, msg: TrainProgress, now: float) -> None:
+        row = self._row(msg.node, now)
+        row.state, row.job, row.env_steps, row.total_steps = (
+            "working",
+            msg.job,
+            msg.env_steps,
+            msg.total_steps,
+        )
+        if not row.subject.startswith(msg.child):  # keeps an evaluation's "agent/task"
+            row.subject = msg.child
+        row.steps_per_s = msg.steps_per_s
+        if msg.recent_return is not None:
+            row.recent_return = msg.recent_return
+
+    @handles(FitnessReport, EvalResult)
+    def _result(self, msg: FitnessReport | EvalResult, now: float) -> None:
+        self._row(msg.node, now).state = "delivering"
+
+    @handles(Ack, Reject)
+    def _answer(self, msg: Ack | Reject, now: float) -> None:
+        self._row(msg.node, now).state = "idle"
 
     def liveliness(self, role: str, node: str, up: bool, now: float) -> None:
         row = self._row(node, now)
