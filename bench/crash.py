@@ -759,7 +759,8 @@ def last_checkpoint_late(recorded: Recorded) -> Cut:
     where the checkpoint came first the state is made from the first kill state with every birth
     journaled, less the checkpoint files of the births not yet acknowledged: what the other
     order leaves (the Ack waits for both, so the trainers' knowledge is the same)."""
-    for cut in recorded.distinct:
+    # every cut in order: `distinct` keeps a state once, under the first cut that left it
+    for cut in cuts(recorded.ops, recorded.work / "run"):
         if cut.kind != "kill":
             continue
         births = {m.child for m in journaled(recorded, cut) if isinstance(m, Birth)}
