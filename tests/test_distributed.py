@@ -234,7 +234,8 @@ def test_an_oversized_sample_stops_at_the_transport(procs: Processes) -> None:
         session.declare_subscriber("derl/churn/**", lambda s: heard.append(len(s.payload)))
         client(1, 1000)  # the router's own warm-up
         wait_for(lambda: heard, 10, "a small sample")
-        client(2, 40_000_000)  # the transport's buffers, once
+        for _ in range(2):  # the transport's buffers, once (measured: +28 MB, then +2 MB)
+            client(2, 40_000_000)
         before = sample(process.pid)["rss_mb"]
         for _ in range(3):
             client(2, 40_000_000)
@@ -242,7 +243,9 @@ def test_an_oversized_sample_stops_at_the_transport(procs: Processes) -> None:
         client(1, 1000)
         wait_for(lambda: len(heard) >= 2, 10, "a small sample after the large ones")
     assert heard == [1000, 1000]
-    assert grown < 10, f"the router grew by {grown:.1f} MB over six more 40 MB samples"
+    # a sample assembled adds its 40 MB (a 50 MB one kept 49 MB before the bound): 240 MB over
+    # six; the allocator's noise over them was up to 13 MB
+    assert grown < 25, f"the router grew by {grown:.1f} MB over six more 40 MB samples"
 
 
 def test_worker_defaults_keep_multicast_and_shared_memory_off() -> None:
