@@ -27,7 +27,7 @@ PROFILE = {
     "population": 4,
     "in_flight": 2,
     "tournament": 2,
-    "total": 10,
+    "total": 8,  # smoke's: 4 initial bodies and 4 children
     "train_steps": 16384,  # 8 PPO iterations of 16 envs x 128 steps: time to kill one mid-job
 }
 

@@ -6,9 +6,12 @@ the rule), a TrainJob or EvalJob puts a job in flight, a Birth makes a child bor
 JobFailed takes a job back (its subject waits for the next worker), a Cancel ends a job whose
 child was born from another, a ChildFailed gives a child up, an EvalResult completes an
 evaluation; a Birth with `repeat_of` is a child never trained (its body is an earlier one's).
-Which jobs are in flight, who holds them and what waits for a worker are all derived here; time
-(leases) and the checks of incoming messages are the node's business. A TrainJob also records its
-child's body (the coordinator bred it: a fact, so a resumed coordinator trains the same body).
+An audited child's FitnessReport is one of its trials (`audits`: it waits for another identity's
+until they agree); a Quarantine puts the liar's unchecked births first in the queue, and their
+Retrained replaces the result they were born with. Which jobs are in flight, who holds them and
+what waits for a worker are all derived here; time (leases) and the checks of incoming messages
+are the node's business. A TrainJob also records its child's body (the coordinator bred it: a
+fact, so a resumed coordinator trains the same body).
 Not from the journal: the children held back because a child with their body is in training
 (`hold`); each goes back to the front of the queue once that child is born (then it is born as
 its repeat) or given up (a restart forgets them: they are in the queue again, and held again when
