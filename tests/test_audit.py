@@ -5,8 +5,8 @@ depend only on the child (training is deterministic), one of which adds 1.0 to e
 
 from __future__ import annotations
 
-import hashlib
 import json
+import sys
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -18,7 +18,6 @@ from derl.messages import (
     Ack,
     Birth,
     Cancel,
-    Curve,
     FitnessReport,
     MessageBase,
     Quarantine,
@@ -35,10 +34,12 @@ from derl.nodes.coordinator.node import Coordinator
 from derl.nodes.coordinator.state import CoordinatorState
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import replay
-from derl.policy_check import untrained_policy
 from derl.unimal import Genome
 
-RUN = "audit"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from audit import RUN, Heard, honest, report
+
 LIAR = "t3"
 
 
@@ -53,27 +54,6 @@ def _config(audit: float):
             "eval_tasks": (),
         }
     )
-
-
-def honest_fitness(child: str) -> float:
-    return int.from_bytes(hashlib.sha256(child.encode()).digest()[:2], "little") / 100
-
-
-@cache
-def _policy(child: str, genome: Genome, world: str) -> bytes:
-    seed = int.from_bytes(hashlib.sha256(child.encode()).digest()[:4], "little")
-    return untrained_policy(genome, world, seed)
-
-
-def _report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
-    """What a training of `job` gives: a function of its child alone, plus `lie`."""
-    return FitnessReport(
-        run=RUN, child=job.child, job=job.job, node=job.node, genome=job.genome,
-        fitness=honest_fitness(job.child) + lie, fitness_source="window", fitness_episodes=4,
-        curve=Curve(env_steps=(job.steps,), returns=(1.0,)), energy=2.0, cost_of_work=0.5,
-        mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
-        checkpoint=_policy(job.child, job.genome, job.task),
-    )  # fmt: skip
 
 
 @dataclass
@@ -95,7 +75,7 @@ class Trainers:
             if isinstance(msg, TrainJob):
                 self.jobs[node] = msg
                 self.asked.discard(node)
-                out.append(_report(msg, 1.0 if node == self.liar else 0.0))
+                out.append(report(msg, 1.0 if node == self.liar else 0.0))
             elif isinstance(msg, Ack | Reject | Cancel) and msg.job == self.jobs.get(node, msg).job:
                 del self.jobs[node]
         return out
@@ -104,16 +84,6 @@ class Trainers:
         new = [n for n in self.names if n not in self.jobs and n not in self.asked]
         self.asked.update(new)
         return [WorkerReady(run=RUN, node=n, role="trainer", host="sim", pid=1) for n in new]
-
-
-class Heard:
-    """In place of the bus: what the coordinator publishes."""
-
-    def __init__(self) -> None:
-        self.messages: list[MessageBase] = []
-
-    def publish(self, msg: MessageBase, data: bytes | None = None) -> None:
-        self.messages.append(msg)
 
 
 def run_with(folder: Path, audit: float, liar: str | None, rounds: int = 400) -> Coordinator:
@@ -153,8 +123,8 @@ def test_the_same_children_are_audited_in_every_run_of_a_seed_and_about_the_shar
 def _trial(node: str, fitness: float, checkpoint: bytes = b"policy") -> FitnessReport:
     job = TrainJob(run=RUN, job=f"c.{node}", child="c", node=node, genome=_genome(),
                    task="ft", ppo=_config(0).training_ppo(), lease_s=30)  # fmt: skip
-    report = _report(job).model_copy(update={"fitness": fitness, "checkpoint": checkpoint})
-    return journaled(report)
+    trial = report(job, 0.0).model_copy(update={"fitness": fitness, "checkpoint": checkpoint})
+    return journaled(trial)
 
 
 @cache
@@ -184,7 +154,7 @@ def test_honest_trainers_give_the_births_of_an_unaudited_run(tmp_path: Path, aud
     assert not state.quarantined
     assert (len(state.checked) > 0) == (audit > 0)
     fitness = {b.child: b.fitness for b in state.births}
-    assert fitness == {child: honest_fitness(b.repeat_of or child)
+    assert fitness == {child: honest(b.repeat_of or child)
                        for child, b in state.born.items()}  # fmt: skip
     assert len(fitness) == _config(audit).total
 
@@ -207,23 +177,23 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert set(caught.retrain) == liar_births and liar_births  # every one trained again
     retrained = {m.child: m for m in journal if isinstance(m, Retrained)}
     assert set(retrained) == liar_births
-    assert all(r.was == honest_fitness(c) + 1.0 for c, r in retrained.items())
-    assert all(r.fitness == honest_fitness(c) and r.node != LIAR for c, r in retrained.items())
+    assert all(r.was == honest(c) + 1.0 for c, r in retrained.items())
+    assert all(r.fitness == honest(c) and r.node != LIAR for c, r in retrained.items())
     after = journal.index(caught)
     assert not [m for m in journal[after:] if isinstance(m, TrainJob) and m.node == LIAR]
     assert LIAR not in coordinator.idle["trainer"]  # it would stand before the others' turn
 
-    honest = {child: honest_fitness(b.repeat_of or child) for child, b in state.born.items()}
-    assert {b.child: b.fitness for b in state.births} == honest
-    assert {m.agent: m.fitness for m in state.evolution.born} == honest
-    assert all(m.fitness == honest[m.agent] for m in state.evolution.population)
-    assert state.evolution.best().fitness == max(honest.values())
+    truth = {child: honest(b.repeat_of or child) for child, b in state.born.items()}
+    assert {b.child: b.fitness for b in state.births} == truth
+    assert {m.agent: m.fitness for m in state.evolution.born} == truth
+    assert all(m.fitness == truth[m.agent] for m in state.evolution.population)
+    assert state.evolution.best().fitness == max(truth.values())
     history = load_history(folder)  # what `derl report` reads
-    assert {b.child: b.fitness for b in history.births} == honest
+    assert {b.child: b.fitness for b in history.births} == truth
     assert [q.node for q in history.quarantines] == [LIAR]
     summary = json.loads((folder / "summary.json").read_text())
     assert list(summary["quarantined"]) == [LIAR]
-    assert all(b["fitness"] == honest[b["agent"]] for b in summary["best"])
+    assert all(b["fitness"] == truth[b["agent"]] for b in summary["best"])
 
     resumed = CoordinatorState.start(_config(0.3), None)
     for msg in journal:
