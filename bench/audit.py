@@ -16,73 +16,31 @@ Run: python bench/audit.py [--shares 0 0.02 0.05 0.2] [--trainers 4] [--seeds 3]
 from __future__ import annotations
 
 import argparse
-import hashlib
 import heapq
 import json
 import random
 import statistics
 import tempfile
-from functools import cache
 from pathlib import Path
 
 from derl.evolution import EvolutionConfig, load_profile
-from derl.messages import (
-    Ack,
-    Cancel,
-    Curve,
-    FitnessReport,
-    MessageBase,
-    Quarantine,
-    Reject,
-    TrainJob,
-    WorkerReady,
-)
+from derl.messages import Ack, Cancel, Quarantine, Reject, TrainJob, WorkerReady
 from derl.nodes.coordinator.evolution import EvolutionPolicy
-from derl.nodes.coordinator.node import Coordinator
-from derl.policy_check import untrained_policy
-from derl.unimal import Genome
+from derl.nodes.coordinator.node import Coordinator, Liveliness
+from derl.nodes.testing.trainers import Recorder, honest, honest_report
 
 RUN = "audit"
-
-
-def honest(child: str) -> float:
-    return int.from_bytes(hashlib.sha256(child.encode()).digest()[:2], "little") / 100
-
-
-@cache
-def _policy(child: str, genome: Genome, world: str) -> bytes:
-    seed = int.from_bytes(hashlib.sha256(child.encode()).digest()[:4], "little")
-    return untrained_policy(genome, world, seed)
-
-
-def report(job: TrainJob, lie: float) -> FitnessReport:
-    return FitnessReport(
-        run=RUN, child=job.child, job=job.job, node=job.node, genome=job.genome,
-        fitness=honest(job.child) + lie, fitness_source="window", fitness_episodes=4,
-        curve=Curve(env_steps=(job.steps,), returns=(1.0,)), energy=2.0, cost_of_work=0.5,
-        mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
-        checkpoint=_policy(job.child, job.genome, job.task),
-    )  # fmt: skip
-
-
-class Heard:
-    def __init__(self) -> None:
-        self.messages: list[MessageBase] = []
-
-    def publish(self, msg: MessageBase, data: bytes | None = None) -> None:
-        self.messages.append(msg)
 
 
 def simulate(config: EvolutionConfig, trainers: int, seed: int, liar: bool) -> dict[str, object]:
     """One run to its end in simulated time (see the module)."""
     folder = Path(tempfile.mkdtemp(prefix="audit-")) / "run"
-    coordinator = Coordinator(RUN, folder, EvolutionPolicy(RUN, folder, config))
-    heard = Heard()
-    coordinator.bus = heard  # type: ignore[assignment]
+    heard = Recorder()
+    coordinator = Coordinator(RUN, folder, EvolutionPolicy(RUN, folder, config), publisher=heard)
     names = [f"t{k}" for k in range(trainers)]
     liar_name = names[-1] if liar else None
     for node in names:
-        coordinator._liveliness("trainer", node, True)
+        coordinator.take(Liveliness("trainer", node, True))
     rng = random.Random(seed)
     now, trainings, running = 0.0, 0, []  # running: (finish, node, job)
     holding: dict[str, TrainJob] = {}
@@ -90,8 +48,8 @@ def simulate(config: EvolutionConfig, trainers: int, seed: int, liar: bool) -> d
     try:
         while not coordinator.state.finished:
             for node in sorted(idle):
-                coordinator._take(WorkerReady(run=RUN, node=node, role="trainer", host="s", pid=1))
-            coordinator._assign_idle()
+                coordinator.take(WorkerReady(run=RUN, node=node, role="trainer", host="s", pid=1))
+            coordinator.assign_idle()
             coordinator.settle()
             for msg in heard.messages:
                 node = getattr(msg, "node", None)
@@ -113,7 +71,7 @@ def simulate(config: EvolutionConfig, trainers: int, seed: int, liar: bool) -> d
                     break
                 raise RuntimeError(f"stalled at {coordinator.policy.born} born")
             now, node, _ = heapq.heappop(running)
-            coordinator._take(report(holding[node], 1.0 if node == liar_name else 0.0))
+            coordinator.take(honest_report(holding[node], 1.0 if node == liar_name else 0.0))
             coordinator.settle()
         state = coordinator.state
         quarantine = next(iter(state.quarantined.values()), None)

@@ -73,8 +73,6 @@ import numpy as np
 import yaml
 import zenoh
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from derl.evolution import EvolutionConfig, load_profile
 from derl.evolution.population import breed
 from derl.messages import (
@@ -90,7 +88,10 @@ from derl.messages import (
     decode,
     encode,
 )
+from derl.nodes.coordinator.node import Liveliness
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.testing.processes import free_port
+from derl.nodes.testing.trainers import fake_report
 from derl.nodes.worker.node import ready_wait
 from derl.policy_check import untrained_policy
 from derl.unimal import Genome, sample_population
@@ -111,14 +112,6 @@ MAX_SETTLE_S = 10.0  # the longest a phase settles before its window opens
 SLOW_FILE_S = 100e-6  # creating a file slower than this is worth a warning
 PAPER_CURVE_POINTS = 5_000_000 // 4096  # a 5M-step training's curve: a point per rollout
 BODIES = 16  # sampled bodies; the initial population is them and children of them
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def _percentile(values: list[float], q: float) -> float | None:
@@ -387,7 +380,7 @@ def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, ob
     profile.write_text(yaml.safe_dump(SCALE_PROFILE))
     zenoh_file = work / f"{run}-zenoh.json5"
     zenoh_file.write_text(json.dumps(TIMESTAMPING))
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     log = work / f"{run}-coordinator.log"
     coordinator = spawn_derl(
         ["coordinator", "--run", run, "--profile", str(profile), "--run-dir", str(run_dir),
@@ -468,32 +461,18 @@ class _NoBus:
         pass
 
 
-def _open_coordinator(run: str, run_dir: Path, config: EvolutionConfig):
-    """A run's coordinator, as `derl coordinator` makes it (without its bus)."""
+def _open_coordinator(run: str, run_dir: Path, config: EvolutionConfig, publisher=None):
+    """A run's coordinator, as `derl coordinator` makes it (without its bus: its replies go to
+    `publisher`)."""
     from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import Coordinator
 
-    return Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config))
+    return Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config), publisher=publisher)
 
 
 def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
     seed_run_dir(run_dir, config.population)
-    coordinator = _open_coordinator(run, run_dir, config)
-    coordinator.bus = _NoBus()
-    return coordinator
-
-
-def _report(run: str, job: TrainJob, fitness: float, points: int = 100) -> FitnessReport:
-    """A fake result for `job`, with its body (bred by the coordinator) and a learning curve of
-    `points` points."""
-    return FitnessReport(
-        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome, fitness=fitness,
-        fitness_source="window", fitness_episodes=10,
-        curve=Curve(env_steps=tuple(range(4096, 4096 * (points + 1), 4096)),
-                    returns=tuple(float(k) for k in range(points))),
-        energy=1.0, cost_of_work=1.0, mass=1.0, episodes=10, env_steps=409600, wall_s=1.0,
-        steps_per_s=1.0, checkpoint=untrained_policy(job.genome, job.task),
-    )  # fmt: skip
+    return _open_coordinator(run, run_dir, config, publisher=_NoBus())
 
 
 class Driver:
@@ -515,8 +494,8 @@ class Driver:
         coordinator, state = self.coordinator, self.coordinator.state
         ready = WorkerReady(run=coordinator.run, node=node, role="trainer", host="h", pid=1)
         if node not in coordinator.tokens:  # a worker holds a liveliness token
-            coordinator._liveliness("trainer", node, True)
-        coordinator._ready(ready)
+            coordinator.take(Liveliness("trainer", node, True))
+        coordinator.dispatch(ready)
         coordinator.ledger.flush()  # as the serve loop does after each group (here: each message)
         coordinator._publish_released()
         job = state.job_of(node)
@@ -543,7 +522,7 @@ class Driver:
                 continue
             job = self.busy.popleft()
             fitness = self.rng.uniform(0, 100)
-            data = encode(_report(coordinator.run, job, fitness, self.curve_points))
+            data = encode(fake_report(coordinator.run, job, fitness, self.curve_points))
             if profiler is not None:
                 profiler.enable()
             start = time.thread_time()
@@ -568,8 +547,8 @@ BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
     "messages built (pydantic validation)": ("pydantic/main.py", "__init__"),
     "encode (msgpack)": ("messages/codec.py", "encode"),
     "apply (the state's fold)": ("nodes/journal/history.py", "apply"),
-    "job_of (per WorkerReady)": ("nodes/coordinator/state.py", "job_of"),
-    "wants_tournament": ("nodes/coordinator/state.py", "wants_tournament"),
+    "job_of (per WorkerReady)": ("nodes/coordinator/jobs.py", "job_of"),
+    "wants_tournament": ("nodes/coordinator/evolution_state.py", "wants_tournament"),
 }
 
 
@@ -661,7 +640,7 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
         mix += [
             Tournament(run=run, child=job.child, contestants=("i0001",) * 4,
                        fitness=(1.0,) * 4, parent="i0001", mutation_seed=k, iteration=k),
-            job, _report(run, job, 1.0),
+            job, fake_report(run, job, 1.0),
             _ack(run, job),
         ]  # fmt: skip
     rates = {}
@@ -761,7 +740,7 @@ def _time_to_serving(work: Path, run_dir: Path, holder: TrainJob) -> dict[str, f
     from derl.nodes.journal.segments import segments
     from derl.nodes.runtime.processes import spawn_derl, stop_all
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     heard: dict[str, float] = {}
     cpu: dict[str, float] = {}  # the coordinator process's CPU s when it served
     # this session listens and the coordinator connects: connecting first, this session would
@@ -825,7 +804,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
 
     run, node = "bench-share", "trainer-0"
     genome = bodies()[1]
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     coordinator = subprocess.Popen(
         [sys.executable, __file__, "--hub", endpoint, run], stdout=subprocess.PIPE, text=True
     )
@@ -874,7 +853,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             checkpoint = result.checkpoint.to_bytes()
             job = TrainJob(run=run, job="c00001.1", child="c00001", node=node, genome=genome,
                            task="ft", ppo=config, lease_s=60.0)  # fmt: skip
-            report = _report(run, job, summary.fitness)
+            report = fake_report(run, job, summary.fitness)
             report = report.model_copy(update={"checkpoint": checkpoint})
             timed(report)
             in_training = {k: list(v) for k, v in costs.items()}

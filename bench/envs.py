@@ -23,16 +23,12 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from pathlib import Path
 
 import mujoco
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import UnimalEnv, make_env

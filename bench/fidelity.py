@@ -19,12 +19,8 @@ import argparse
 import json
 import multiprocessing
 import statistics
-import sys
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import EnvConfig

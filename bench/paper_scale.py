@@ -29,12 +29,9 @@ import json
 import multiprocessing
 import multiprocessing.pool
 import statistics
-import sys
 import time
 from collections.abc import Iterable
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import EnvConfig, UnimalEnv, make_task

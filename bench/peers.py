@@ -18,15 +18,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from collections import deque
-from pathlib import Path
 
 import numpy as np
 import torch
-
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.lifetime import fitness_window, learn, ppo_config

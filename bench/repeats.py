@@ -10,7 +10,7 @@ as the coordinator does (`Evolution.body`, then `Evolution.repeat`: their CPU ti
 the coordinator's cost of deciding a body, `decide_ms`). With ``hold`` false a body equal to one
 still in training is trained again (`trained_twice`, with the same fitness: training is
 deterministic within a run); with ``hold`` true (the coordinator's policy,
-`CoordinatorState.hold`) a child whose body is that of a child in training waits for its birth,
+`EvolutionState.hold`) a child whose body is that of a child in training waits for its birth,
 then is born as its repeat, while its trainer takes the next child. Fitness models: ``random``
 (every distinct body an independent N(0, 1), the default) and ``inherited`` (the parent's plus
 N(0, 0.5)). The initial population is drawn once per profile (its sampling dominates the

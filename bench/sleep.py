@@ -41,10 +41,8 @@ from typing import NamedTuple
 from unittest import mock
 
 import numpy as np
-from scipy import stats
-
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
+from scipy import stats
 
 from derl import lifetime
 from derl.envs import EnvConfig, UnimalEnv, make_task

@@ -28,15 +28,11 @@ import json
 import multiprocessing
 import os
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import mujoco
 import numpy as np
 import torch
-
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import UnimalEnv, make_env

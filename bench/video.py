@@ -18,17 +18,13 @@ import argparse
 import json
 import os
 import statistics
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).parent))
 from bodies import reference_body
 
 from derl.envs import make_env

@@ -7,10 +7,14 @@ that acts: `derl.replay.Trained`) and `__version__` (the installed package's).
 """
 
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
 
 import gymnasium
 
 from derl.lazy import exports
+
+if TYPE_CHECKING:  # the name for type checkers, which do not run `__getattr__`
+    from derl.replay import load_trained as load_trained
 
 try:
     __version__ = version("derl")

@@ -23,7 +23,7 @@ import pickle
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -70,7 +70,7 @@ class Trained:
         named = next((folder / n for n in TASK_FILES if (folder / n).is_file()), None)
         if named is None:
             missing.append(" or ".join(TASK_FILES))
-        if missing:
+        if missing or named is None:
             raise NotTrained(
                 f"{folder} holds no trained body: no {', no '.join(missing)} (a `derl train` "
                 "output folder or a run's best/NN-agent folder has them)"
@@ -92,12 +92,12 @@ class Trained:
         actions = self.policy({key: value[None] if one else value for key, value in obs.items()})
         return actions[0] if one else actions
 
-    def gym_env(self, render_mode: str | None = None, **options: object) -> UnimalGymEnv:
+    def gym_env(self, render_mode: str | None = None, **options: Any) -> UnimalGymEnv:
         """The body in the task it learnt, as a gymnasium environment (`UnimalGymEnv`'s
         `render_mode`, frame size and task options)."""
         from derl.envs.gym_env import UnimalGymEnv
 
-        return UnimalGymEnv(self.genome, self.task, render_mode, **options)  # type: ignore[arg-type]
+        return UnimalGymEnv(self.genome, self.task, render_mode, **options)
 
 
 def load_trained(folder: str | Path) -> Trained:

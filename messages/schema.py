@@ -53,7 +53,7 @@ class _Model(BaseModel):
 class MessageBase(_Model):
     """What every message carries."""
 
-    schema_version: Literal[SCHEMA_VERSION] = SCHEMA_VERSION
+    schema_version: Literal[4] = SCHEMA_VERSION  # SCHEMA_VERSION (mypy checks they agree)
     """The wire format's version; a payload of another version is refused."""
     type: str
     """The message type: the model's class name (the discriminator)."""

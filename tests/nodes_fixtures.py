@@ -35,12 +35,9 @@ from derl.messages import (
 from derl.nodes.journal.segments import Journal, replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.processes import child_setup, stop_all
+from derl.nodes.testing.processes import descendants
 from derl.rl import PPOConfig
 from derl.unimal import Genome
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from soak import descendants  # the soak's: the processes started by a process, and by them
 
 M = TypeVar("M", bound=MessageBase)
 

@@ -6,7 +6,6 @@ depend only on the child (training is deterministic), one of which adds 1.0 to e
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -30,15 +29,14 @@ from derl.messages import (
 )
 from derl.nodes.coordinator.audits import audited, journaled, verdict
 from derl.nodes.coordinator.evolution import EvolutionPolicy
-from derl.nodes.coordinator.node import Coordinator
-from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.coordinator.evolution_state import EvolutionState
+from derl.nodes.coordinator.node import Coordinator, Liveliness
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import replay
+from derl.nodes.testing.trainers import Recorder, honest, honest_report
 from derl.unimal import Genome
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from audit import RUN, Heard, honest, report
+RUN = "audit"
 
 LIAR = "t3"
 
@@ -75,7 +73,7 @@ class Trainers:
             if isinstance(msg, TrainJob):
                 self.jobs[node] = msg
                 self.asked.discard(node)
-                out.append(report(msg, 1.0 if node == self.liar else 0.0))
+                out.append(honest_report(msg, 1.0 if node == self.liar else 0.0))
             elif isinstance(msg, Ack | Reject | Cancel) and msg.job == self.jobs.get(node, msg).job:
                 del self.jobs[node]
         return out
@@ -88,12 +86,12 @@ class Trainers:
 
 def run_with(folder: Path, audit: float, liar: str | None, rounds: int = 400) -> Coordinator:
     """The run to its end (every child born, none waiting to be trained again)."""
-    coordinator = Coordinator(RUN, folder, EvolutionPolicy(RUN, folder, _config(audit)))
-    heard = Heard()
-    coordinator.bus = heard  # type: ignore[assignment]
+    heard = Recorder()
+    policy = EvolutionPolicy(RUN, folder, _config(audit))
+    coordinator = Coordinator(RUN, folder, policy, publisher=heard)
     trainers = Trainers(["t0", "t1", "t2", "t3"], liar)
     for node in trainers.names:
-        coordinator._liveliness("trainer", node, True)
+        coordinator.take(Liveliness("trainer", node, True))
     try:
         inbox = trainers.asking()
         for _ in range(rounds):
@@ -101,8 +99,8 @@ def run_with(folder: Path, audit: float, liar: str | None, rounds: int = 400) ->
                 coordinator.policy.finish()
                 return coordinator
             for msg in inbox:
-                coordinator._take(decode(encode(msg)))
-            coordinator._assign_idle()
+                coordinator.take(decode(encode(msg)))
+            coordinator.assign_idle()
             coordinator.settle()
             inbox = trainers.answer(heard.messages) + trainers.asking()
             heard.messages.clear()
@@ -123,13 +121,13 @@ def test_the_same_children_are_audited_in_every_run_of_a_seed_and_about_the_shar
 def _trial(node: str, fitness: float, checkpoint: bytes = b"policy") -> FitnessReport:
     job = TrainJob(run=RUN, job=f"c.{node}", child="c", node=node, genome=_genome(),
                    task="ft", ppo=_config(0).training_ppo(), lease_s=30)  # fmt: skip
-    trial = report(job, 0.0).model_copy(update={"fitness": fitness, "checkpoint": checkpoint})
+    trial = honest_report(job).model_copy(update={"fitness": fitness, "checkpoint": checkpoint})
     return journaled(trial)
 
 
 @cache
 def _genome() -> Genome:
-    return CoordinatorState.start(_config(0), None).evolution.initial[0].genome
+    return EvolutionState.start(_config(0), None).evolution.initial[0].genome
 
 
 def test_a_verdict_needs_two_identities_alike_and_a_third_decides_a_disagreement() -> None:
@@ -190,12 +188,12 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert state.evolution.best().fitness == max(truth.values())
     history = load_history(folder)  # what `derl report` reads
     assert {b.child: b.fitness for b in history.births} == truth
-    assert [q.node for q in history.quarantines] == [LIAR]
+    assert list(history.quarantined) == [LIAR]
     summary = json.loads((folder / "summary.json").read_text())
     assert list(summary["quarantined"]) == [LIAR]
     assert all(b["fitness"] == truth[b["agent"]] for b in summary["best"])
 
-    resumed = CoordinatorState.start(_config(0.3), None)
+    resumed = EvolutionState.start(_config(0.3), None)
     for msg in journal:
         resumed.apply(msg)
     assert list(resumed.quarantined) == [LIAR] and not resumed.retraining

@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import signal
 import socket
-import sys
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -30,11 +29,8 @@ from derl.messages import (
     WorkerReady,
 )
 from derl.nodes.runtime.bus import Bus
+from derl.nodes.testing.faults import put_garbage
 from derl.nodes.tools.logs import read_log
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from soak import put_garbage
 
 PROFILE = {
     "total": 20,  # room for the coordinator kill after the trainer faults, on a fast machine too

@@ -43,10 +43,10 @@ from derl.messages import (
 from derl.nodes.coordinator import node
 from derl.nodes.coordinator.audits import journaled
 from derl.nodes.coordinator.evolution import EvolutionPolicy
+from derl.nodes.coordinator.evolution_state import EvolutionState
 from derl.nodes.coordinator.ledger import JOURNALED_REFUSALS
 from derl.nodes.coordinator.node import Coordinator
 from derl.nodes.coordinator.run_files import INITIAL_FILE, PROFILE_FILE
-from derl.nodes.coordinator.state import CoordinatorState
 from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
@@ -333,7 +333,7 @@ def test_a_child_bred_like_one_in_training_waits_for_its_birth() -> None:
     the first trains, goes first in the queue once it is born, and is then its repeat."""
     config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 6})
     initial = sample_population(2, np.random.default_rng(3))
-    state = CoordinatorState.start(config, initial)
+    state = EvolutionState.start(config, initial)
     run = "held"
     for k, genome in enumerate(initial):
         state.apply(_born(run, f"i000{k}", None, genome, k))
@@ -413,7 +413,7 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
     child in training. The replay skips them, says so, and resumes; no name is given twice."""
     config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 6})
     initial = sample_population(2, np.random.default_rng(3))
-    state = CoordinatorState.start(config, initial)
+    state = EvolutionState.start(config, initial)
     run = "repaired"
     body = breed(initial[0], 7)[0]
 
@@ -463,7 +463,7 @@ def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> 
         }
     )
     initial = sample_population(2, np.random.default_rng(3))
-    state = CoordinatorState.start(config, initial)
+    state = EvolutionState.start(config, initial)
     run = "evalfail"
     for k, genome in enumerate(initial):
         state.apply(_born(run, f"i000{k}", None, genome, k))

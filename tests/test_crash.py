@@ -1,4 +1,5 @@
-"""Crash consistency, checked on a small real run recorded under strace (`bench/crash.py`): the
+"""Crash consistency, checked on a small real run recorded under strace (`derl.nodes.testing`'s
+`crash`, `disk` and `crash_check`; tests/test_crash_check.py checks the checker itself): the
 run directory rebuilt as a process kill or a power cut at each point of the run's writes would
 leave it (torn journal writes included), and the coordinator started on it. Every state is
 checked for what a start must find; a sample of them, and the state where the run's last
@@ -11,16 +12,13 @@ from __future__ import annotations
 import random
 import shutil
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from derl.messages import Birth
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-import crash
+from derl.nodes.testing import crash
+from derl.nodes.testing.crash_check import check_cut, holds_at_start
+from derl.nodes.testing.disk import Cut
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group(name="crash")]
 
@@ -47,7 +45,7 @@ def test_every_crash_state_holds_what_the_trainers_were_told(recorded: crash.Rec
     kinds = recorded.tried
     assert min(kinds[k] for k in ("kill", "power", "kill-torn", "power-torn", "power-zeros")) > 50
     assert recorded.refused == []
-    broken = {(c.index, c.kind, c.torn_at): crash.holds_at_start(recorded, c)
+    broken = {(c.index, c.kind, c.torn_at): holds_at_start(recorded, c)
               for c in recorded.distinct}  # fmt: skip
     assert {cut: problems for cut, problems in broken.items() if problems} == {}
 
@@ -63,7 +61,7 @@ def test_sampled_crash_states_run_to_the_end(recorded: crash.Recorded) -> None:
     files = {name.removeprefix("checkpoints/").removesuffix(".pt") for name in end.state}
     assert not births <= files
     others = random.Random(1).sample(recorded.distinct, 10)
-    failures = [crash.check_cut(recorded, cut) for cut in [end, *others]]
+    failures = [check_cut(recorded, cut) for cut in [end, *others]]
     assert [f for f in failures if f] == []
 
 
@@ -82,11 +80,11 @@ def test_a_real_coordinator_resumes_a_crash_at_the_end_and_mid_run(
     # sync, a power cut leaves what a kill leaves, and `distinct` keeps that state as a kill:
     # whether any mid-run power state differs depends on the recorded run's timing, so a kill
     # state stands in when none does.
-    def rank(cut: crash.Cut) -> tuple[bool, bool, float]:
+    def rank(cut: Cut) -> tuple[bool, bool, float]:
         waiting = any(not answered for _, _, answered in cut.knowledge.holding)
         return cut.kind == "power", waiting, -abs(len(cut.knowledge.acked) - total / 2)
 
     mid = max((c for c in recorded.distinct if c.kind in ("power", "kill") and
                0 < len(c.knowledge.acked) < total), key=rank)  # fmt: skip
-    assert crash.check_cut(recorded, end, real=True) is None
-    assert crash.check_cut(recorded, mid, real=True) is None
+    assert check_cut(recorded, end, real=True) is None
+    assert check_cut(recorded, mid, real=True) is None

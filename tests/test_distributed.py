@@ -29,13 +29,13 @@ from nodes_fixtures import (
     observe,
     wait_for,
 )
-from soak import sample  # bench/, on the path by nodes_fixtures
 
 from derl.messages import Birth, FitnessReport, JobLost, encode
 from derl.messages.examples import examples
 from derl.messages.types import MAX_MESSAGE_BYTES
 from derl.nodes.journal.segments import replay, segments
 from derl.nodes.runtime.bus import ZenohOptions, open_session, zenoh_config
+from derl.nodes.testing.processes import sample
 
 PROFILE = {
     "total": 4,

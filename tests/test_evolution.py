@@ -159,11 +159,11 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     fold keeps the child waiting (it is trained next), never decides past it."""
     from derl.messages import Birth, TrainJob
     from derl.messages.examples import examples
-    from derl.nodes.coordinator.state import CoordinatorState, tournament_message
+    from derl.nodes.coordinator.evolution_state import EvolutionState, tournament_message
     from derl.rl import PPOConfig
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})
-    state = CoordinatorState.start(config, initial)
+    state = EvolutionState.start(config, initial)
     template = next(m for m in examples("r") if isinstance(m, Birth))
     ppo = PPOConfig(total_steps=4096, seed=0)
     for k, child in enumerate(state.evolution.initial):

@@ -1,23 +1,20 @@
-"""The soak (`bench/soak.py`) in short: a run of about a minute under `derl launch` in router
-topology, a fault drawn at random every 5 to 10 s (SIGKILL or SIGSTOP of a trainer, the
-evaluator, the coordinator or the router; garbage on the bus), every node's memory, open files
-and threads sampled. It finishes, every child is born once, each node was sampled, and the
-processes that lived long enough (the launch at least) were judged. Whether the figures stay flat
-is the 30-minute soak's question (a minute is mostly warm-up): this test checks that they are
-measured and reported."""
+"""The soak (`derl.nodes.testing.soak`; bench/soak.py runs it for half an hour) in short: a run
+of about a minute under `derl launch` in router topology, a fault drawn at random every 2 to 4 s
+(SIGKILL or SIGSTOP of a trainer, the evaluator, the coordinator or the router; garbage on the
+bus), every node's memory, open files and threads sampled. It finishes, every child is born once,
+each node was sampled, and the processes that lived long enough (the launch at least) were
+judged. Whether the figures stay flat is the 30-minute soak's question (a minute is mostly
+warm-up): this test checks that they are measured and reported."""
 
 from __future__ import annotations
 
 import json
-import sys
 from collections import Counter
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from soak import Soak
+from derl.nodes.testing.soak import Soak
 
 pytestmark = pytest.mark.slow
 

@@ -124,16 +124,17 @@ def test_nothing_below_the_command_line_exits_the_process() -> None:
     assert not exits, f"exits below the command line: {exits}"
 
 
-def test_only_the_protocol_reference_uses_the_example_messages() -> None:
-    """`derl.messages.examples` are fixtures for tests and benchmarks, and the example payloads
-    of docs/protocol.md (`nodes/tools/reference.py`); no other code relies on them."""
+def test_only_the_protocol_reference_and_the_test_machinery_use_the_example_messages() -> None:
+    """`derl.messages.examples` are fixtures for tests and benchmarks (the garbage
+    `derl.nodes.testing.faults` puts on a bus), and the example payloads of docs/protocol.md
+    (`nodes/tools/reference.py`); no other code relies on them."""
     modules = _modules()
     users = {
         str(path.relative_to(ROOT))
         for name, path in modules.items()
         if "derl.messages.examples" in _imports_of(name, path, modules)
     }
-    assert users == {"nodes/tools/reference.py"}
+    assert users == {"nodes/tools/reference.py", "nodes/testing/faults.py"}
 
 
 def _tree(document: str, section: str) -> set[str]:

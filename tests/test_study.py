@@ -27,8 +27,8 @@ from nodes_fixtures import (
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
-from derl.nodes.coordinator.study import StudyState
 from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
+from derl.nodes.coordinator.study_state import StudyState
 from derl.rl import PPOConfig
 from derl.unimal import Genome, body_hash
 
@@ -83,7 +83,7 @@ def test_the_tests_wait_for_every_retraining_and_take_the_best_by_mean(quadruped
     state = StudyState(CONFIG, _plan(quadruped))
     journal: list = []
     means = {"r1.a1": (1.0, 3.0), "r2.b1": (20.0, 30.0), "r3.c1": (4.0, 6.0)}
-    retraining = list(state.retraining)
+    retraining = list(state.retrainings)
     assert [k[1:] for k in retraining[:2]] == [("ft", 7, 4096), ("ft", 8, 4096)]
     for n, key in enumerate(retraining):
         assert state.next_evaluation() in retraining  # no test before the last retraining
@@ -125,7 +125,7 @@ def test_the_kept_hold_each_body_once_ranked_on_every_seed(quadruped: Genome) ->
     state = StudyState(config, _plan(quadruped, bodies))
     rewards = {"r1.a1": (20.0, 30.0), "r2.b1": (20.0, 30.0), "r1.a2": (10.0, 10.0),
                "r1.a3": (99.0, None)}  # fmt: skip
-    for n, key in enumerate(state.retraining):
+    for n, key in enumerate(state.retrainings):
         reward = rewards[key[0]][key[2] - 7]
         if reward is None:  # given up
             genome, ppo = state.evaluation_order(key)
@@ -140,13 +140,13 @@ def test_the_kept_hold_each_body_once_ranked_on_every_seed(quadruped: Genome) ->
     assert state.kept() == {"ft": [("r1.a1", 25.0), ("r1.a2", 10.0)]}  # was a3, a1, b1
     assert state.next_evaluation()[0] == "r1.a1"  # the test stage starts
     assert state.tested == {"ft": [("r1.a1", 25.0), ("r1.a2", 10.0)]}  # was a3 and a1
-    tests = {key[0] for key in state.planned if key not in state.retraining}
+    tests = {key[0] for key in state.planned if key not in state.retrainings}
     assert tests == {"r1.a1", "r1.a2"}
 
 
 def test_a_retraining_given_up_still_lets_the_tests_start(quadruped: Genome) -> None:
     state = StudyState(CONFIG, _plan(quadruped))
-    first, *rest = state.retraining
+    first, *rest = state.retrainings
     genome, ppo = state.evaluation_order(first)
     for attempt in range(CONFIG.max_attempts):
         state.apply(EvalJob(run="s", job=f"f{attempt}", agent=first[0], node="w", genome=genome,

@@ -60,6 +60,7 @@ def measure(run: RunLog, sample_size: int, processes: int = 1) -> list[Morpholog
     physics = dict(zip(simulated, _describe_all(genomes, processes), strict=True))
     rows = []
     for i, body in enumerate(run.bodies):
+        assert body.genome is not None  # (`missing` above)
         low, high = bounding_box(layout(body.genome))
         length, width, height = (high - low).tolist()
         described = physics.get(int(run.original[i]))

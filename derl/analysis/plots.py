@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from itertools import cycle
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib import colormaps
@@ -82,20 +83,20 @@ def _note(axis: Axes, text: str, y: float = 0.5) -> None:
     )
 
 
-def _band(axis: Axes, points: list[Point], style: dict[str, str]) -> bool:
+def _band(axis: Axes, points: list[Point], style: dict[str, Any]) -> bool:
     """Mean (or median) line and CI band of `points` (no band where a limit is unknown or
     unbounded); False (and nothing drawn) when none has a value."""
     shown = [p for p in points if p.value is not None]
     if not shown:
         return False
     x = np.array([p.x for p in shown])
-    axis.plot(x, [p.value for p in shown], marker="o" if len(shown) < 12 else None, ms=3, **style)
+    axis.plot(x, _values(shown), marker="o" if len(shown) < 12 else None, ms=3, **style)
     ci = [p for p in shown if p.low is not None and p.high is not None]
     if ci:
         axis.fill_between(
             [p.x for p in ci],
-            [p.low for p in ci],
-            [p.high for p in ci],
+            np.array([p.low for p in ci], float),
+            np.array([p.high for p in ci], float),
             color=style["color"],
             alpha=0.2,
             linewidth=0,
@@ -146,13 +147,18 @@ def fitness(path: Path, analysis: Analysis) -> Path:
     colors = world_colors([w.summary.world for w in analysis.worlds])
     for w in analysis.worlds:
         shown = [p for p in w.series["fitness_by_generation"] if p.value is not None]
-        _counts(right, shown, [p.value for p in shown], colors[w.summary.world])
+        _counts(right, shown, _values(shown), colors[w.summary.world])
     right.set_title(
         f"ancestors of the top agents (n={_sizes(analysis, 'top_agents')}), each once: n at each "
         "point",
         fontsize=10,
     )
     return _save(figure, path)
+
+
+def _values(points: list[Point]) -> list[float]:
+    """The values of `points`, each of which has one."""
+    return [p.value for p in points if p.value is not None]
 
 
 def _counts(axis: Axes, points: list[Point], heights: list[float], color: str) -> None:
@@ -236,7 +242,7 @@ def phylogeny(path: Path, analysis: Analysis) -> Path:
             ],
             axis=1,
         )
-        axis.add_collection(LineCollection(elbows, colors="0.75", linewidths=0.5, zorder=1))
+        axis.add_collection(LineCollection(list(elbows), colors="0.75", linewidths=0.5, zorder=1))
         colors = lineage_colors(r)
         rgba = np.array([colors.get(int(f), to_rgba("0.2")) for f in tree.founder])
         fit = r.run.fitness
@@ -454,7 +460,7 @@ def _energy_scatter(axis: Axes, analysis: Analysis, y: str, colors: dict[str, st
     x_all, y_all = values(analysis.runs, "cost_of_work", False), values(analysis.runs, y, False)
     edges = _edge(x_all), _edge(y_all)
     _points(axis, x_all, y_all, edges, s=8, color="0.75", edgecolors="none")
-    lines = []
+    lines: list[str] = []
     for world, color in colors.items():
         mine = [r for r in analysis.runs if r.run.world == world]
         top = values(mine, "cost_of_work", True), values(mine, y, True)
@@ -480,7 +486,7 @@ def _energy_scatter(axis: Axes, analysis: Analysis, y: str, colors: dict[str, st
 
 
 def _points(
-    axis: Axes, x: np.ndarray, y: np.ndarray, edges: tuple[float, float], **style: object
+    axis: Axes, x: np.ndarray, y: np.ndarray, edges: tuple[float, float], **style: Any
 ) -> None:
     """Measured pairs as dots; pairs with a censored y at the top edge (^), with only a censored
     x at the right edge (>)."""

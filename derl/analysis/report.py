@@ -348,10 +348,14 @@ def _pictures(analysis: Analysis, out: Path, notes: list[str]) -> FigureEntry:
     if not ranked:
         plots.placeholder(path, "no bodies to draw (pictures = 0)")
         return FigureEntry(file=path.name, title=title, caption="No pictures were asked for.")
+    genomes = []
+    for _, body in ranked:
+        assert body.genome is not None  # every analysed run has them all (`morphology.measure`)
+        genomes.append(body.genome)
     try:
         plots.bodies(
             path,
-            [body.genome for _, body in ranked],
+            genomes,
             [f"{run.name}/{body.id}: {body.fitness:.4g}" for run, body in ranked],
         )
     except RuntimeError as error:  # no offscreen OpenGL

@@ -91,7 +91,7 @@ def plan(runs: list[RunLog], per_lineage: int, seeds: int, seed: int = 0) -> Ret
     used = {run.training_seed for run in runs if run.training_seed is not None}
     fresh = new_seeds(seeds, used, seed)
     taken: dict[str, set[str]] = {}
-    jobs = []
+    jobs: list[RetrainJob] = []
     for run in runs:
         tree = Tree.of(run)
         world = taken.setdefault(run.world, set())

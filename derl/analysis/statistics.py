@@ -18,12 +18,16 @@ which needs numbers, leaves them out and says how many.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import stats
+
+if TYPE_CHECKING:
+    from scipy.stats._result_classes import EmpiricalDistributionFunction
 
 
 class _Model(BaseModel):
@@ -100,7 +104,7 @@ class Measure:
             np.concatenate([p.censored for p in parts]) if parts else np.zeros(0, bool),
         )
 
-    def __getitem__(self, index: object) -> Measure:
+    def __getitem__(self, index: np.ndarray) -> Measure:
         return Measure(self.values[index], self.censored[index])
 
     def ranked(self) -> np.ndarray:
@@ -109,7 +113,7 @@ class Measure:
         return np.where(self.censored, np.inf, self.values)
 
 
-STATISTICS = {"mean": np.mean, "median": np.median}
+STATISTICS: dict[str, Callable[..., Any]] = {"mean": np.mean, "median": np.median}
 
 
 def present(values: np.ndarray | list[float]) -> np.ndarray:
@@ -200,14 +204,14 @@ def censored_median(
     log-log Greenwood band) crosses 1/2. The median is None when at least half the values are
     censored, a limit None when the band does not cross 1/2 where it is defined (unbounded: it
     is undefined where the curve falls to 0). Without censored values it is the plain median."""
-    values, censored = np.asarray(values, dtype=float), np.asarray(censored, dtype=bool)
-    keep = ~np.isnan(values)
-    values, censored = values[keep], censored[keep]
-    n, lost = values.size, int(censored.sum())
-    measured = values[~censored]
+    every = np.asarray(values, dtype=float)
+    keep = ~np.isnan(every)
+    kept, beyond = every[keep], np.asarray(censored, dtype=bool)[keep]
+    n, lost = kept.size, int(beyond.sum())
+    measured = kept[~beyond]
     if measured.size == 0:
         return Estimate(n=n, censored=lost)
-    bound = np.minimum(values[censored], measured.max())  # beyond everything: at the largest
+    bound = np.minimum(kept[beyond], measured.max())  # beyond everything: at the largest
     data = stats.CensoredData(uncensored=measured, right=bound)
     survival = stats.ecdf(data).sf
     value = _halfway(survival.quantiles, survival.probabilities)
@@ -216,9 +220,11 @@ def censored_median(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # undefined where the curve is 1 or 0: handled below
         band = survival.confidence_interval(confidence, method="log-log")
+    # the limits are survival curves too (scipy-stubs calls them floats)
+    limits = cast("tuple[EmpiricalDistributionFunction, ...]", (band.low, band.high))
     low, high = (
         _halfway(limit.quantiles, _defined(limit.probabilities, survival.probabilities))
-        for limit in (band.low, band.high)
+        for limit in limits
     )
     return Estimate(n=n, value=value, low=low, high=high, censored=lost)
 

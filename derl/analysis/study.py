@@ -13,20 +13,16 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from derl.envs.registry import TASKS, TEST_TASKS, WORLDS
-from derl.evolution.config import MAX_LEASE_S, job_ppo, load_settings
-from derl.rl import PPOConfig, PPOHyperparameters
+from derl.evolution.config import JobSettings, load_settings
 
 
-class StudyConfig(BaseModel):
+class StudyConfig(JobSettings):
     """Appendix D's numbers and the learning settings of its trainings (the paper: the same as
-    evolution's)."""
+    evolution's; `JobSettings` holds them)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    name: str = Field("custom", description="the profile's name (a file's: its stem)")
     per_lineage: int = Field(3, ge=1, description="fittest bodies retrained per surviving lineage")
     seeds: int = Field(5, ge=1, description="new training seeds of each retrained body")
     seed: int = Field(0, ge=0, description="draws the new seeds")
@@ -40,20 +36,6 @@ class StudyConfig(BaseModel):
     budgets: tuple[int, ...] = Field(
         (5_000_000, 1_000_000), min_length=1, description="env steps of a test (figs. 4b, 4c)"
     )
-    num_envs: int = Field(32, ge=1, description="environment copies of every training")
-    ppo: PPOHyperparameters = Field(
-        default_factory=PPOHyperparameters, description="PPO hyperparameters"
-    )
-    lease_s: float = Field(
-        60.0, gt=0, le=MAX_LEASE_S, description="a job without progress this long is reassigned"
-    )
-    max_attempts: int = Field(
-        3, ge=1, le=100, description="failed trainings of a body on a task before it is given up"
-    )
-
-    def job_ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
-        """The PPO of one of the study's trainings."""
-        return job_ppo(task, steps, seed, self.num_envs, self.ppo)
 
     @model_validator(mode="after")
     def _consistent(self) -> StudyConfig:

@@ -218,8 +218,10 @@ def _example(model: type[BaseModel]) -> dict:
     names: dict = {}
     for name, field in model.model_fields.items():
         annotation = field.annotation
-        is_model = isinstance(annotation, type) and issubclass(annotation, BaseModel)
-        names[name] = _example(annotation) if is_model else None
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            names[name] = _example(annotation)
+        else:
+            names[name] = None
     return names
 
 

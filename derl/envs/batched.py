@@ -155,7 +155,7 @@ class UnimalEnv:
             failed = error.ids
         self.physics_s += time.perf_counter() - start
         unstable = self._unstable(warnings_before, failed)
-        unstable_count = np.count_nonzero(unstable)
+        unstable_count = int(np.count_nonzero(unstable))
         self.unstable_count += unstable_count
         self.steps += 1
         terms = self.task.step(self)

@@ -222,17 +222,23 @@ class HeightStack:
         rough = np.flatnonzero(self.rough[terrains, cells[:, 0]])
         if len(rough) == len(xy):
             return self.lookup(self._vertices(cells, terrains), yaw)
-        heights = np.zeros((len(xy), self._table.shape[1]), np.float32)
+        heights = np.zeros((len(xy), self._offsets.shape[1]), np.float32)
         if len(rough):
             centre = self._vertices(cells[rough], terrains[rough])
             heights[rough] = self.lookup(centre, yaw[rough])
         return heights
 
+    @property
+    def _offsets(self) -> np.ndarray:
+        """The offset table (`offset_table`): a stack made without a grid has no heightmaps."""
+        assert self._table is not None, "a HeightStack made without a grid has no heightmaps"
+        return self._table
+
     def lookup(self, centre: np.ndarray, yaw: np.ndarray) -> np.ndarray:
         """(N, K) float32 heightmaps around the vertices ``centre`` (N,) (flat indices) facing
         ``yaw`` (N,), relative to those vertices: the stack read at every point of the grid."""
         bins = np.rint(yaw * (YAW_BINS / (2 * np.pi))).astype(np.intp)
-        index = self._table.take(bins, axis=0, mode="wrap")
+        index = self._offsets.take(bins, axis=0, mode="wrap")
         index += centre[:, None]
         heights = self._flat.take(index)
         heights -= heights[:, self._head, None]  # the head's own vertex: offset (0, 0)

@@ -6,7 +6,7 @@ state after every step, before the reward terms, observations and success tests 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import mujoco
 import numpy as np
@@ -98,6 +98,11 @@ class ForwardPlacement(BaseModel):
     side_buffer: float = Field(10.0, ge=0)  # 2 x PLACEMENT_BUFFER_WIDTH (grid cells are 2 per m)
     far_buffer: float = Field(6.0, ge=0)  # 2 x PLACEMENT_BUFFER_LEN
     goal_half: float = Field(0.5, gt=0)  # the goal marker's footprint half size
+
+    if TYPE_CHECKING:  # each subclass's field or property (`ObjectPlacement`)
+
+        @property
+        def box_size(self) -> float: ...
 
     @property
     def object_half(self) -> float:

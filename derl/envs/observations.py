@@ -19,6 +19,8 @@ class Heightmap(Observation):
     name: ClassVar[str] = "heightmap"
 
     def __init__(self, arena: Heightfield) -> None:
+        if arena.grid is None:
+            raise ValueError("a heightmap observation needs an arena with a heightmap grid")
         self.arena = arena
         self.size = arena.grid.size
 

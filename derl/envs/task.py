@@ -14,7 +14,7 @@ import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import reduce
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, ClassVar, cast
 
 import mujoco
 import numpy as np
@@ -22,6 +22,7 @@ import numpy as np
 from derl.envs.view import EnvView
 
 if TYPE_CHECKING:
+    from derl.envs.arenas import Heightfield
     from derl.envs.terrain_stack import TerrainStack
 
 Arrays = dict[str, np.ndarray]
@@ -155,7 +156,7 @@ class Task:
     @property
     def terrains(self) -> TerrainStack:
         """The copies' terrains, where the arena has a heightfield (else AttributeError)."""
-        return self.arena.terrains  # type: ignore[attr-defined]
+        return cast("Heightfield", self.arena).terrains
 
     def obs_spaces(self) -> dict[str, int]:
         """Observation types the task adds, with their sizes."""

@@ -209,7 +209,8 @@ def check_video_path(path: Path) -> None:
         with path.open("ab"):
             pass
     except OSError as error:
-        raise VideoError(f"{path}: cannot write there ({error.strerror.lower()})", 1) from None
+        why = (error.strerror or str(error)).lower()
+        raise VideoError(f"{path}: cannot write there ({why})", 1) from None
     if not existed:
         path.unlink()
 

@@ -74,6 +74,11 @@ class EnvView(Protocol):
         ...
 
     @property
+    def head_rot(self) -> np.ndarray:
+        """(N, 3, 3) head orientation: columns are the head's axes in the world."""
+        ...
+
+    @property
     def ctrl(self) -> np.ndarray:
         """(N, A) the last actions, clipped to [-1, 1]."""
         ...

@@ -38,16 +38,55 @@ MAX_LEASE_S = 86_400.0
 Settings = TypeVar("Settings", bound=BaseModel)
 
 
-class EvolutionConfig(BaseModel):
+class JobSettings(BaseModel):
+    """What every coordinator's settings share (`EvolutionConfig`, a study's `StudyConfig`): the
+    profile's name, how each training learns (`num_envs`, `ppo`: `job_ppo`) and how its jobs are
+    leased and retried."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field("custom", description="the profile's name (a file's: its stem)")
+    num_envs: int = Field(32, ge=1, description="environment copies of every training")
+    ppo: PPOHyperparameters = Field(
+        default_factory=PPOHyperparameters, description="PPO hyperparameters"
+    )
+    lease_s: float = Field(
+        60.0, gt=0, le=MAX_LEASE_S, description="a job without progress this long is reassigned"
+    )
+    max_attempts: int = Field(
+        3,
+        ge=1,
+        le=100,
+        description="failed jobs of a training or an evaluation before it is given up",
+    )
+
+    def job_ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
+        """The PPO of one job: the hyperparameters with the job's budget, seed and copies and the
+        task's fitness settings; ValueError saying why when the budget does not fit them."""
+        try:
+            return ppo_config(task, steps, seed, num_envs=self.num_envs, **self.ppo.model_dump())
+        except ValidationError as error:
+            raise ValueError(f"PPO of {task} with {steps} steps: {problems(error)}") from None
+
+
+def setting_keys(model: type[BaseModel]) -> list[str]:
+    """`model`'s keys in the order its reference and its errors list them: a coordinator's
+    settings (a `JobSettings`) their name, their own keys, then the ones every coordinator shares;
+    any other model its fields in order."""
+    keys = list(model.model_fields)
+    if not issubclass(model, JobSettings):
+        return keys
+    shared = list(JobSettings.model_fields)
+    return [shared[0], *(k for k in keys if k not in shared), *shared[1:]]
+
+
+class EvolutionConfig(JobSettings):
     """Population, tournaments, budget and lifetime learning of one run: the whole configuration
     of a run, checked before anything starts and saved with it (`profile.json`), so a resumed run
     trains exactly as it started. `ppo` holds the PPO hyperparameters; each job's budget, seed,
     copies and fitness settings come from `train_steps`, `training_seed`, `num_envs` and the task
     (`training_ppo`, `evaluation_ppo`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    name: str = Field("custom", description="the profile's name (a file's: its stem)")
     world: Literal["ft", "vt", "mvt"] = Field("ft", description="the world evolution trains in")
     population: int = Field(576, ge=1, description="P: the aging window (most recent births)")
     tournament: int = Field(4, ge=1, description="T: contestants drawn with replacement")
@@ -75,7 +114,6 @@ class EvolutionConfig(BaseModel):
         description="PPO env steps per body, rounded down to whole rollouts (num_envs × "
         "ppo.rollout_steps), as the released code does",
     )
-    num_envs: int = Field(32, ge=1, description="environment copies of every training")
     released_delete_limb: bool = Field(
         True,
         description="as the released mutate_delete_limb: a child that lost a limb keeps its "
@@ -87,30 +125,18 @@ class EvolutionConfig(BaseModel):
     seed: int = Field(
         0, ge=0, lt=SEED_LIMIT, description="seeds the initial bodies and the tournaments"
     )
-    lease_s: float = Field(
-        60.0, gt=0, le=MAX_LEASE_S, description="a job without progress this long is reassigned"
-    )
-    max_attempts: int = Field(
-        3,
-        ge=1,
-        le=100,
-        description="failed trainings of a child, or evaluations of a body, before it is given up",
-    )
     eval_top: int = Field(0, ge=0, description="best bodies evaluated on the test tasks at the end")
     eval_tasks: tuple[str, ...] = Field((), description="test tasks of the final evaluations")
     eval_seeds: int = Field(1, ge=1, description="evaluations of each body per test task (seeds)")
     eval_steps: int = Field(1_000_000, ge=1, description="PPO env steps per evaluation")
-    ppo: PPOHyperparameters = Field(
-        default_factory=PPOHyperparameters, description="PPO hyperparameters"
-    )
 
     def training_ppo(self) -> PPOConfig:
         """The PPO of every training of this run's evolution."""
-        return self._ppo(self.world, self.train_steps, self.training_seed)
+        return self.job_ppo(self.world, self.train_steps, self.training_seed)
 
     def evaluation_ppo(self, task: str, seed: int) -> PPOConfig:
         """The PPO of one test-task evaluation."""
-        return self._ppo(task, self.eval_steps, seed)
+        return self.job_ppo(task, self.eval_steps, seed)
 
     def fitness_bound(self) -> float:
         """The largest |fitness| the world allows: the fitness is a mean of episode sums of its
@@ -120,9 +146,6 @@ class EvolutionConfig(BaseModel):
         diagonal = 2 * math.hypot(*task.arena.half)
         per_metre = 1 / CONTROL_DT if task.fitness_component == "forward" else 2 * 100.0
         return per_metre * diagonal + BONUS * (EnvConfig().episode_steps + 1)
-
-    def _ppo(self, task: str, steps: int, seed: int) -> PPOConfig:
-        return job_ppo(task, steps, seed, self.num_envs, self.ppo)
 
     @model_validator(mode="before")
     @classmethod
@@ -156,17 +179,6 @@ class EvolutionConfig(BaseModel):
         for task in self.eval_tasks:
             self.evaluation_ppo(task, 0)
         return self
-
-
-def job_ppo(
-    task: str, steps: int, seed: int, num_envs: int, hyper: PPOHyperparameters
-) -> PPOConfig:
-    """The PPO of one job: `hyper`'s hyperparameters with the job's budget, seed and copies and
-    the task's fitness settings; ValueError saying why when the budget does not fit them."""
-    try:
-        return ppo_config(task, steps, seed, num_envs=num_envs, **hyper.model_dump())
-    except ValidationError as error:
-        raise ValueError(f"PPO of {task} with {steps} steps: {problems(error)}") from None
 
 
 PROFILES: dict[str, EvolutionConfig] = {
@@ -252,8 +264,9 @@ def set_dotted(settings: dict[str, object], key: str, value: object) -> None:
     *groups, last = key.split(".")
     inner = settings
     for depth, part in enumerate(groups):
-        inner = inner.setdefault(part, {})  # type: ignore[assignment]
-        if not isinstance(inner, dict):
-            group = ".".join(groups[: depth + 1])
-            raise ValueError(f"cannot set {key}: {group} is one value, not a group of settings")
+        group = inner.setdefault(part, {})
+        if not isinstance(group, dict):
+            path = ".".join(groups[: depth + 1])
+            raise ValueError(f"cannot set {key}: {path} is one value, not a group of settings")
+        inner = group
     inner[last] = value

@@ -119,11 +119,12 @@ class Evolution:
             raise ValueError(
                 f"{len(initial)} initial bodies for a population of {config.population}"
             )
-        self.initial = [
-            Child(f"i{k:04d}", canonical_genome(genome)) for k, genome in enumerate(initial)
-        ]
+        genomes = [canonical_genome(genome) for genome in initial]
+        self.initial = [Child(f"i{k:04d}", genome) for k, genome in enumerate(genomes)]
         # every child's body once decided (an initial one from the start), and its mutation
-        self.genomes: dict[str, Genome] = {c.name: c.genome for c in self.initial}
+        self.genomes: dict[str, Genome] = {
+            c.name: genome for c, genome in zip(self.initial, genomes, strict=True)
+        }
         self.mutations: dict[str, Mutation | None] = {c.name: None for c in self.initial}
         self.parents: dict[str, str | None] = {c.name: None for c in self.initial}
         self.seeds: dict[str, int | None] = {c.name: None for c in self.initial}
@@ -216,10 +217,11 @@ class Evolution:
         child is bred from its parent's body the first time it is asked for (a few ms: the
         validity check compiles the body; `MutationFailed` if no valid child comes of it)."""
         if child not in self.genomes:
-            seed = self.seeds[child]
-            assert seed is not None, child
-            parent = self.genomes[self.parents[child]]
-            self.decided(child, *breed(parent, seed, self.config.released_delete_limb))
+            seed, parent = self.seeds[child], self.parents[child]
+            assert seed is not None and parent is not None, child
+            self.decided(
+                child, *breed(self.genomes[parent], seed, self.config.released_delete_limb)
+            )
         return self.genomes[child], self.mutations[child]
 
     def decided(self, child: str, genome: Genome, mutation: Mutation | None) -> None:

@@ -34,6 +34,26 @@ class StepResult:
     """Per-step reward components, each (N,) float, e.g. "forward", "ctrl", "energy"."""
 
 
+class Step(Protocol):
+    """What `BatchedEnv.step` returns: a `StepResult`, or an environment's own class with its
+    fields (structurally, as the environments themselves; e.g. `derl.envs.StepResult`)."""
+
+    @property
+    def obs(self) -> Obs: ...
+
+    @property
+    def reward(self) -> np.ndarray: ...
+
+    @property
+    def terminated(self) -> np.ndarray: ...
+
+    @property
+    def truncated(self) -> np.ndarray: ...
+
+    @property
+    def components(self) -> dict[str, np.ndarray]: ...
+
+
 @runtime_checkable
 class BatchedEnv(Protocol):
     """N copies of one environment stepped together, with auto-reset."""
@@ -57,7 +77,7 @@ class BatchedEnv(Protocol):
         """Reset every copy (deterministically for a given seed) and return the observations."""
         ...
 
-    def step(self, actions: np.ndarray) -> StepResult:
+    def step(self, actions: np.ndarray) -> Step:
         """Apply (N, A) float32 actions to all copies: the policy's samples, unclipped; the
         environment clips them to [-1, 1] where it applies them."""
         ...

@@ -169,7 +169,9 @@ class EpisodeTracker:
             first = int(np.searchsorted(steps, env_steps - window, side="right"))
             values = [value for _, value in self.curve[first:]]
             # the first value averages the `recent` episodes finished last by its iteration
-            episodes = self._finished[-1] - max(0, self._finished[first] - self.recent.maxlen)
+            recent = self.recent.maxlen
+            assert recent is not None  # made with one
+            episodes = self._finished[-1] - max(0, self._finished[first] - recent)
             return Fitness(float(np.mean(values)), "window", episodes)
         log = self.log()
         if len(log):

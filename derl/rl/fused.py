@@ -121,16 +121,27 @@ def _numpy_empty(rows: int, cols: int) -> np.ndarray:
     return np.empty((rows, cols), np.float32)
 
 
+def _layer(sequence: nn.Module, index: int) -> nn.Linear:
+    """The linear layer `index` of one of an `Encoder`'s `nn.Sequential`s."""
+    assert isinstance(sequence, nn.Sequential)
+    layer = sequence[index]
+    assert isinstance(layer, nn.Linear)
+    return layer
+
+
 class _Tower:
     """One encoder and its linear head (the actor's mean or the critic's value)."""
 
     def __init__(self, slab: _Slab, encoder: Encoder, head: nn.Linear) -> None:
         self.branches = [
-            (_Linear(slab, encoder.branches[key][0]), _Linear(slab, encoder.branches[key][2]))
+            (
+                _Linear(slab, _layer(encoder.branches[key], 0)),
+                _Linear(slab, _layer(encoder.branches[key], 2)),
+            )
             for key in encoder.keys
         ]
         self.layers = [layer for pair in self.branches for layer in pair]
-        self.fuse = None if encoder.fuse is None else _Linear(slab, encoder.fuse[0])
+        self.fuse = None if encoder.fuse is None else _Linear(slab, _layer(encoder.fuse, 0))
         if self.fuse is not None:
             self.layers.append(self.fuse)
             rows = range(0, HIDDEN * len(self.branches), HIDDEN)

@@ -8,7 +8,7 @@ actions in [-1, 1] are rescaled to the bounds of the Box action space.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import gymnasium
 import numpy as np
@@ -35,7 +35,9 @@ class GymBatchedEnv:
         self.obs_spaces = {OBS_KEY: int(gymnasium.spaces.flatdim(self._obs_space))}
 
     def _flat(self, obs: Any) -> np.ndarray:
-        return gymnasium.spaces.flatten(self._obs_space, obs).astype(np.float32)
+        # an array: the space is flattenable (`flatdim` checked it)
+        flat = cast(np.ndarray, gymnasium.spaces.flatten(self._obs_space, obs))
+        return flat.astype(np.float32)
 
     def reset(self, seed: int) -> Obs:
         """Copy i is reset with seed `seed + i`."""

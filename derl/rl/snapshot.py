@@ -32,7 +32,7 @@ from __future__ import annotations
 import copy
 import functools
 import importlib
-from typing import Any
+from typing import Any, cast
 
 import mujoco
 import mujoco.batch
@@ -125,9 +125,9 @@ def _put_to_sleep(env: Any, asleep: np.ndarray) -> None:
             models[i].qpos0[:] = rows[i, start : start + model.nq]  # asleep where it rests
         batch.set_models(models)
         batch.reset(sleeping, stage=mujoco.mjtStage.mjSTAGE_NONE)
-        for i, (policy, qpos0) in kept.items():
-            models[i].tree_sleep_policy[:] = policy
-            models[i].qpos0[:] = qpos0
+        for k, (policy, qpos0) in kept.items():
+            models[k].tree_sleep_policy[:] = policy
+            models[k].qpos0[:] = qpos0
         batch.set_models(before if shared else models)
     still = np.where((asleep > AWAKE) & (asleep < 0), asleep - AWAKE, 0).max(axis=1)
     for count in range(1, int(still.max(initial=0)) + 1):
@@ -229,12 +229,13 @@ def _packed(value: np.ndarray) -> object:
 def _unpacked(node: object) -> np.ndarray:
     if isinstance(node, torch.Tensor):
         return node.numpy()
-    tail = node["tail"].numpy()  # type: ignore[index]
-    used = node["used"].numpy()  # type: ignore[index]
+    packed = cast(dict[str, Any], node)  # else a large array's chunks (`_packed`)
+    tail = packed["tail"].numpy()
+    used = packed["used"].numpy()
     flat = np.zeros(len(used) * CHUNK + len(tail), tail.dtype)
-    flat[: len(used) * CHUNK].reshape(-1, CHUNK)[used] = node["chunks"].numpy()  # type: ignore[index]
+    flat[: len(used) * CHUNK].reshape(-1, CHUNK)[used] = packed["chunks"].numpy()
     flat[len(used) * CHUNK :] = tail
-    return flat.reshape(node["shape"])  # type: ignore[index]
+    return flat.reshape(packed["shape"])
 
 
 def _walked(value: object) -> bool:
@@ -292,14 +293,14 @@ def _restore(live: object, saved: object, base: mujoco.MjModel) -> object:
     if kind == "scalar":
         value = saved["value"].numpy()[()]
         return live if type(live) is type(value) and live == value else value
-    if kind == "rng":
-        live.bit_generator.state = saved["state"]  # type: ignore[union-attr]
+    if kind == "rng":  # into the generator of the same place (as for the next two)
+        cast(np.random.Generator, live).bit_generator.state = saved["state"]
         return live
     if kind == "batch":
-        live.state[...] = saved["state"].numpy()  # type: ignore[union-attr]
+        cast(mujoco.batch.Batch, live).state[...] = saved["state"].numpy()
         return live
     if kind == "model":
-        _restore_model(live, saved["fields"], base)  # type: ignore[arg-type]
+        _restore_model(cast(mujoco.MjModel, live), saved["fields"], base)
         return live
     if kind == "dict":
         items = saved["items"]
@@ -310,8 +311,8 @@ def _restore(live: object, saved: object, base: mujoco.MjModel) -> object:
         return {key: _restore(None, item, base) for key, item in items.items()}
     if kind in ("tuple", "named"):  # immutable: made again where an item changed
         cls = tuple if kind == "tuple" else _class(saved["class"])
-        same = type(live) is cls and len(live) == len(saved["items"])  # type: ignore[arg-type]
-        olds = list(live) if same else [None] * len(saved["items"])  # type: ignore[arg-type]
+        same = isinstance(live, tuple) and type(live) is cls and len(live) == len(saved["items"])
+        olds = list(cast(tuple, live)) if same else [None] * len(saved["items"])
         items = [_restore(old, item, base) for old, item in zip(olds, saved["items"], strict=True)]
         if same and all(new is old for new, old in zip(items, olds, strict=True)):
             return live

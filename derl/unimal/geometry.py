@@ -97,7 +97,7 @@ def layout(genome: Genome) -> list[LimbPart]:
                 site, parent_radius, parent_origin, parent_name = (
                     np.zeros(3),
                     HEAD_RADIUS,
-                    0,
+                    np.zeros(3),
                     "head",
                 )
             else:

@@ -40,7 +40,7 @@ def random_genome(rng: np.random.Generator) -> Genome:
 
 def shape_key(genome: Genome) -> tuple[tuple[int, int], ...]:
     """The multiset of physical limb directions (theta, phi), mirror twins included."""
-    directions = []
+    directions: list[tuple[int, int]] = []
     for limb in genome.limbs:
         directions.append((limb.theta, limb.phi))
         if limb.paired:

@@ -1,6 +1,6 @@
 """The UNIMAL design space: the paper's table "Hyperparameters for UNIMAL design space"."""
 
-from typing import Final, Literal
+from typing import TYPE_CHECKING, Final, Literal
 
 MAX_LIMBS: Final = 10
 HEAD_RADIUS: Final = 0.10
@@ -29,7 +29,10 @@ JOINT_RANGES: Final = (
 JOINT_AXES: Final = ("x", "y")
 AXIS_SETS: Final = (("x",), ("y",), ("x", "y"))
 
-LimbLength = Literal[0.2, 0.3, 0.4]
+if TYPE_CHECKING:  # a Literal takes no float for type checkers; pydantic checks the values
+    LimbLength = float
+else:
+    LimbLength = Literal[0.2, 0.3, 0.4]
 Density = Literal[500, 600, 700, 800, 900, 1000]
 Theta = Literal[0, 45, 90, 135, 180, 225, 270, 315]
 Phi = Literal[90, 135, 180]

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from collections.abc import Iterable
+from typing import Any, TypeVar, overload
 
 import derl
 from derl.nodes.cli import (
@@ -24,6 +26,8 @@ from derl.nodes.cli import (
 from derl.nodes.errors import DerlError
 from derl.nodes.runtime import ratelimit
 
+N = TypeVar("N")  # a namespace class `Parser.parse_known_args` fills
+
 
 class Parser(argparse.ArgumentParser):
     """argparse for every subcommand (each parser made by `add_subparsers` is of its parent's
@@ -32,13 +36,24 @@ class Parser(argparse.ArgumentParser):
     the subcommand that got it, with that subcommand's usage (argparse's own top level showed
     `usage: derl [-h] COMMAND ...` for `derl unimal sample 3`)."""
 
-    def __init__(self, *args: object, **kwargs: object) -> None:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("allow_abbrev", False)
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        super().__init__(*args, **kwargs)
 
-    def parse_known_args(  # type: ignore[override]
-        self, args: list[str] | None = None, namespace: argparse.Namespace | None = None
-    ) -> tuple[argparse.Namespace, list[str]]:
+    @overload
+    def parse_known_args(
+        self, args: Iterable[str] | None = None, namespace: None = None
+    ) -> tuple[argparse.Namespace, list[str]]: ...
+
+    @overload
+    def parse_known_args(self, args: Iterable[str] | None, namespace: N) -> tuple[N, list[str]]: ...
+
+    @overload
+    def parse_known_args(self, *, namespace: N) -> tuple[N, list[str]]: ...
+
+    def parse_known_args(
+        self, args: Iterable[str] | None = None, namespace: Any = None
+    ) -> tuple[Any, list[str]]:
         namespace, extras = super().parse_known_args(args, namespace)
         if extras:
             self.error(f"unrecognized arguments: {' '.join(extras)}")

@@ -78,7 +78,7 @@ def _coordinator(args: argparse.Namespace) -> int:
 
     try:  # its directory and settings: a restart would not change them
         if args.study is not None:
-            config = study_profile_from(args) if args.study_runs else None
+            study = study_profile_from(args) if args.study_runs else None
         else:
             run_dir, config = run_directory(args.run_dir), profile_from(args)
     except DerlError as error:
@@ -86,7 +86,7 @@ def _coordinator(args: argparse.Namespace) -> int:
     try:
         if args.study is not None:
             finished = serve_study(args.run, args.study, options_from(args), args.study_runs,
-                                   config)  # fmt: skip
+                                   study)  # fmt: skip
         else:
             policy = partial(EvolutionPolicy, args.run, run_dir, config)
             finished = serve(args.run, run_dir, policy, options_from(args))

@@ -17,6 +17,7 @@ import yaml
 import zenoh
 from pydantic import BaseModel, ValidationError
 
+from derl.evolution.config import setting_keys
 from derl.nodes.errors import IN_USE, DerlError
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.validation import problems
@@ -167,7 +168,7 @@ def listening(endpoint: str) -> bool | None:
 def how_joined(options: ZenohOptions) -> str:
     """How a tool joined the bus, in words, for a message saying it heard nothing: its mode,
     the endpoints it connected to (those where nothing listens marked) or listened on."""
-    parts = [options.mode]
+    parts: list[str] = [options.mode]
     for endpoint in options.connect:
         quiet = listening(endpoint) is False
         parts.append(f"connected to {endpoint}{', where nothing listens' if quiet else ''}")
@@ -311,8 +312,8 @@ def _profile_or_exit(
         fail_invalid(what, error, model, top=(PROFILE_KEY,), code=2 if ours else 1)
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        fail(f"{what}: not valid YAML{at}: {getattr(error, 'problem', error)}")
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        fail(f"{what}: not valid YAML{where}: {getattr(error, 'problem', error)}")
     except (ValueError, OSError) as error:
         fail(f"{what}: {error}")
 
@@ -341,7 +342,7 @@ def valid_keys(model: type[BaseModel], path: tuple[object, ...]) -> list[str]:
     inner: object = model
     for part in path:
         inner = _inside(inner, part)
-    return list(inner.model_fields) if _is_model(inner) else []
+    return setting_keys(inner) if _is_model(inner) else []
 
 
 def _inside(annotation: object, part: object) -> object:

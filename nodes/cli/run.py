@@ -23,7 +23,7 @@ import socket
 import statistics
 import unicodedata
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rich.progress import TextColumn
 
@@ -226,7 +226,7 @@ def supervise(
                 f"best {state['best']}, {state['sps']:,.0f} steps/s, "
                 f"eval {state['evaluated']}")  # fmt: skip
 
-    fields = {"best": "-", "sps": 0.0, "evaluated": "-", "unit": "born"}
+    fields: dict[str, Any] = {"best": "-", "sps": 0.0, "evaluated": "-", "unit": "born"}
     with (
         open_session(ZenohOptions(connect=(endpoint,), config_file=zenoh_config)) as session,
         Shown(console, "evolution", total, columns, line, **fields) as shown,

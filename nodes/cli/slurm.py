@@ -26,7 +26,7 @@ from derl.nodes.cli.run import (
 )
 from derl.nodes.launch.commands import NODE_CONFIG
 from derl.nodes.launch.identities import MONITOR, issue_identities, load_ca
-from derl.nodes.launch.model import LaunchFile
+from derl.nodes.launch.model import LaunchFile, PeerMesh
 from derl.nodes.launch.slurm import (
     attempt_tag,
     hostnames,
@@ -96,6 +96,7 @@ def _slurm(args: argparse.Namespace) -> int:
     log_dir = run_dir / "logs" / f"slurm-{job.id}-{job.attempt}"
     resume = f"`scontrol requeue {job.id}` (or the same sbatch)"
     monitor = certs / MONITOR / NODE_CONFIG if certs else None
+    assert isinstance(graph.topology, PeerMesh)  # `slurm_launch`'s graph: `local_launch`'s
     return run_nodes(nodes, run, graph.topology.seed, config, run_dir, log_dir, resume, monitor)
 
 

@@ -17,7 +17,7 @@ import math
 import signal
 import threading
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypedDict
 
 from rich.progress import TextColumn
 
@@ -30,7 +30,16 @@ console = output_console()
 
 CURVE_CSV, CURVE_PNG, STATE = "curve.csv", "curve.png", "training-state.pt"
 FLAGS = {"total_steps": "--steps", "num_envs": "--envs", "seed": "--seed"}  # PPOConfig's
-DEFAULTS = {"task": "ft", "steps": 1_000_000, "seed": 1409, "envs": 32}
+
+
+class _Defaults(TypedDict):
+    task: str
+    steps: int
+    seed: int
+    envs: int
+
+
+DEFAULTS: _Defaults = {"task": "ft", "steps": 1_000_000, "seed": 1409, "envs": 32}
 CHECKPOINT_EVERY = 100
 """Iterations between two saves of a training's state (4,096 env steps each by default)."""
 STOPPED = 130

@@ -38,7 +38,7 @@ class DiskFaults:
         now = self.clock()
         with self._lock:
             first = self.since is None
-            if first:
+            if self.since is None:
                 self.since = now
             self._failed += 1
             if not first and now - self._said < self.every_s:

@@ -13,13 +13,13 @@ import logging
 import math
 
 from derl.messages import EvalJob, EvalResult
+from derl.nodes.coordinator.jobs import Job, JobBook
 from derl.nodes.coordinator.ledger import Ledger
-from derl.nodes.coordinator.state import CoordinatorState, Job
 
 log = logging.getLogger("derl.coordinator")
 
 
-def evaluation_job(state: CoordinatorState, run: str, node: str, lease_s: float) -> EvalJob | None:
+def evaluation_job(state: JobBook, run: str, node: str, lease_s: float) -> EvalJob | None:
     """The next waiting evaluation as a job for `node`, if there is one."""
     key = state.next_evaluation()
     if key is None:
@@ -58,7 +58,7 @@ def on_evaluation(ledger: Ledger, result: EvalResult) -> None:
         ledger.ack(result, result.agent)
 
 
-def log_given_up(state: CoordinatorState, job: Job, max_attempts: int) -> None:
+def log_given_up(state: JobBook, job: Job, max_attempts: int) -> None:
     """Say so if `job`'s failure gave its evaluation up."""
     if job.evaluation is not None and (job.subject, *job.evaluation) in state.eval_given_up:
         log.error("evaluation of %s in %s given up after %d failures", job.subject,

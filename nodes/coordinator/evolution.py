@@ -9,7 +9,7 @@ validity check, a few ms; a child of which no valid body can be bred is given up
 sends the body in the job, which records it. A body born already is not trained again: the child
 is born at once as its repeat (Birth `repeat_of`, with its result, and its checkpoint file
 linked) and the trainer gets the next child. A child whose body is that of a child in training is
-held back until that one is born (`CoordinatorState.hold`), then born as its repeat.
+held back until that one is born (`EvolutionState.hold`), then born as its repeat.
 
 The first valid report for a child is its birth, whoever trained it (another job for it is
 cancelled): valid when the job was issued to the sender for that child, the body is the job's,
@@ -46,6 +46,8 @@ from derl.messages import (
 )
 from derl.nodes.coordinator.audits import Verdict, identity, journaled, trials, verdict
 from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_evaluation
+from derl.nodes.coordinator.evolution_state import EvolutionState, tournament_message
+from derl.nodes.coordinator.jobs import Job
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.policy import Progress
 from derl.nodes.coordinator.run_files import (
@@ -54,7 +56,6 @@ from derl.nodes.coordinator.run_files import (
     save_initial_population,
     write_results,
 )
-from derl.nodes.coordinator.state import CoordinatorState, Job, tournament_message
 from derl.nodes.errors import Refused
 from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
@@ -69,8 +70,9 @@ class EvolutionPolicy:
         self.run, self.run_dir = run, run_dir
         self.config = run_config(run_dir, config)
         check_jobs(run, self.config)
-        self.state = CoordinatorState.start(self.config, read_initial_population(run_dir))
-        save_initial_population(run_dir, [child.genome for child in self.state.evolution.initial])
+        self.state = EvolutionState.start(self.config, read_initial_population(run_dir))
+        evolution = self.state.evolution
+        save_initial_population(run_dir, [evolution.genomes[c.name] for c in evolution.initial])
         # the same for every job of the run: built once (each builds the world's task)
         self.training_ppo = self.config.training_ppo()
         self.fitness_bound = self.config.fitness_bound()
@@ -356,6 +358,8 @@ class EvolutionPolicy:
             target=self.config.total,
             best_fitness=None if best is None else best.fitness,
             best_agent=None if best is None else best.agent,
+            audited=len(self.state.checked),
+            retraining=len(self.state.retraining),
         )
 
     def snapshot(self) -> PopulationSnapshot:

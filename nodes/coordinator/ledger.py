@@ -1,7 +1,7 @@
 """The coordinator's ledger: its state, the journal that rebuilds it, and every message committed.
 
 Opening a ledger replays the run directory's journal into the state (only what the state knows:
-`CoordinatorState.known`; `Refused` if the journal is damaged or another run's), then opens a new
+`JobBook.known`; `Refused` if the journal is damaged or another run's), then opens a new
 journal segment and the checkpoint files. From then on everything the coordinator accepts or says
 is committed here: appended to the journal, applied to the state (the same handlers that rebuilt
 it) and, if it is to be published, kept as a reply of the current group. `flush` writes the group
@@ -41,8 +41,8 @@ from derl.messages import (
 )
 from derl.nodes.coordinator.audits import incarnation
 from derl.nodes.coordinator.disk_faults import DiskFaults
+from derl.nodes.coordinator.jobs import JobBook
 from derl.nodes.coordinator.outbox import Outbox, Reply
-from derl.nodes.coordinator.state import CoordinatorState
 from derl.nodes.errors import Refused
 from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segments
 from derl.nodes.runtime.checkpoints import CheckpointFiles
@@ -62,7 +62,7 @@ REFUSALS_S = 60.0  # rest are counted and answered, not journaled: a flood canno
 class Ledger:
     """`state` rebuilt from `run_dir`'s journal, and the way every later change is made."""
 
-    def __init__(self, run: str, run_dir: Path, state: CoordinatorState) -> None:
+    def __init__(self, run: str, run_dir: Path, state: JobBook) -> None:
         self.run, self.state = run, state
         self.replayed = 0
         if segments(run_dir):

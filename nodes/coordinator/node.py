@@ -32,6 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple, Protocol
 
 import zenoh
 
@@ -86,10 +87,36 @@ INLETS = (  # what the loop takes, in this order in each pass, and how many each
 )
 
 
-class Coordinator(Handler):
-    """The node loop of run `run` in `run_dir`, with `policy` deciding what messages mean."""
+class Publisher(Protocol):
+    """Where the coordinator's replies go: the run's `Bus` once it serves, or what a tool or a
+    test that drives it without a bus records them in (`Coordinator(..., publisher=)`)."""
 
-    def __init__(self, run: str, run_dir: Path, policy: Policy) -> None:
+    def publish(self, msg: MessageBase, data: bytes | None = None) -> None: ...
+
+
+class Liveliness(NamedTuple):
+    """A worker's liveliness token came (`up`) or went, as the loop takes it (`take`)."""
+
+    role: str
+    node: str
+    up: bool
+
+
+class Coordinator(Handler):
+    """The node loop of run `run` in `run_dir`, with `policy` deciding what messages mean.
+
+    `serve` runs it on the bus. A tool or a test drives it without one, in its own thread, as the
+    loop does: `take` each message or liveliness change that came, `assign_idle`, then `settle`
+    (the replies go to `publisher`)."""
+
+    bus: Publisher
+    """Where replies are published: the bus while it serves, else the `publisher` given."""
+
+    def __init__(
+        self, run: str, run_dir: Path, policy: Policy, publisher: Publisher | None = None
+    ) -> None:
+        if publisher is not None:
+            self.bus = publisher
         self.run, self.policy = run, policy
         self.state = policy.state
         self.ledger = Ledger(run, run_dir, policy.state)
@@ -108,7 +135,7 @@ class Coordinator(Handler):
         self.tokens: set[str] = set()  # nodes whose liveliness token is up
         self.incarnations: dict[str, str] = {}  # identity -> its one live node (`incarnation`)
         self.refused: set[str] = set()  # nodes refused as another incarnation of a live one
-        # role -> the workers that asked and got no work, first asked first (`_assign_idle`)
+        # role -> the workers that asked and got no work, first asked first (`assign_idle`)
         self.idle: dict[str, dict[str, None]] = {"trainer": {}, "evaluator": {}}
         self.trainers = 0  # of them, trainers (counted, not scanned: one count per assignment)
         self.rates: dict[str, float] = {}  # node -> steps/s
@@ -127,7 +154,7 @@ class Coordinator(Handler):
             inlets = [bus.inlet(bus.keys.all(kind), types, held) for kind, types, held in INLETS]
             self.ready_inlet = inlets[0]
             changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
-            bus.watch_alive(lambda role, node, up: changes.put((role, node, up)))
+            bus.watch_alive(lambda role, node, up: changes.put(Liveliness(role, node, up)))
             queryables = [
                 session.declare_queryable(bus.keys.all("births"), self._answer_births),
                 session.declare_queryable(bus.keys.population(), self._answer_population),
@@ -151,7 +178,7 @@ class Coordinator(Handler):
                 continue
             took = self._take_group(inlets, changes)
             self.ledger.flush()  # the group's births and Acks do not wait for the breeding below
-            self._assign_idle()
+            self.assign_idle()
             self.ledger.flush()
             outbox.released.clear()
             if self._publish_released() or took:
@@ -192,7 +219,7 @@ class Coordinator(Handler):
             self.heard.update(dict.fromkeys(self.state.jobs, now))
             held, self.failures_held = self.failures_held, []
             for failure in held:
-                self._take(failure)
+                self.take(failure)
 
     def _every_second(self, now: float, last_end: bool) -> bool:
         """Log, check the leases, say the status; whether the run is over (the `last_end` time,
@@ -226,18 +253,21 @@ class Coordinator(Handler):
         took = False
         until = time.monotonic() + GROUP_S
         while True:
-            taken: list[object] = []
+            taken: list[MessageBase | tuple[str, str, bool]] = []
             while not changes.empty():
                 taken.append(changes.get())
             for inlet in inlets:
                 taken += inlet.take(TAKE)
             for item in taken:
-                self._take(item)
+                self.take(item)
             took = took or bool(taken)
             if not taken or time.monotonic() >= until:
                 return took
 
-    def _take(self, item: object) -> None:
+    def take(self, item: MessageBase | tuple[str, str, bool]) -> None:
+        """Handle one thing that came: a message (`dispatch`) or a liveliness change
+        (`Liveliness`). What it fails on is logged and counted as rejected, never raised: one
+        message must never stop the run."""
         try:
             if isinstance(item, tuple):
                 self._liveliness(*item)
@@ -331,7 +361,7 @@ class Coordinator(Handler):
         self.idle[role].pop(node, None)
         return True
 
-    def _assign_idle(self) -> None:
+    def assign_idle(self) -> None:
         """Work for the workers that asked and got none, as soon as there is some (a birth, a
         job taken back), first asked first: they need not ask again for it. At most `GROUP_S`
         of it per turn of the loop: thousands of workers idle until the initial bodies are born
@@ -341,8 +371,7 @@ class Coordinator(Handler):
             for node in list(waiting):
                 if time.monotonic() >= until:
                     return
-                others = role == "trainer" and self.state.waiting  # a child another may take
-                if not self._assign(node, role) and not others:
+                if not self._assign(node, role) and not self.state.queued(role):
                     break  # no work for this role now
 
     # --- failures, rejections ----------------------------------------------------------------
@@ -435,7 +464,7 @@ class Coordinator(Handler):
 
     def _answer_population(self, query: zenoh.Query) -> None:
         snapshot = encode(self.policy.snapshot())
-        query.reply(self.bus.keys.population(), snapshot, encoding=MSGPACK)
+        query.reply(self.keys.population(), snapshot, encoding=MSGPACK)
 
     def _status(self) -> RunStatus:
         progress, state = self.policy.progress(), self.state
@@ -451,9 +480,9 @@ class Coordinator(Handler):
             eval_target=state.eval_target,
             failed=len(state.failed),
             repeats=state.repeats,
-            audited=len(state.checked),
+            audited=progress.audited,
             quarantined=tuple(state.quarantined),
-            retraining=len(state.retraining),
+            retraining=progress.retraining,
             rejected=self.ledger.rejected,
             steps_per_s=sum(self.rates.values()),
             done=state.finished,

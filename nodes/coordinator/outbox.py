@@ -28,6 +28,7 @@ running with nothing ever released: workers waiting for ever), and `drain` no lo
 
 from __future__ import annotations
 
+import functools
 import logging
 import queue
 import threading
@@ -98,15 +99,15 @@ class Outbox:
     def _run(self) -> None:
         done = False
         while not done:
-            batch = [self._groups.get()]
-            while batch[-1] is not None:
+            batch: list[list[Reply]] = []
+            group = self._groups.get()
+            while group is not None:
+                batch.append(group)
                 try:
-                    batch.append(self._groups.get_nowait())
+                    group = self._groups.get_nowait()
                 except queue.Empty:
                     break
-            if batch[-1] is None:
-                batch.pop()
-                done = True
+            done = group is None
             try:
                 self._release(batch)
             except Exception as error:  # a fault of its own: nothing may be seen, and the loop
@@ -154,7 +155,7 @@ class Outbox:
         self._publishable([(msg, data) for msg, data, after in replies if after is None])
         for msg, data, after in replies:
             if after is not None:
-                after.add_done_callback(lambda done, m=msg, d=data: self._written(done, m, d))
+                after.add_done_callback(functools.partial(self._written, msg=msg, data=data))
 
     def _written(self, done: Future[None], msg: MessageBase, data: bytes) -> None:
         """A reply's checkpoint write is over: released, or dropped if it failed (the ledger

@@ -23,26 +23,31 @@ from derl.messages import (
     PopulationSnapshot,
     TrainJob,
 )
+from derl.nodes.coordinator.jobs import Job, JobBook
 from derl.nodes.coordinator.ledger import Ledger
-from derl.nodes.coordinator.state import CoordinatorState, Job
 
 
 @dataclass(frozen=True)
 class Progress:
-    """A policy's part of `RunStatus`: children born of the target, the best so far."""
+    """A policy's part of `RunStatus`: children born of the target, the best so far, births
+    checked by an audit and children to train again (`audits`)."""
 
     born: int = 0
     target: int = 0
     best_fitness: float | None = None
     best_agent: str | None = None
+    audited: int = 0
+    retraining: int = 0
 
 
 class Policy(Protocol):
     """What the node loop asks of a coordinator's policy."""
 
-    state: CoordinatorState
-    """The journal's fold: the loop applies every committed message to it (and on a restart every
-    journaled one) and reads from it the jobs in flight, the results and whether it is over."""
+    @property
+    def state(self) -> JobBook:
+        """The journal's fold: the loop applies every committed message to it (and on a restart
+        every journaled one) and reads from it the jobs in flight, the results and whether it is
+        over."""
 
     def start(self, ledger: Ledger) -> None:
         """The journal is replayed into `state` and open: commit through `ledger` from now on, and

@@ -19,7 +19,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from derl.evolution import EvolutionConfig
-from derl.nodes.coordinator.state import CoordinatorState
+from derl.nodes.coordinator.evolution_state import EvolutionState
 from derl.nodes.errors import Refused
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 from derl.nodes.runtime.rundir import write_atomic
@@ -80,7 +80,7 @@ def write_results(
     run_dir: Path,
     run: str,
     config: EvolutionConfig,
-    state: CoordinatorState,
+    state: EvolutionState,
     checkpoints: CheckpointFiles,
 ) -> None:
     """The best bodies (genome, MJCF, checkpoint, the run's settings) and a summary."""

@@ -11,6 +11,7 @@ An agent of a study is named ``<run>.<agent>``. `study_logs` reads a study back 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
@@ -72,7 +73,7 @@ def read_plan(study_dir: Path) -> RetrainPlan:
     return _read(study_dir / PLAN_FILE, RetrainPlan)
 
 
-def _read(path: Path, model: type[M], context: dict[str, object] | None = None) -> M:
+def _read(path: Path, model: type[M], context: Mapping[str, object] | None = None) -> M:
     try:
         return model.model_validate_json(path.read_text(), context=context)
     except FileNotFoundError:

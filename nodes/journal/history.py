@@ -5,14 +5,15 @@ records what it means: a TrainJob or EvalJob assigns work (the first one says th
 budget), the FitnessReport the coordinator accepted is the evidence of a birth (its learning curve
 is kept) and the Birth that follows it is the birth (index, generation, fitness), a ChildFailed
 gives a child up, an EvalResult completes an evaluation, a Quarantine names a trainer caught
-lying and a Retrained replaces a child's result. Every reader uses it: the coordinator's state
-(`nodes.coordinator.state` overrides the handlers to keep its jobs in flight, and keeps no
-learning curves), `derl report` and `derl study` (`run_log`), the monitor.
+lying and a Retrained replaces a child's result. Every reader uses it: the coordinator's states
+(`nodes.coordinator.jobs` and the states built on it extend the handlers to keep the jobs in
+flight, and keep no learning curves), `derl report` and `derl study` (`run_log`), the monitor.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -65,7 +66,7 @@ class RunHistory(Handler):
         self.lost: list[JobLost] = []
         self.evaluations: dict[EvalKey, EvalResult] = {}
         self.audited = 0  # births from two or more trainings (an audit: `EvolutionConfig.audit`)
-        self.quarantines: list[Quarantine] = []
+        self.quarantined: dict[str, Quarantine] = {}  # identity -> the quarantine that caught it
         self.retrained: dict[str, Retrained] = {}  # child -> its result's replacement
         self.other_runs = 0
         self._accepted: dict[str, list[FitnessReport]] = {}  # child -> its reports, until born
@@ -126,7 +127,7 @@ class RunHistory(Handler):
 
     @handles(Quarantine)
     def on_quarantine(self, msg: Quarantine) -> None:
-        self.quarantines.append(msg)
+        self.quarantined.setdefault(msg.node, msg)
 
     @handles(Retrained)
     def on_retrained(self, msg: Retrained) -> None:
@@ -179,7 +180,9 @@ def load_history(path: Path) -> RunHistory:
     if path.is_dir():  # read as every tool reads: past a damaged part, with a warning
         if not segments(path):
             raise DerlError(f"{path} holds no journal (journal/segment-NNNN.mcap)")
-        messages = (msg for segment in segments(path) for msg in read_segment(segment))
+        messages: Iterable[MessageBase] = (
+            msg for segment in segments(path) for msg in read_segment(segment)
+        )
     elif path.is_file():
         if not is_mcap(path):
             raise DerlError(f"{path} is not an MCAP log (a run directory, a journal "
@@ -249,7 +252,7 @@ def run_log(path: Path) -> RunLog:
         checkpoints=path / CHECKPOINTS if (path / CHECKPOINTS).is_dir() else None,
         fingerprint=history.fingerprint(),
         audited=history.audited,
-        quarantined=tuple(q.node for q in history.quarantines),
+        quarantined=tuple(history.quarantined),
     )
 
 

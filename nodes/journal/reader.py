@@ -146,9 +146,9 @@ def _walk(buf: mmap.mmap, start: int) -> Iterator[tuple[int, McapRecord]]:
             yield end + len(MCAP0_MAGIC), footer
             return
         else:
-            record = _parse(opcode, buf, body, end)
-            if record is not None:
-                yield end, record
+            parsed = _parse(opcode, buf, body, end)
+            if parsed is not None:
+                yield end, parsed
         pos = end
 
 

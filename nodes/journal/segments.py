@@ -393,8 +393,7 @@ class Journal(JournalWriter):
         except OSError as error:
             with self._lock:
                 if generation == self._generation:
-                    self._fail(error)
-                    raise self.failure from None
+                    raise self._fail(error) from None
             return  # an fsync of a segment `recover` replaced: its messages are in the new one
         finally:
             os.close(fd)
@@ -404,10 +403,12 @@ class Journal(JournalWriter):
                 self._flushed -= flushed
                 self._synced = size
 
-    def _fail(self, error: OSError) -> None:
-        """Stop writing (the lock held): `error` is the journal's failure until `recover`."""
+    def _fail(self, error: OSError) -> JournalFault:
+        """Stop writing (the lock held): `error` is the journal's failure until `recover` (unless
+        it has one already); that failure."""
         if self.failure is None:
             self.failure = JournalFault(self.path, error)
+        return self.failure
 
     def recover(self) -> int | None:
         """After a failure: cut the failed segment back to what its last sync put on the disk,

@@ -27,7 +27,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from derl.messages.keys import ARITY, PUBLISHERS, ROOT
 from derl.nodes.launch.commands import NODE_CONFIG, NodeCommand, build_commands
-from derl.nodes.launch.model import LaunchFile, split_endpoint
+from derl.nodes.launch.model import LaunchFile, RouterTopology, split_endpoint
 
 MONITOR = "derl-monitor"  # the common name of the monitors' certificate
 VALID_DAYS = 365
@@ -223,7 +223,7 @@ def _host_names(launch: LaunchFile, host_name: str) -> list[str]:
     if host.listen:
         names.append(split_endpoint(host.listen)[1])
     topology = launch.topology
-    if getattr(topology, "host", None) == host_name:
+    if isinstance(topology, RouterTopology) and topology.host == host_name:
         names.append(split_endpoint(topology.endpoint)[1])
     wildcard = {"0.0.0.0", "[::]", "::"}
     return [name for name in [*names, "localhost", "127.0.0.1"] if name not in wildcard]

@@ -144,7 +144,7 @@ class HostSpec(_Strict):
         """Where each of this host's processes listens in a peer mesh, in order: process k of a
         node entry on the entry's `listen` port + k, else process k of the host on the host's
         `listen` port + k, else a free loopback port (port 0 stays 0: a free port each)."""
-        endpoints = []
+        endpoints: list[str] = []
         for spec in self.nodes:
             for k in range(spec.count):
                 if spec.listen:
@@ -196,7 +196,9 @@ class LaunchFile(_Strict):
     @property
     def directory(self) -> Path:
         """The coordinator's directory: the run's or the study's."""
-        return self.study if self.study is not None else self.run_dir  # type: ignore[return-value]
+        directory = self.study if self.study is not None else self.run_dir
+        assert directory is not None  # one of them (`_consistent`)
+        return directory
 
     @model_validator(mode="after")
     def _consistent(self) -> LaunchFile:

@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from derl.nodes.launch.commands import NodeCommand, build_commands
 from derl.nodes.launch.local import local_launch
-from derl.nodes.launch.model import LaunchFile
+from derl.nodes.launch.model import LaunchFile, NodeSpec
 
 TOKEN_CHARS = string.ascii_lowercase + string.digits
 COUNT = re.compile(r"^(\d+)(?:\(x(\d+)\))?$")  # one item of SLURM_TASKS_PER_NODE: 2 or 2(x3)
@@ -184,7 +184,7 @@ def slurm_launch(
     endpoint = f"{proto}/{addresses[job.first_node]}:{port}"
     local = local_launch(run, endpoint, {"trainer": trainers, "evaluator": evaluators},
                          **coordinator)  # fmt: skip
-    specs = {spec.role: spec for host in local.hosts for spec in host.nodes}
+    specs: dict[str, NodeSpec] = {spec.role: spec for host in local.hosts for spec in host.nodes}
     roles = ["coordinator", *["evaluator"] * evaluators, *["trainer"] * trainers]
     hosts: dict[str, dict] = {}
     for slot, role in zip(slots, roles, strict=True):

@@ -23,7 +23,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Final, Literal
+from typing import Any, Final, Literal, TypeVar, cast, overload
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
@@ -32,6 +32,7 @@ from derl.messages import DecodeError, InvalidKey, KeySpace, MessageBase, decode
 from derl.messages.types import MAX_MESSAGE_BYTES
 
 log = logging.getLogger("derl.bus")
+M = TypeVar("M", bound=MessageBase)  # a message type `Bus.subscribe` hands its handler
 
 LEASE_MS = 2500
 # A peer must listen somewhere for the others to mesh with it (gossip tells them where): by
@@ -138,10 +139,18 @@ class Bus:
             congestion_control=congestion_control(msg.type),
         )
 
+    @overload
+    def subscribe(self, key_expr: str, handler: Callable[[MessageBase], None]) -> None: ...
+
+    @overload
+    def subscribe(
+        self, key_expr: str, handler: Callable[[M], None], kinds: tuple[type[M], ...]
+    ) -> None: ...
+
     def subscribe(
         self,
         key_expr: str,
-        handler: Callable[[MessageBase], None],
+        handler: Callable[[Any], None],
         kinds: tuple[type[MessageBase], ...] = (),
     ) -> None:
         """Decode every sample on `key_expr` and hand valid messages of this run (and of the
@@ -180,16 +189,20 @@ class Bus:
         try:
             message = decode(payload)
         except DecodeError as error:
-            return self._reject("malformed", key, f"{error}")
+            self._reject("malformed", key, f"{error}")
+            return None
         if message.run != self.run:
-            return self._reject("other run", key, f"message of run {message.run!r}", message)
+            self._reject("other run", key, f"message of run {message.run!r}", message)
+            return None
         if kinds and not isinstance(message, kinds):
-            return self._reject("unexpected type", key, f"unexpected {message.type}", message)
+            self._reject("unexpected type", key, f"unexpected {message.type}", message)
+            return None
         if self.keys.key_for(message) != key:
             # every sender's node id is part of its keys: a message naming another node is
             # refused here, so with access control one node cannot speak for another
             detail = f"a {message.type} belongs on {self.keys.key_for(message)}"
-            return self._reject("wrong key", key, detail, message)
+            self._reject("wrong key", key, detail, message)
+            return None
         return message
 
     def _reject(self, why: str, key: str, detail: str, message: MessageBase | None = None) -> None:
@@ -197,7 +210,6 @@ class Bus:
         log.warning("rejected (%s) %s: %s", why, key, detail[:300])
         if self.on_reject is not None:
             self.on_reject(why, key, message)
-        return None
 
     def token(self, role: str, node: str) -> zenoh.LivelinessToken:
         """Announce this node alive until the session closes or the process dies."""
@@ -254,3 +266,9 @@ class Inlet:
 def open_session(options: ZenohOptions) -> zenoh.Session:
     """Open a Zenoh session; use it as a context manager (an open session blocks exit)."""
     return zenoh.open(zenoh_config(options))
+
+
+def matched(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches `publisher`'s key now (its `matching_status`, which zenoh's
+    stubs call a bool, is a `zenoh.MatchingStatus`)."""
+    return cast(zenoh.MatchingStatus, publisher.matching_status).matching

@@ -27,6 +27,7 @@ import signal
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import cast
 
 import msgpack
 
@@ -155,7 +156,7 @@ def main() -> None:
     folder = Path(sys.argv[1])
     try:
         for batch in messages(sys.stdin.fileno()):
-            failures = write_batch(folder, batch)
+            failures = write_batch(folder, cast(Batch, batch))
             send(sys.stdout.fileno(), {
                 agent: None if error is None else [error.errno, str(error)]
                 for agent, error in failures.items()

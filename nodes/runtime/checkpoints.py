@@ -27,6 +27,7 @@ import threading
 from collections.abc import Iterator
 from concurrent.futures import Future
 from pathlib import Path
+from typing import IO, cast
 
 from derl.nodes.runtime import checkpoint_writer
 
@@ -121,11 +122,11 @@ class CheckpointFiles:
             return
         failures = self._process.write(items)
         for agent, futures in waiting.items():
-            source = items[agent]
-            if isinstance(source, str) and not self.path(source).exists():
+            what = items[agent]
+            if isinstance(what, str) and not self.path(what).exists():
                 # its source's file is not there yet (a crash lost it, and the source's trainer
                 # sends its report again): linked when that file is written
-                self._unlinked.setdefault(source, []).extend((agent, f) for f in futures)
+                self._unlinked.setdefault(what, []).extend((agent, f) for f in futures)
                 continue
             for future in futures:
                 if failures[agent] is None:
@@ -139,7 +140,7 @@ class WriterProcess:
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
-        self.process: subprocess.Popen | None = None
+        self.process: subprocess.Popen[bytes] | None = None
         self.answers: Iterator[object] = iter(())  # the process's answers, one per batch
 
     def write(self, batch: checkpoint_writer.Batch) -> dict[str, OSError | None]:
@@ -151,10 +152,10 @@ class WriterProcess:
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
             )
-            self.answers = checkpoint_writer.messages(self.process.stdout.fileno())
+            self.answers = checkpoint_writer.messages(_pipe(self.process.stdout).fileno())
         try:
-            checkpoint_writer.send(self.process.stdin.fileno(), batch)
-            answer = next(self.answers)
+            checkpoint_writer.send(_pipe(self.process.stdin).fileno(), batch)
+            answer = cast(dict[str, list | None], next(self.answers))
         except (OSError, StopIteration):
             code = self.close()
             raise OSError(f"the checkpoint writer process ended (exit code {code})") from None
@@ -165,14 +166,20 @@ class WriterProcess:
         process, self.process = self.process, None
         if process is None:
             return None
-        process.stdin.close()
+        _pipe(process.stdin).close()
         try:
             code = process.wait(timeout)
         except subprocess.TimeoutExpired:
             process.kill()
             code = process.wait()
-        process.stdout.close()
+        _pipe(process.stdout).close()
         return code
+
+
+def _pipe(pipe: IO[bytes] | None) -> IO[bytes]:
+    """A pipe of the writer process, which is started with both (`subprocess.PIPE`)."""
+    assert pipe is not None
+    return pipe
 
 
 def _error(answer: list | None) -> OSError | None:

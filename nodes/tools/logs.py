@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Literal
+from typing import Literal, overload
 
 from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Message, Schema
@@ -66,6 +66,14 @@ def read_log(path: Path) -> Iterator[Logged]:
 # --- JSON ------------------------------------------------------------------------------------
 
 
+@overload
+def json_data(value: dict, binary: Callable[[bytes], object]) -> dict[str, object]: ...
+
+
+@overload
+def json_data(value: object, binary: Callable[[bytes], object]) -> object: ...
+
+
 def json_data(value: object, binary: Callable[[bytes], object]) -> object:
     """`value` (dicts, sequences, scalars, bytes) as JSON data: `binary` turns bytes into JSON,
     NaN and infinities become null, map keys text, anything else its repr."""
@@ -82,7 +90,7 @@ def json_data(value: object, binary: Callable[[bytes], object]) -> object:
 
 def json_form(msg: MessageBase, binary: Callable[[bytes], object]) -> dict[str, object]:
     """`msg` as JSON data (see `json_data`)."""
-    return json_data(msg.model_dump(mode="python"), binary)  # type: ignore[return-value]
+    return json_data(msg.model_dump(mode="python"), binary)
 
 
 def summarise_bytes(data: bytes) -> dict[str, int]:

@@ -34,7 +34,7 @@ import zenoh
 
 from derl.messages import MessageBase, kind_of
 from derl.nodes.journal.segments import JournalWriter
-from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
 from derl.nodes.tools.logs import LogError, info, read_log
 from derl.nodes.tools.topic import Checker, Tap, live_runs, resolve
 
@@ -130,14 +130,14 @@ class Audience:
         probe = self.probes.get(key)
         if probe is None:
             probe = self.probes[key] = self.session.declare_publisher(key)
-        if probe.matching_status.matching:
+        if matched(probe):
             self._found()
 
     def settle(self, timeout: float) -> bool:
         """Whether a subscriber matched, asking the probes again for up to `timeout` s."""
         deadline = time.monotonic() + timeout
         while not self.heard:
-            if any(probe.matching_status.matching for probe in self.probes.values()):
+            if any(matched(probe) for probe in self.probes.values()):
                 self._found()
             elif time.monotonic() >= deadline:
                 break

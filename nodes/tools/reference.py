@@ -24,7 +24,7 @@ import derl.messages.keys
 import derl.messages.schema
 import derl.messages.types
 from derl.analysis.study import STUDY_PROFILES, StudyConfig
-from derl.evolution.config import PROFILES, EvolutionConfig
+from derl.evolution.config import PROFILES, EvolutionConfig, setting_keys
 from derl.messages import (
     MESSAGE_TYPES,
     SCHEMA_CHANGES,
@@ -252,13 +252,15 @@ def _fields_table(
     columns: dict[str, BaseModel] | None = None,
 ) -> list[str]:
     """One row per field: its name, type, default, its value in each of `columns`, description.
-    A message's fields without a description of their own take MessageBase's."""
+    A message's fields without a description of their own take MessageBase's; the rows are in
+    `setting_keys`' order."""
     columns = columns or {}
     properties = model.model_json_schema()["properties"]
     inherited = MessageBase.model_fields if issubclass(model, MessageBase) else {}
+    fields = {key: model.model_fields[key] for key in setting_keys(model)}
     head = [what, "type", "default", *columns, "description"]
     rows = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
-    for name, field in model.model_fields.items():
+    for name, field in fields.items():
         prop = properties[name]
         about = field.description or getattr(inherited.get(name), "description", None) or ""
         cells = [

@@ -58,8 +58,8 @@ def _rewrite(node: Schema, definitions: Schema, where: str, inlined: tuple[str, 
         node = {k: v for k, v in node.items() if k not in ("format", "maxLength")}
         node["contentEncoding"] = "base64"
     if "prefixItems" in node:
-        kinds = {repr(item) for item in node["prefixItems"]}
-        if len(kinds) != 1:
+        forms = {repr(item) for item in node["prefixItems"]}
+        if len(forms) != 1:
             raise ViewerSchemaError(f"{where}: a tuple of mixed types")
         node["items"] = node.pop("prefixItems")[0]
     if "items" in node:

@@ -42,7 +42,7 @@ from derl.messages import (
     TrainProgress,
     WorkerReady,
 )
-from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
 from derl.rl import Progress
 
 log = logging.getLogger("derl.worker")
@@ -159,7 +159,7 @@ class Worker:
             nthread=self.nthread,
         )
         deadline = time.monotonic() + READY_PERIOD_S[0]
-        while not self.asking.matching_status.matching and time.monotonic() < deadline:
+        while not matched(self.asking) and time.monotonic() < deadline:
             time.sleep(HEARD_POLL_S)  # no coordinator would hear it yet
         self.bus.publish(ready)
         deadline = time.monotonic() + wait_s

@@ -1,17 +1,16 @@
-"""The coordinator's state: the journal's fold (`RunHistory`) plus the work in flight.
+"""A run's state: the job book (`jobs`) plus the evolution, its queue of children and audits.
 
-Its handlers extend `RunHistory`'s, and are the only way the state changes, both live and when a
+Its handlers extend the book's, and are the only way the state changes, both live and when a
 restarted coordinator replays its journal: a Tournament decides a child (`derl.evolution` holds
-the rule), a TrainJob or EvalJob puts a job in flight, a Birth makes a child born, a JobLost or a
-JobFailed takes a job back (its subject waits for the next worker), a Cancel ends a job whose
-child was born from another, a ChildFailed gives a child up, an EvalResult completes an
-evaluation; a Birth with `repeat_of` is a child never trained (its body is an earlier one's).
-An audited child's FitnessReport is one of its trials (`audits`: it waits for another identity's
-until they agree); a Quarantine puts the liar's unchecked births first in the queue, and their
-Retrained replaces the result they were born with. Which jobs are in flight, who holds them and
-what waits for a worker are all derived here; time (leases) and the checks of incoming messages
-are the node's business. A TrainJob also records its child's body (the coordinator bred it: a
-fact, so a resumed coordinator trains the same body).
+the rule), a TrainJob puts its training in flight, a Birth makes a child born, a JobLost or a
+JobFailed takes a job back (its child waits for the next trainer), a Cancel ends a job whose
+child was born from another, a ChildFailed gives a child up; a Birth with `repeat_of` is a child
+never trained (its body is an earlier one's). Once evolution is over the best bodies are
+evaluated (the book's evaluation stage). An audited child's FitnessReport is one of its trials
+(`audits`: it waits for another identity's until they agree); a Quarantine puts the liar's
+unchecked births first in the queue, and their Retrained replaces the result they were born
+with. A TrainJob also records its child's body (the coordinator bred it: a fact, so a resumed
+coordinator trains the same body).
 Not from the journal: the children held back because a child with their body is in training
 (`hold`); each goes back to the front of the queue once that child is born (then it is born as
 its repeat) or given up (a restart forgets them: they are in the queue again, and held again when
@@ -28,19 +27,13 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Iterable
-from dataclasses import dataclass
 
 from derl.evolution import Child, Evolution, EvolutionConfig, Member
 from derl.messages import (
     Birth,
-    Cancel,
     ChildFailed,
-    EvalJob,
-    EvalResult,
     FitnessReport,
     JobFailed,
-    JobLost,
     MessageBase,
     Quarantine,
     Retrained,
@@ -49,7 +42,8 @@ from derl.messages import (
 )
 from derl.messages.dispatch import handles
 from derl.nodes.coordinator.audits import audited, identity, trials
-from derl.nodes.journal.history import EvalKey, RunHistory
+from derl.nodes.coordinator.jobs import Job, JobBook
+from derl.nodes.journal.history import EvalKey
 from derl.rl import PPOConfig
 from derl.unimal import Genome, Mutation
 
@@ -70,35 +64,16 @@ def tournament_message(run: str, decided: Child) -> Tournament:
     )
 
 
-@dataclass
-class Job:
-    """An assignment in flight."""
+class EvolutionState(JobBook):
+    """A run's jobs, evolution, queue of children and audits (see the module)."""
 
-    id: str
-    subject: str  # the child (training) or agent (evaluation)
-    node: str
-    order: TrainJob | EvalJob  # as sent (sent again to a worker that missed it)
-    evaluation: tuple[str, int, int] | None = None  # (task, seed, steps) for an evaluation
-
-
-class CoordinatorState(RunHistory):
     def __init__(self, config: EvolutionConfig, evolution: Evolution) -> None:
-        super().__init__()
+        super().__init__(config.max_attempts)
         self.config = config
         self.evolution = evolution
-        self.jobs: dict[str, Job] = {}  # in flight
-        # the orders of jobs whose subject has no result yet (a late report is checked against
-        # its order); a result forgets them, so the state grows by births, not by jobs
-        self.orders: dict[str, TrainJob | EvalJob] = {}
-        self.orders_of: dict[str | EvalKey, list[str]] = {}  # child or evaluation -> its jobs
         self.attempts: dict[str, int] = {}  # child -> trainings started
         self.failed_on: dict[str, set[str]] = {}  # child -> nodes whose training of it failed
         self.waiting: deque[str] = deque()  # children to (re)assign, in order
-        self.planned: dict[EvalKey, None] = {}  # evaluations of the plan, in order
-        self.eval_waiting: deque[EvalKey] = deque()
-        self.eval_failures: dict[EvalKey, int] = {}  # failed jobs of each evaluation
-        self.eval_given_up: set[EvalKey] = set()  # failed `max_attempts` times
-        self.by_node: dict[str, str] = {}  # node -> its job in flight
         self.by_child: dict[str, str] = {}  # child -> its training job in flight
         self.in_training: dict[str, str] = {}  # body_hash -> the child in training with it
         self.held: dict[str, str] = {}  # child -> the child in training with its body
@@ -106,12 +81,11 @@ class CoordinatorState(RunHistory):
         # audits (`audits`): an audited child's reports until its birth, the identities caught
         # lying, and the born children of theirs to train again
         self.trials: dict[str, list[FitnessReport]] = {}
-        self.quarantined: dict[str, Quarantine] = {}
         self.retraining: dict[str, None] = {}
         self.checked: set[str] = set()  # children born from trials that agreed
 
     @classmethod
-    def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> CoordinatorState:
+    def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> EvolutionState:
         state = cls(config, Evolution(config, initial))
         state.waiting.extend(child.name for child in state.evolution.initial)
         return state
@@ -154,9 +128,7 @@ class CoordinatorState(RunHistory):
     @handles(TrainJob)
     def on_train_job(self, msg: TrainJob) -> None:
         super().on_train_job(msg)
-        self.orders[msg.job] = msg
         child = msg.child
-        self.orders_of.setdefault(child, []).append(msg.job)
         made = None if msg.mutation is None else Mutation(msg.mutation, msg.mutation_detail)
         self.evolution.decided(child, msg.genome, made)
         if child in self.by_child:
@@ -164,18 +136,8 @@ class CoordinatorState(RunHistory):
         if child in self.waiting:
             self.waiting.remove(child)
         self.attempts[child] = self.attempts.get(child, 0) + 1
-        self._add(Job(msg.job, child, msg.node, msg))
-
-    @handles(EvalJob)
-    def on_eval_job(self, msg: EvalJob) -> None:
-        super().on_eval_job(msg)
-        self.orders[msg.job] = msg
-        key = (msg.agent, msg.task, msg.seed, msg.steps)
-        self.orders_of.setdefault(key, []).append(msg.job)
-        self._plan_evaluations()
-        if key in self.eval_waiting:
-            self.eval_waiting.remove(key)
-        self._add(Job(msg.job, msg.agent, msg.node, msg, key[1:]))
+        self._ordered(child, Job(msg.job, child, msg.node, msg))
+        self.by_child[child] = msg.job
 
     @handles(FitnessReport)
     def on_fitness_report(self, msg: FitnessReport) -> None:
@@ -203,16 +165,11 @@ class CoordinatorState(RunHistory):
             self.waiting.remove(msg.child)
         self._release(msg.child)
 
-    @handles(Cancel)
-    def on_cancel(self, msg: Cancel) -> None:
-        self._remove(msg.job)
-
     @handles(Quarantine)
     def on_quarantine(self, msg: Quarantine) -> None:
         """`msg.node` lied: its trials of children not born yet no longer count, and its
         unchecked births wait first in the queue to be trained again."""
         super().on_quarantine(msg)
-        self.quarantined[msg.node] = msg
         for reports in self.trials.values():
             reports[:] = [r for r in reports if identity(r.node) != msg.node]
         for child in reversed(msg.retrain):
@@ -228,22 +185,10 @@ class CoordinatorState(RunHistory):
         self._forget_orders(msg.child)
         self._remove(msg.job)
 
-    @handles(JobLost)
-    def on_job_lost(self, msg: JobLost) -> None:
-        super().on_job_lost(msg)
-        self._take_back(msg.job)
-
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
-        super().on_job_failed(msg)
         self.failed_on.setdefault(msg.subject, set()).add(msg.node)
-        job = self.jobs.get(msg.job)
-        if job is not None and job.evaluation is not None:
-            key = (job.subject, *job.evaluation)
-            self.eval_failures[key] = self.eval_failures.get(key, 0) + 1
-            if self.eval_failures[key] >= self.config.max_attempts:
-                self.eval_given_up.add(key)
-        self._take_back(msg.job)
+        super().on_job_failed(msg)
 
     @handles(ChildFailed)
     def on_child_failed(self, msg: ChildFailed) -> None:
@@ -254,31 +199,21 @@ class CoordinatorState(RunHistory):
             self.waiting.remove(msg.child)
         self._release(msg.child)
 
-    @handles(EvalResult)
-    def on_eval_result(self, msg: EvalResult) -> None:
-        super().on_eval_result(msg)
-        self._forget_orders((msg.agent, msg.task, msg.seed, msg.steps))
-        self._remove(msg.job)
-        self._plan_evaluations()
-
-    def _forget_orders(self, subject: str | EvalKey) -> None:
-        """`subject` (a child or an evaluation) has its result: forget the orders of its jobs."""
-        for job_id in self.orders_of.pop(subject, ()):
-            self.orders.pop(job_id, None)
-
-    def _take_back(self, job_id: str) -> None:
-        """A job ends without its result: its subject waits for the next ready worker."""
-        job = self._remove(job_id)
-        if job is None:
-            return
-        if job.evaluation is None:
+    def _take_back(self, job_id: str) -> Job | None:
+        """A job ends without its result: its child (not born, or to train again) waits first in
+        the queue for the next ready trainer."""
+        job = super()._take_back(job_id)
+        if job is not None and job.evaluation is None:
             unborn = job.subject not in self.evolution.fitness and job.subject not in self.failed
             if unborn or job.subject in self.retraining:
                 self.waiting.appendleft(job.subject)
-        else:
-            key = (job.subject, *job.evaluation)
-            if key not in self.evaluations and key not in self.eval_given_up:
-                self.eval_waiting.appendleft(key)
+        return job
+
+    def _remove(self, job_id: str) -> Job | None:
+        job = super()._remove(job_id)
+        if job is not None and self.by_child.get(job.subject) == job_id:
+            del self.by_child[job.subject]
+        return job
 
     def training(self, child: str) -> None:
         """`child` (its body decided) is assigned for training: a later child with its body is
@@ -306,26 +241,11 @@ class CoordinatorState(RunHistory):
             del self.held[held]
             self.waiting.appendleft(held)
 
-    def _add(self, job: Job) -> None:
-        self.jobs[job.id] = job
-        self.by_node[job.node] = job.id
-        if job.evaluation is None:
-            self.by_child[job.subject] = job.id
+    # --- questions the node and the policy ask ----------------------------------------------
 
-    def _remove(self, job_id: str) -> Job | None:
-        job = self.jobs.pop(job_id, None)
-        if job is not None:
-            if self.by_node.get(job.node) == job_id:
-                del self.by_node[job.node]
-            if self.by_child.get(job.subject) == job_id:
-                del self.by_child[job.subject]
-        return job
-
-    # --- questions the node asks -------------------------------------------------------------
-
-    def job_of(self, node: str) -> Job | None:
-        job = self.by_node.get(node)
-        return None if job is None else self.jobs[job]
+    def queued(self, role: str) -> bool:
+        """A waiting child may be one that an idle trainer may not take and another may."""
+        return role == "trainer" and bool(self.waiting)
 
     def training_in_flight(self) -> int:
         return len(self.by_child)
@@ -381,14 +301,7 @@ class CoordinatorState(RunHistory):
                 for seed in range(self.config.eval_seeds):
                     self._plan((member.agent, task, seed, self.config.eval_steps))
 
-    def _plan(self, key: EvalKey) -> None:
-        if key not in self.planned:
-            self.planned[key] = None
-            if key not in self.evaluations and key not in self.eval_given_up:
-                self.eval_waiting.append(key)
-
     def evaluation_order(self, key: EvalKey) -> tuple[Genome, PPOConfig]:
-        """The body and the learning configuration of a planned evaluation."""
         agent, task, seed, _ = key
         return self.evolution.genomes[agent], self.config.evaluation_ppo(task, seed)
 
@@ -397,18 +310,6 @@ class CoordinatorState(RunHistory):
         evolution = self.evolution
         trained = (m for m in evolution.born if m.repeat_of is None)
         return sorted(trained, key=lambda m: (-m.fitness, evolution.index[m.agent]))
-
-    def next_evaluation(self) -> EvalKey | None:
-        self._plan_evaluations()
-        return self.eval_waiting[0] if self.eval_waiting else None
-
-    @property
-    def evaluated(self) -> int:
-        return sum(key in self.evaluations for key in self.planned)
-
-    def evaluations_over(self, keys: Iterable[EvalKey]) -> bool:
-        """Whether each of `keys` has its result or was given up."""
-        return all(key in self.evaluations or key in self.eval_given_up for key in keys)
 
     @property
     def eval_target(self) -> int:

@@ -1,0 +1,67 @@
+"""Simulated trainers' results, for tools and tests that drive the coordinator's own handlers in
+their process without a bus: reports that train nothing, each child's own policy, and a recorder
+of what the coordinator publishes.
+
+A report is accepted as a real trainer's (its job's body, env steps within the job's budget, a
+fitness within the world's bound, a policy that loads for the body), so the coordinator takes the
+same paths as in a run."""
+
+from __future__ import annotations
+
+import hashlib
+from functools import cache
+
+from derl.messages import Curve, FitnessReport, MessageBase, TrainJob
+from derl.policy_check import untrained_policy
+from derl.unimal import Genome
+
+
+class Recorder:
+    """A coordinator's publisher (`Coordinator(..., publisher=Recorder())`) in place of the bus:
+    what it publishes, in order."""
+
+    def __init__(self) -> None:
+        self.messages: list[MessageBase] = []
+
+    def publish(self, msg: MessageBase, data: bytes | None = None) -> None:
+        self.messages.append(msg)
+
+
+@cache
+def policy_of(child: str, genome: Genome, world: str) -> bytes:
+    """The policy a simulated trainer reports for `child` of body `genome`: an untrained one, its
+    weights drawn from the child's name (each child's own; tens of kB, so a write spans pages);
+    made once (its orthogonal weights cost tens of ms, and checks compare them again)."""
+    seed = int.from_bytes(hashlib.sha256(child.encode()).digest()[:4], "little")
+    return untrained_policy(genome, world, seed)
+
+
+def fake_report(run: str, job: TrainJob, fitness: float, points: int = 100) -> FitnessReport:
+    """A result for `job` that trained nothing: its body (bred by the coordinator), `fitness`, a
+    learning curve of `points` points and an untrained policy of the body."""
+    return FitnessReport(
+        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome, fitness=fitness,
+        fitness_source="window", fitness_episodes=10,
+        curve=Curve(env_steps=tuple(range(4096, 4096 * (points + 1), 4096)),
+                    returns=tuple(float(k) for k in range(points))),
+        energy=1.0, cost_of_work=1.0, mass=1.0, episodes=10, env_steps=409600, wall_s=1.0,
+        steps_per_s=1.0, checkpoint=untrained_policy(job.genome, job.task),
+    )  # fmt: skip
+
+
+def honest(child: str) -> float:
+    """The fitness of `child` as every honest training finds it (training is deterministic):
+    drawn from its name."""
+    return int.from_bytes(hashlib.sha256(child.encode()).digest()[:2], "little") / 100
+
+
+def honest_report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
+    """`job`'s report with the child's `honest` fitness plus `lie` (a liar's: not 0) and the
+    child's own policy (`policy_of`)."""
+    return FitnessReport(
+        run=job.run, child=job.child, job=job.job, node=job.node, genome=job.genome,
+        fitness=honest(job.child) + lie, fitness_source="window", fitness_episodes=4,
+        curve=Curve(env_steps=(job.steps,), returns=(1.0,)), energy=2.0, cost_of_work=0.5,
+        mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
+        checkpoint=policy_of(job.child, job.genome, job.task),
+    )  # fmt: skip
