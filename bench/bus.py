@@ -160,7 +160,7 @@ class LoadGenerator:
     Each simulated worker (node id ``loadgen-NNNNN``) behaves like `nodes.worker.node` minus the
     training: it announces WorkerReady, re-sends it while idle (`ready_wait`), answers each new
     TrainJob with a fake FitnessReport on its own key
-    (``fitness/<node>/<child>``: a tournament child's first draft, random fitness, a two-point
+    (``fitness/<node>/<agent>``: a tournament child's first draft, random fitness, a two-point
     curve within the job's budget, an untrained policy of the body), and asks for work again
     once the report is acknowledged, or rejected (counted: the coordinator must accept every
     report of this generator). With `cycle_s` set, a worker's cycle (ask, job, report, Ack)
@@ -192,7 +192,7 @@ class LoadGenerator:
         # filled in and packed as `encode` packs it, not validated again
         self.ready_payload: dict[str, bytes] = {}
         self.report = FitnessReport(
-            run=run, child="c", job="j", node="n", genome=bodies()[0], fitness=0.0,
+            run=run, agent="c", job="j", node="n", genome=bodies()[0], fitness=0.0,
             fitness_source="window", fitness_episodes=1,
             curve=Curve(env_steps=(1, 2), returns=(0.0, 1.0)), energy=1.0, cost_of_work=1.0,
             mass=1.0, episodes=1, env_steps=1, wall_s=0.0, steps_per_s=0.0, checkpoint=b"",
@@ -264,12 +264,12 @@ class LoadGenerator:
             self.last_ready.pop(node, None)
             if since is not None:
                 part = None if put_at is None or wall is None else put_at - wall
-                self.received.append((now, now - since, job["child"], part))
+                self.received.append((now, now - since, job["agent"], part))
             # the job lasts what is left of the worker's cycle (cycle_s, jittered) once its
             # round trips (this job's, its last report's Ack) are taken out: so W workers offer
             # W / cycle_s assignments a second whatever the round trips take
             spent = (now - since if since is not None else 0.0) + self.ack_wait.get(node, 0.0)
-        answer = (node, job["job"], job["child"], job["genome"], job["ppo"]["total_steps"])
+        answer = (node, job["job"], job["agent"], job["genome"], job["ppo"]["total_steps"])
         delay = self.cycle_s * self.jitter.uniform(0.5, 1.5) - spent if self.cycle_s > 0 else 0.0
         if delay <= 0:
             self.answers.put(answer)
@@ -297,7 +297,7 @@ class LoadGenerator:
                 continue
             fitness = self.jitter.uniform(0, 100)
             policy = untrained_policy(Genome.model_validate(genome), "ft")
-            report = dict(self.report, child=child, job=job, node=node, genome=genome,
+            report = dict(self.report, agent=child, job=job, node=node, genome=genome,
                           fitness=fitness, env_steps=min(2, budget), checkpoint=policy)  # fmt: skip
             with self.lock:
                 self.unacked[job] = (node, time.perf_counter())
@@ -634,11 +634,11 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
     ppo = load_profile("paper").training_ppo()
     mix = []
     for k in range(messages // 4):
-        job = TrainJob(run=run, job=f"c{k:05d}.1", child=f"c{k:05d}", node=f"w{k % 300}",
+        job = TrainJob(run=run, job=f"c{k:05d}.1", agent=f"c{k:05d}", node=f"w{k % 300}",
                        genome=genome, task="ft", ppo=ppo, parent="i0001", mutation="gear",
                        lease_s=60.0)  # fmt: skip
         mix += [
-            Tournament(run=run, child=job.child, contestants=("i0001",) * 4,
+            Tournament(run=run, agent=job.agent, contestants=("i0001",) * 4,
                        fitness=(1.0,) * 4, parent="i0001", mutation_seed=k, iteration=k),
             job, fake_report(run, job, 1.0),
             _ack(run, job),
@@ -672,7 +672,7 @@ def bench_journal(work: Path, messages: int = 8000) -> dict[str, object]:
 def _ack(run: str, job: TrainJob):
     from derl.messages import Ack
 
-    return Ack(run=run, of="FitnessReport", job=job.job, child=job.child, node=job.node)
+    return Ack(run=run, of="FitnessReport", job=job.job, agent=job.agent, node=job.node)
 
 
 # --- 4. recovery ---------------------------------------------------------------------------
@@ -840,7 +840,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
                 if now - last >= 1.0 or p.iteration == p.iterations:
                     last = now
                     message = TrainProgress(
-                        run=run, child="c00001", job="c00001.1", node=node,
+                        run=run, agent="c00001", job="c00001.1", node=node,
                         env_steps=p.env_steps, total_steps=steps, recent_return=p.recent_return,
                         steps_per_s=p.steps_per_second,
                     )  # fmt: skip
@@ -851,7 +851,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             summary, result = learn(genome, "ft", config, progress)
             wall = time.perf_counter() - wall0
             checkpoint = result.checkpoint.to_bytes()
-            job = TrainJob(run=run, job="c00001.1", child="c00001", node=node, genome=genome,
+            job = TrainJob(run=run, job="c00001.1", agent="c00001", node=node, genome=genome,
                            task="ft", ppo=config, lease_s=60.0)  # fmt: skip
             report = fake_report(run, job, summary.fitness)
             report = report.model_copy(update={"checkpoint": checkpoint})
@@ -860,14 +860,14 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             # (3) publish costs on a quiet process, many samples
             quiet: dict[str, list[float]] = {}
             for msg, count in ((report, 20), (TrainProgress(
-                    run=run, child="c00001", job="c00001.1", node=node, env_steps=1,
+                    run=run, agent="c00001", job="c00001.1", node=node, env_steps=1,
                     total_steps=steps, recent_return=1.0, steps_per_s=1.0), samples)):  # fmt: skip
                 for _ in range(count):
                     start = time.perf_counter()
                     bus.publish(msg)
                     quiet.setdefault(msg.type, []).append(time.perf_counter() - start)
                     time.sleep(0.005)
-            bus.publish(Ack(run=run, of="FitnessReport", job=job.job, child=job.child, node=node))
+            bus.publish(Ack(run=run, of="FitnessReport", job=job.job, agent=job.agent, node=node))
         received = json.loads(coordinator.communicate(timeout=30)[0].strip().splitlines()[-1])
     finally:
         if coordinator.poll() is None:

@@ -56,7 +56,7 @@ def report_for(job: TrainJob) -> FitnessReport:
     from derl.messages import Curve
 
     return FitnessReport(
-        run=RUN, child=job.child, job=job.job, node=job.node, genome=job.genome, fitness=1.0,
+        run=RUN, agent=job.agent, job=job.job, node=job.node, genome=job.genome, fitness=1.0,
         fitness_source="window", fitness_episodes=1, curve=Curve(env_steps=(1,), returns=(0.0,)),
         energy=1.0, cost_of_work=1.0, mass=1.0, episodes=1, env_steps=job.steps, wall_s=0.0,
         steps_per_s=0.0, checkpoint=untrained_policy(job.genome, job.task),

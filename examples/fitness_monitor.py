@@ -10,8 +10,8 @@ a RingChannel (when it falls behind, the oldest samples are dropped: a monitor m
 run). It also reads the coordinator's status (``derl/RUN/status``, once a second): when that counts
 more births and failed children than it has printed (a birth journaled just before a coordinator
 crash and never published, or dropped by the RingChannel), it asks again. Each payload is a msgpack
-map with ``type`` "Birth" (child, parent, fitness, cost_of_work, birth, generation, node, mutation,
-...) or "ChildFailed" (child, attempts, error); docs/protocol.md lists every field. Births are
+map with ``type`` "Birth" (agent, parent, fitness, cost_of_work, birth, generation, node, mutation,
+...) or "ChildFailed" (agent, attempts, error); docs/protocol.md lists every field. Births are
 journaled before they are published, so these are exactly the run's births; a birth heard twice
 (query and stream) is printed once. Ctrl-C stops it.
 """
@@ -36,17 +36,17 @@ seen: set[str] = set()
 def show(sample: zenoh.Sample) -> None:
     try:
         event = msgpack.unpackb(sample.payload.to_bytes())
-        kind, child = event["type"], event["child"]
+        kind, agent = event["type"], event["agent"]
     except (ValueError, TypeError, KeyError, msgpack.UnpackException) as error:
         print(f"skipped {sample.key_expr}: {error!r}", file=sys.stderr, flush=True)
         return
-    if child in seen:
+    if agent in seen:
         return
-    seen.add(child)
+    seen.add(agent)
     if kind == "Birth":
-        print(f"{child} fitness {event['fitness']:.2f} ({event['node']})", flush=True)
+        print(f"{agent} fitness {event['fitness']:.2f} ({event['node']})", flush=True)
     elif kind == "ChildFailed":
-        print(f"{child} failed after {event['attempts']} attempts: {event['error']}", flush=True)
+        print(f"{agent} failed after {event['attempts']} attempts: {event['error']}", flush=True)
 
 
 def ask(session: zenoh.Session, key: str) -> None:

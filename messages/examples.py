@@ -57,7 +57,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
         TrainJob(
             run=run,
             job=job,
-            child=child,
+            agent=child,
             node=node,
             genome=GENOME,
             task="ft",
@@ -79,7 +79,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
         ),
         Tournament(
             run=run,
-            child=child,
+            agent=child,
             contestants=(parent, f"a{i + 1}", parent),
             fitness=(10.0 + i, 3.5, 10.0 + i),
             parent=parent,
@@ -88,7 +88,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
         ),
         TrainProgress(
             run=run,
-            child=child,
+            agent=child,
             job=job,
             node=node,
             env_steps=4096 * i,
@@ -98,7 +98,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
         ),
         FitnessReport(
             run=run,
-            child=child,
+            agent=child,
             job=job,
             node=node,
             genome=GENOME,
@@ -115,7 +115,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             steps_per_s=1388.9,
             checkpoint=random.Random(i).randbytes(checkpoint_bytes),
         ),
-        Ack(run=run, of="FitnessReport", job=job, child=child, node=node),
+        Ack(run=run, of="FitnessReport", job=job, agent=child, node=node),
         EvalResult(
             run=run,
             agent=child,
@@ -128,13 +128,13 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             node=node,
             job=job,
         ),
-        Reject(run=run, of="FitnessReport", job=job, child=child, node=node, reason="wrong body"),
+        Reject(run=run, of="FitnessReport", job=job, agent=child, node=node, reason="wrong body"),
         Cancel(run=run, job=job, node=node, reason=f"{child} was born from another job"),
         JobLost(run=run, job=job, node=node, reason="no progress for 60 s"),
-        JobFailed(run=run, job=job, node=node, subject=child, error="ValueError: bad things"),
+        JobFailed(run=run, job=job, node=node, agent=child, error="ValueError: bad things"),
         Birth(
             run=run,
-            child=child,
+            agent=child,
             parent=parent,
             job=job,
             node=node,
@@ -148,13 +148,13 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             mutation_detail="pair on limb 0 end",
             genome=GENOME,
         ),
-        ChildFailed(run=run, child=child, parent=parent, attempts=3, error="ValueError: again"),
+        ChildFailed(run=run, agent=child, parent=parent, attempts=3, error="ValueError: again"),
         Quarantine(
-            run=run, node=node, child=child, jobs=(job, f"{job}b", f"{job}c"), retrain=(parent,)
+            run=run, node=node, agent=child, jobs=(job, f"{job}b", f"{job}c"), retrain=(parent,)
         ),
         Retrained(
             run=run,
-            child=child,
+            agent=child,
             job=job,
             node=node,
             fitness=122.25 + i,

@@ -2,8 +2,9 @@
 
 Every message carries `schema_version`, its `type` (the discriminator, equal to the class name)
 and the `run` it belongs to. Unknown fields and out-of-range values are validation errors. Ids
-are the same throughout: `node` a worker, `job` one assignment, `child`/`agent` a body, `parent`
-the body it was mutated from (None for the initial population).
+are the same throughout, one name each (docs/architecture.md, "Glossary"): `node` a worker, `job`
+one assignment, `agent` a body with its controller (a child before it is born, a member of the
+population after), `parent` the agent it was mutated from (None for the initial population).
 """
 
 from __future__ import annotations
@@ -29,12 +30,16 @@ from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome
 from derl.unimal.mutations import OPERATORS
 
-SCHEMA_VERSION: Final = 4
+SCHEMA_VERSION: Final = 5
 
 SCHEMA_CHANGES: Final = {
     4: "the coordinator decides every body: a `TrainJob` carries the child's own body and the "
     "mutation that made it (`mutation`, `mutation_detail`) instead of its parent's body and a "
     "`mutation_seed`, and a `FitnessReport` names no mutation (its body must be its job's)",
+    5: "one name per id: the agent a message is about is `agent` in every message (it was `child` "
+    "in Tournament, TrainJob, TrainProgress, FitnessReport, Ack, Reject, Birth, ChildFailed, "
+    "Quarantine and Retrained, and `subject` in JobFailed), and the keys' id segment is "
+    "`<agent>`; `derl log upgrade` brings a version-4 journal or recording to it",
 }
 """What each schema version changed from the one before."""
 
@@ -53,7 +58,7 @@ class _Model(BaseModel):
 class MessageBase(_Model):
     """What every message carries."""
 
-    schema_version: Literal[4] = SCHEMA_VERSION  # SCHEMA_VERSION (mypy checks they agree)
+    schema_version: Literal[5] = SCHEMA_VERSION  # SCHEMA_VERSION (mypy checks they agree)
     """The wire format's version; a payload of another version is refused."""
     type: str
     """The message type: the model's class name (the discriminator)."""
@@ -110,7 +115,7 @@ class WorkerReady(MessageBase):
 
 
 class TrainJob(MessageBase):
-    """The coordinator's order to `node`: train `child`, whose body is `genome`, from scratch in
+    """The coordinator's order to `node`: train `agent`, whose body is `genome`, from scratch in
     `task` with `ppo`.
 
     The coordinator decides every body: an initial one is drawn from the run's seed, a
@@ -123,8 +128,8 @@ class TrainJob(MessageBase):
     type: Literal["TrainJob"] = "TrainJob"
     job: Id
     """The assignment's id (a new one for every attempt)."""
-    child: Id
-    """The body to train."""
+    agent: Id
+    """The child to train."""
     node: Id
     """The trainer it is assigned to."""
     genome: Genome
@@ -204,7 +209,7 @@ class Tournament(MessageBase):
     """
 
     type: Literal["Tournament"] = "Tournament"
-    child: Id
+    agent: Id
     """The child the winner begets."""
     contestants: Annotated[tuple[Id, ...], Field(min_length=1, max_length=10_000)]
     """The agents drawn, with replacement."""
@@ -230,8 +235,8 @@ class TrainProgress(MessageBase):
     """A trainer's periodic report on a job in progress."""
 
     type: Literal["TrainProgress"] = "TrainProgress"
-    child: Id
-    """The body being trained (the agent, for an evaluation)."""
+    agent: Id
+    """The agent being trained (a child, or the agent of an evaluation)."""
     job: Id
     """The job in progress."""
     node: Id
@@ -257,8 +262,8 @@ class FitnessReport(MessageBase):
     trained (its job's: a report of another body is rejected) and the policy weights."""
 
     type: Literal["FitnessReport"] = "FitnessReport"
-    child: Id
-    """The body trained."""
+    agent: Id
+    """The child trained."""
     job: Id
     """The job it answers."""
     node: Id
@@ -299,8 +304,8 @@ class Ack(MessageBase):
     """The type of the report acknowledged."""
     job: Id
     """Its job."""
-    child: Id
-    """Its subject (the child, or the agent of an EvalResult)."""
+    agent: Id
+    """What it is about (the child of a FitnessReport, the agent of an EvalResult)."""
     node: Id
     """The worker that sent it."""
 
@@ -339,8 +344,8 @@ class Reject(MessageBase):
     """The type of the report refused."""
     job: Id
     """Its job."""
-    child: Id
-    """Its subject (the child, or the agent of an EvalResult)."""
+    agent: Id
+    """What it is about (the child of a FitnessReport, the agent of an EvalResult)."""
     node: Id
     """The worker that sent it."""
     reason: Text
@@ -362,8 +367,8 @@ class Cancel(MessageBase):
 
 class JobLost(MessageBase):
     """A fact of the coordinator: `job` was taken back from `node` (its liveliness token
-    vanished, or it sent no progress for its lease); its subject waits for the next worker. A
-    report for it that arrives before the subject is done still counts."""
+    vanished, or it sent no progress for its lease); its agent waits for the next worker. A
+    report for it that arrives before the agent is done still counts."""
 
     type: Literal["JobLost"] = "JobLost"
     job: Id
@@ -376,27 +381,27 @@ class JobLost(MessageBase):
 
 class JobFailed(MessageBase):
     """A worker's report that `job` failed: what failed and the exception's text. The worker
-    then asks for work again; the coordinator retries the subject up to `max_attempts` times."""
+    then asks for work again; the coordinator retries its agent up to `max_attempts` times."""
 
     type: Literal["JobFailed"] = "JobFailed"
     job: Id
     """The job that failed."""
     node: Id
     """The worker that ran it."""
-    subject: Id
+    agent: Id
     """The child trained or the agent evaluated."""
     error: Text
     """The exception's type and text."""
 
 
 class Birth(MessageBase):
-    """A child born: the authoritative birth stream, published on ``births/<child>`` once the
+    """A child born: the authoritative birth stream, published on ``births/<agent>`` once the
     coordinator has journaled it. `birth` is the birth index (0 first), `generation` the parent's
     plus one (0 for the initial population); `node` trained it (for a repeat: the node that
     trained the earlier body, `repeat_of`, whose result the child takes)."""
 
     type: Literal["Birth"] = "Birth"
-    child: Id
+    agent: Id
     """The child born."""
     parent: Id | None = None
     """The body it was mutated from (None in the initial population)."""
@@ -427,11 +432,11 @@ class Birth(MessageBase):
 
 
 class ChildFailed(MessageBase):
-    """A child given up after `attempts` failed trainings (also on ``births/<child>``): it is
+    """A child given up after `attempts` failed trainings (also on ``births/<agent>``): it is
     never born, and the run goes on without it."""
 
     type: Literal["ChildFailed"] = "ChildFailed"
-    child: Id
+    agent: Id
     """The child given up."""
     parent: Id | None = None
     """The body it was to be mutated from."""
@@ -442,28 +447,28 @@ class ChildFailed(MessageBase):
 
 
 class Quarantine(MessageBase):
-    """A trainer identity caught lying (also on ``births/<child>``, `child` the child whose audit
-    caught it): a third training of `child` agreed with another identity's and not with its
+    """A trainer identity caught lying (also on ``births/<agent>``, `agent` the child whose audit
+    caught it): a third training of `agent` agreed with another identity's and not with its
     own. It gets no more jobs, its reports are rejected, and the children born from its reports
     that no audit checked (`retrain`) are trained again by others (`Retrained`)."""
 
     type: Literal["Quarantine"] = "Quarantine"
     node: Id
     """The identity (a worker's name without its ``.r<n>`` restart suffix)."""
-    child: Id
+    agent: Id
     """The child whose audit caught it."""
     jobs: Annotated[tuple[Id, ...], Field(max_length=100)]
-    """The trainings of `child` compared."""
+    """The trainings of `agent` compared."""
     retrain: Annotated[tuple[Id, ...], Field(max_length=MAX_ITEMS)] = ()
     """Its unchecked births, trained again."""
 
 
 class Retrained(MessageBase):
     """A child born from a quarantined identity's report, trained again by another (also on
-    ``births/<child>``): its result replaces the one it was born with, for it and its repeats."""
+    ``births/<agent>``): its result replaces the one it was born with, for it and its repeats."""
 
     type: Literal["Retrained"] = "Retrained"
-    child: Id
+    agent: Id
     """The child."""
     job: Id
     """The job whose report replaces its result."""

@@ -205,7 +205,7 @@ def journaled(run_dir: Path, kind: type[M]) -> list[M]:
 
 
 def births(run_dir: Path) -> list[str]:
-    return [m.child for m in journaled(run_dir, Birth)]
+    return [m.agent for m in journaled(run_dir, Birth)]
 
 
 def jobs(run_dir: Path) -> list[TrainJob]:
@@ -234,7 +234,7 @@ class HandBirth:
     """A birth of a journal written by hand; a repeat takes `repeat_of`'s result (its own
     `fitness` is not used), as the coordinator makes it."""
 
-    child: str
+    agent: str
     parent: str | None
     genome: Genome
     fitness: float = 0.0
@@ -253,15 +253,15 @@ def write_hand_run(run_dir: Path, run: str, world: str, births: list[HandBirth])
             generation = 0 if parent is None else parent.generation + 1
             if b.repeat_of is not None:
                 first = done[b.repeat_of]
-                birth = first.model_copy(update={"child": b.child, "parent": b.parent, "birth": k,
+                birth = first.model_copy(update={"agent": b.agent, "parent": b.parent, "birth": k,
                                                  "generation": generation, "repeat_of": b.repeat_of,
                                                  "mutation": "gear"})  # fmt: skip
             else:
-                job = TrainJob(run=run, job=f"{b.child}.1", child=b.child, node="t0",
+                job = TrainJob(run=run, job=f"{b.agent}.1", agent=b.agent, node="t0",
                                genome=b.genome, task=world, ppo=ppo, parent=b.parent,
                                mutation=None if parent is None else "gear", lease_s=30)  # fmt: skip
                 report = FitnessReport(
-                    run=run, child=b.child, job=job.job, node="t0", genome=b.genome,
+                    run=run, agent=b.agent, job=job.job, node="t0", genome=b.genome,
                     fitness=b.fitness,
                     fitness_source="window", fitness_episodes=3,
                     curve=Curve(env_steps=(2048, 4096), returns=(b.fitness / 2, b.fitness)),
@@ -269,14 +269,14 @@ def write_hand_run(run_dir: Path, run: str, world: str, births: list[HandBirth])
                     wall_s=1.0, steps_per_s=4096.0, checkpoint=b"",
                 )  # fmt: skip
                 birth = Birth(
-                    run=run, child=b.child, parent=b.parent, job=job.job, node="t0", birth=k,
+                    run=run, agent=b.agent, parent=b.parent, job=job.job, node="t0", birth=k,
                     generation=generation, fitness=b.fitness, cost_of_work=1.0, energy=50.0,
                     mass=12.0, mutation=job.mutation, genome=b.genome,
                 )  # fmt: skip
                 journal.write(job)
                 journal.write(report)
             journal.write(birth)
-            done[b.child] = birth
+            done[b.agent] = birth
 
 
 class FullDisk:

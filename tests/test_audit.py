@@ -119,7 +119,7 @@ def test_the_same_children_are_audited_in_every_run_of_a_seed_and_about_the_shar
 
 
 def _trial(node: str, fitness: float, checkpoint: bytes = b"policy") -> FitnessReport:
-    job = TrainJob(run=RUN, job=f"c.{node}", child="c", node=node, genome=_genome(),
+    job = TrainJob(run=RUN, job=f"c.{node}", agent="c", node=node, genome=_genome(),
                    task="ft", ppo=_config(0).training_ppo(), lease_s=30)  # fmt: skip
     trial = honest_report(job).model_copy(update={"fitness": fitness, "checkpoint": checkpoint})
     return journaled(trial)
@@ -151,7 +151,7 @@ def test_honest_trainers_give_the_births_of_an_unaudited_run(tmp_path: Path, aud
     state = coordinator.state
     assert not state.quarantined
     assert (len(state.checked) > 0) == (audit > 0)
-    fitness = {b.child: b.fitness for b in state.births}
+    fitness = {b.agent: b.fitness for b in state.births}
     assert fitness == {child: honest(b.repeat_of or child)
                        for child, b in state.born.items()}  # fmt: skip
     assert len(fitness) == _config(audit).total
@@ -169,11 +169,11 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert list(state.quarantined) == [LIAR]
     (caught,) = [m for m in journal if isinstance(m, Quarantine)]
     tried = [m for m in journal if isinstance(m, FitnessReport) and m.node == LIAR]
-    first = next(m.child for m in tried if state.is_audited(m.child))
-    assert caught.child == first  # its first audited training
-    liar_births = {m.child for m in journal if isinstance(m, Birth) and m.node == LIAR}
+    first = next(m.agent for m in tried if state.is_audited(m.agent))
+    assert caught.agent == first  # its first audited training
+    liar_births = {m.agent for m in journal if isinstance(m, Birth) and m.node == LIAR}
     assert set(caught.retrain) == liar_births and liar_births  # every one trained again
-    retrained = {m.child: m for m in journal if isinstance(m, Retrained)}
+    retrained = {m.agent: m for m in journal if isinstance(m, Retrained)}
     assert set(retrained) == liar_births
     assert all(r.was == honest(c) + 1.0 for c, r in retrained.items())
     assert all(r.fitness == honest(c) and r.node != LIAR for c, r in retrained.items())
@@ -182,12 +182,12 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert LIAR not in coordinator.idle["trainer"]  # it would stand before the others' turn
 
     truth = {child: honest(b.repeat_of or child) for child, b in state.born.items()}
-    assert {b.child: b.fitness for b in state.births} == truth
+    assert {b.agent: b.fitness for b in state.births} == truth
     assert {m.agent: m.fitness for m in state.evolution.born} == truth
     assert all(m.fitness == truth[m.agent] for m in state.evolution.population)
     assert state.evolution.best().fitness == max(truth.values())
     history = load_history(folder)  # what `derl report` reads
-    assert {b.child: b.fitness for b in history.births} == truth
+    assert {b.agent: b.fitness for b in history.births} == truth
     assert list(history.quarantined) == [LIAR]
     summary = json.loads((folder / "summary.json").read_text())
     assert list(summary["quarantined"]) == [LIAR]

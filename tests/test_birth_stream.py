@@ -43,20 +43,20 @@ def _forge(bus: Bus, progress: TrainProgress, run_dir: Path) -> None:
     key (an impossible fitness, another body, a non-finite fitness), under its name on another
     node's key, and under another name for its job."""
     template = next(m for m in examples(bus.run, 3) if isinstance(m, FitnessReport))
-    real = {"child": progress.child, "job": progress.job, "node": progress.node}
+    real = {"agent": progress.agent, "job": progress.job, "node": progress.node}
     bodies = json.loads((run_dir / "initial_population.json").read_text())
-    body = Genome.model_validate(bodies[int(progress.child.removeprefix("i"))])
+    body = Genome.model_validate(bodies[int(progress.agent.removeprefix("i"))])
     impossible = template.model_copy(
         update={**real, "genome": body, "mutation": None, "fitness": 3e9}
     )
     foreign_body = template.model_copy(update={**real, "fitness": 5.0, "mutation": None})
-    bus.session.put(bus.keys.fitness(progress.node, progress.child), encode(impossible))
-    bus.session.put(bus.keys.fitness(progress.node, progress.child), encode(foreign_body))
+    bus.session.put(bus.keys.fitness(progress.node, progress.agent), encode(impossible))
+    bus.session.put(bus.keys.fitness(progress.node, progress.agent), encode(foreign_body))
     not_finite = {**msgpack.unpackb(encode(foreign_body)), "fitness": math.inf}
-    bus.session.put(bus.keys.fitness(progress.node, progress.child), msgpack.packb(not_finite))
-    bus.session.put(bus.keys.fitness("mallory", progress.child), encode(foreign_body))
+    bus.session.put(bus.keys.fitness(progress.node, progress.agent), msgpack.packb(not_finite))
+    bus.session.put(bus.keys.fitness("mallory", progress.agent), encode(foreign_body))
     other_name = template.model_copy(update={**real, "node": "mallory", "fitness": 7.0})
-    bus.session.put(bus.keys.fitness("mallory", progress.child), encode(other_name))
+    bus.session.put(bus.keys.fitness("mallory", progress.agent), encode(other_name))
 
 
 @pytest.mark.slow
@@ -96,8 +96,8 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
         assert procs.started["coordinator-2"].returncode == 0, procs.log("coordinator-2")
         journal = _journal(run_dir)
         births = [m for m in journal if isinstance(m, Birth)]
-        assert len(births) == PROFILE["total"] == len({b.child for b in births})
-        wanted = {f"{b.child} fitness {b.fitness:.2f} ({b.node})" for b in births}
+        assert len(births) == PROFILE["total"] == len({b.agent for b in births})
+        wanted = {f"{b.agent} fitness {b.fitness:.2f} ({b.node})" for b in births}
         wait_for(
             lambda: wanted <= set(procs.log("monitor").splitlines()), 30, "every birth printed"
         )
@@ -112,7 +112,7 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
         )
         assert all(b.fitness < 1e9 for b in births)
         # the Rejects of the forged reports are not taken for answers to the real report
-        assert next(b for b in births if b.child == first.child).job == first.job
+        assert next(b for b in births if b.agent == first.agent).job == first.job
         assert f"{first.job} rejected" not in procs.log(first.node)
     finally:
         procs.close()

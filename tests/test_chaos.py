@@ -64,7 +64,7 @@ class Saboteur:
 
     def fail(self, job: TrainJob) -> None:
         self.bus.publish(JobFailed(run=self.bus.run, job=job.job, node=self.node,
-                                   subject=job.child, error="RuntimeError: sabotaged"))  # fmt: skip
+                                   agent=job.agent, error="RuntimeError: sabotaged"))  # fmt: skip
 
     def leave(self) -> None:
         self.token.undeclare()
@@ -86,12 +86,12 @@ def _job_fault(timeline: Timeline, job: str, child: str, at: float) -> dict[str,
     issued = next(i for i, (_, m) in enumerate(timeline) if getattr(m, "job", None) == job)
     recovered = next(
         t for t, m in timeline[issued + 1 :]
-        if (isinstance(m, TrainJob) and m.child == child)
-        or (isinstance(m, (Birth, ChildFailed)) and m.child == child)
+        if (isinstance(m, TrainJob) and m.agent == child)
+        or (isinstance(m, (Birth, ChildFailed)) and m.agent == child)
     )  # fmt: skip
-    born = sum(isinstance(m, Birth) and m.child == child for _, m in timeline)
+    born = sum(isinstance(m, Birth) and m.agent == child for _, m in timeline)
     return {"noticed_s": round(noticed - at, 1), "recovered_s": round(recovered - at, 1),
-            "child": child, "births": born}  # fmt: skip
+            "agent": child, "births": born}  # fmt: skip
 
 
 @pytest.mark.slow
@@ -161,9 +161,9 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
     assert not _processes_of(local.run)  # not one node of the run left, let alone spinning
 
     born = births(local.dir)
-    given_up = [m.child for m in journaled(local.dir, ChildFailed)]
-    assert given_up == [failed.child], (given_up, failed.job)
-    assert failed.child not in born, (failed.job, born)
+    given_up = [m.agent for m in journaled(local.dir, ChildFailed)]
+    assert given_up == [failed.agent], (given_up, failed.job)
+    assert failed.agent not in born, (failed.job, born)
     assert [m.job for m in journaled(local.dir, JobFailed)] == [failed.job]
     assert max(Counter(born).values()) == 1, born  # none born twice
     assert len(born) + len(given_up) == PROFILE["total"]  # none lost
@@ -171,12 +171,12 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
     assert "ignored liveliness token" in procs.log("coordinator")
     assert "rejected (malformed) derl/" in procs.log("a")  # its job and ack keys, the status
     timeline = [(logged.log_time / 1e9, logged.message) for logged in read_log(local.dir)]
-    after_restart = next(t for t, m in timeline if isinstance(m, Birth) and m.child not in before)
+    after_restart = next(t for t, m in timeline if isinstance(m, Birth) and m.agent not in before)
     faults = {
-        "failed job": _job_fault(timeline, failed.job, failed.child, at["failed job"]),
+        "failed job": _job_fault(timeline, failed.job, failed.agent, at["failed job"]),
         "garbage": {"noticed_s": garbage_noticed, "payloads": put, "births": len(born)},
-        "SIGKILL trainer": _job_fault(timeline, killed.job, killed.child, at["SIGKILL trainer"]),
-        "SIGSTOP trainer": _job_fault(timeline, frozen.job, frozen.child, at["SIGSTOP trainer"]),
+        "SIGKILL trainer": _job_fault(timeline, killed.job, killed.agent, at["SIGKILL trainer"]),
+        "SIGSTOP trainer": _job_fault(timeline, frozen.job, frozen.agent, at["SIGSTOP trainer"]),
         "SIGKILL coordinator": {
             "noticed_s": coordinator_back,  # its status heard again, restarted after 1 s
             "recovered_s": round(after_restart - at["SIGKILL coordinator"], 1),

@@ -146,7 +146,7 @@ def _report(job: TrainJob, checkpoint: bytes | int) -> FitnessReport:
     if isinstance(checkpoint, int):
         checkpoint = _weights(job, checkpoint)
     return FitnessReport(
-        run=job.run, child=job.child, job=job.job, node=job.node, genome=job.genome,
+        run=job.run, agent=job.agent, job=job.job, node=job.node, genome=job.genome,
         fitness=1.0, fitness_source="window", fitness_episodes=1,
         curve=Curve(env_steps=(1, 2), returns=(0.0, 1.0)), energy=1.0, cost_of_work=1.0,
         mass=1.0, episodes=1, env_steps=2, wall_s=0.0, steps_per_s=0.0, checkpoint=checkpoint,
@@ -181,8 +181,8 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)  # the birth stream: journaled, published
     ack = heard.get(timeout=10)
-    assert isinstance(ack, Ack) and ack.child == first.child
-    assert coordinator.ledger.checkpoints.path(first.child).read_bytes() == _weights(first, 1)
+    assert isinstance(ack, Ack) and ack.agent == first.agent
+    assert coordinator.ledger.checkpoints.path(first.agent).read_bytes() == _weights(first, 1)
 
     # the write fails (the folder is gone, a file in its place): born, but not acknowledged
     folder = coordinator.ledger.checkpoints.folder
@@ -193,10 +193,10 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
         coordinator.dispatch(report)
         coordinator.settle()
     assert isinstance(heard.get(timeout=10), Birth)
-    assert second.child in coordinator.state.evolution.fitness
+    assert second.agent in coordinator.state.evolution.fitness
     assert journaled(report) in _journaled(coordinator)  # its checkpoint: the SHA-256
     assert _quiet(heard), "an Ack went out for a checkpoint that is not on disk"
-    assert f"cannot write {folder / second.child}.pt (Not a directory)" in caplog.text
+    assert f"cannot write {folder / second.agent}.pt (Not a directory)" in caplog.text
     assert coordinator.ledger.stalled
 
     # the trainer sends its report again: the checkpoint is written, then acknowledged
@@ -205,8 +205,8 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     coordinator.dispatch(report)
     coordinator.settle()
     ack = heard.get(timeout=10)
-    assert isinstance(ack, Ack) and ack.child == second.child
-    assert coordinator.ledger.checkpoints.path(second.child).read_bytes() == _weights(second, 2)
+    assert isinstance(ack, Ack) and ack.agent == second.agent
+    assert coordinator.ledger.checkpoints.path(second.agent).read_bytes() == _weights(second, 2)
     assert coordinator.policy.born == 2
     assert not coordinator.ledger.stalled
 
@@ -241,15 +241,15 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         _ready(coordinator, "w1")
         coordinator.settle()
         journaled = _journaled(coordinator)
-        births = {m.child: m for m in journaled if isinstance(m, Birth)}
+        births = {m.agent: m for m in journaled if isinstance(m, Birth)}
         repeat = births["c00000"]
         assert repeat.repeat_of == twin and repeat.parent == decided.parent
         assert (repeat.fitness, repeat.job, repeat.generation) == (1.0, births[twin].job, 1)
         assert repeat.genome == child_body and repeat.mutation is not None
-        trained = {m.child for m in journaled if isinstance(m, TrainJob)}
+        trained = {m.agent for m in journaled if isinstance(m, TrainJob)}
         assert "c00000" not in trained and "c00001" in trained  # the worker got the next one
-        assert coordinator.state.job_of("w1").subject == "c00001"
-        while not (isinstance(msg := heard.get(timeout=10), Birth) and msg.child == "c00000"):
+        assert coordinator.state.job_of("w1").agent == "c00001"
+        while not (isinstance(msg := heard.get(timeout=10), Birth) and msg.agent == "c00000"):
             pass
         assert msg.repeat_of == twin  # in the birth stream
         assert coordinator._status().repeats == 1
@@ -322,7 +322,7 @@ def _grows_by_births(coordinator: Coordinator, heard: queue.Queue[MessageBase]) 
 
 def _born(run: str, child: str, parent: str | None, genome: Genome, birth: int) -> Birth:
     return Birth(
-        run=run, child=child, parent=parent, job=f"{child}.1", node="w1", birth=birth,
+        run=run, agent=child, parent=parent, job=f"{child}.1", node="w1", birth=birth,
         generation=int(parent is not None), fitness=1.0, cost_of_work=1.0, energy=1.0, mass=1.0,
         mutation=None if parent is None else "gear", genome=genome,
     )  # fmt: skip
@@ -339,7 +339,7 @@ def test_a_child_bred_like_one_in_training_waits_for_its_birth() -> None:
         state.apply(_born(run, f"i000{k}", None, genome, k))
     seed = 7
     for k in range(2):
-        state.apply(Tournament(run=run, child=f"c0000{k}", contestants=("i0000",),
+        state.apply(Tournament(run=run, agent=f"c0000{k}", contestants=("i0000",),
                                fitness=(1.0,), parent="i0000", mutation_seed=seed,
                                iteration=k))  # fmt: skip
         state.evolution.body(f"c0000{k}")  # bred by the coordinator
@@ -365,16 +365,16 @@ def test_tournaments_start_once_every_initial_body_is_assigned(
     for worker in ("w1", "w2", "w1"):  # i0000, i0001, i0002 born; i0003 is given to w2
         coordinator.dispatch(_report(jobs[worker], 0))
         jobs[worker] = _job_for(coordinator, worker)
-    child = jobs["w1"].child
-    assert child.startswith("c") and jobs["w2"].child == "i0003"
-    tournaments = {m.child: m for m in _journaled(coordinator) if isinstance(m, Tournament)}
+    child = jobs["w1"].agent
+    assert child.startswith("c") and jobs["w2"].agent == "i0003"
+    tournaments = {m.agent: m for m in _journaled(coordinator) if isinstance(m, Tournament)}
     assert all("i0003" not in t.contestants for t in tournaments.values())  # not born yet
     assert jobs["w1"].parent == tournaments[child].parent and jobs["w1"].mutation is not None
     for worker in ("w2", "w1"):  # the initial body is born first, then the child
         coordinator.dispatch(_report(jobs[worker], 0))
     coordinator.settle()
     births = [m for m in _journaled(coordinator) if isinstance(m, Birth)]
-    births = [m.child for m in births]
+    births = [m.agent for m in births]
     assert births[:3] == ["i0000", "i0001", "i0002"] and births[-2:] == ["i0003", child]
     assert "i0003" in [m.agent for m in coordinator.policy.state.evolution.population]
 
@@ -399,7 +399,7 @@ def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
     coordinator.settle()
     assert coordinator.state.job_of("w1") is None
     failed = [m for m in _journaled(coordinator) if isinstance(m, ChildFailed)]
-    assert [(m.child, m.attempts) for m in failed] == [("c00000", 0)]
+    assert [(m.agent, m.attempts) for m in failed] == [("c00000", 0)]
     assert failed[0].error.startswith("MutationFailed: ")
     assert not [m for m in _journaled(coordinator) if isinstance(m, TrainJob) and m.parent]
     assert coordinator.state.evolution.complete and coordinator._status().failed == 1
@@ -418,7 +418,7 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
     body = breed(initial[0], 7)[0]
 
     def job(child: str, parent: str, genome: Genome) -> TrainJob:
-        return TrainJob(run=run, job=f"{child}.1", child=child, node="w1", genome=genome,
+        return TrainJob(run=run, job=f"{child}.1", agent=child, node="w1", genome=genome,
                         task=config.world, ppo=config.training_ppo(), parent=parent,
                         mutation="gear", lease_s=config.lease_s)  # fmt: skip
 
@@ -428,7 +428,7 @@ def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_des
         _born(run, "c00000", "i0000", body, 2),
         Tournament(
             run=run,
-            child="c00001",
+            agent="c00001",
             contestants=("c00000",),
             fitness=(1.0,),
             parent="c00000",
@@ -476,7 +476,7 @@ def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> 
         job = f"e{attempt}"
         state.apply(EvalJob(run=run, job=job, agent=agent, node="w", genome=genome, task=task,
                             ppo=ppo, lease_s=config.lease_s))  # fmt: skip
-        state.apply(JobFailed(run=run, job=job, node="w", subject=agent, error="boom"))
+        state.apply(JobFailed(run=run, job=job, node="w", agent=agent, error="boom"))
     assert state.eval_given_up == {key}
     assert state.next_evaluation() is None and state.finished
 
@@ -572,7 +572,7 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
             for job in (first, second):
                 bus.publish(_report(job, 0))
             third = jobs.get(timeout=10)
-            assert (third.node, third.child) == ("w3", "c00000")
+            assert (third.node, third.agent) == ("w3", "c00000")
             assert len(tokens) == 3
     finally:
         coordinator.stop.set()
@@ -628,7 +628,7 @@ def test_who_comes_before_what_and_copies_of_a_taken_report_leave_the_journal_as
     job = _job_for(coordinator, "w1")
     coordinator.dispatch(decode(encode(_report(job, 0))))
     coordinator.settle()
-    assert job.child in coordinator.state.born
+    assert job.agent in coordinator.state.born
     forged = _report(job, b"forged").model_copy(update={"node": "w2"})
     coordinator.dispatch(decode(encode(forged)))
     coordinator.settle()
@@ -683,10 +683,10 @@ def test_a_checkpoint_that_is_not_a_policy_of_its_body_is_never_born(
         rejects = [m for m in _journaled(coordinator) if isinstance(m, Reject)]
         assert why in rejects[-1].reason, rejects[-1].reason
     assert not coordinator.state.born
-    assert not coordinator.ledger.checkpoints.path(first.child).exists()
+    assert not coordinator.ledger.checkpoints.path(first.agent).exists()
     coordinator.dispatch(_report(second, 3))
     coordinator.settle()
-    assert list(coordinator.state.born) == [second.child]
+    assert list(coordinator.state.born) == [second.agent]
 
 
 def test_one_worker_per_identity_and_none_without_a_liveliness_token(
@@ -703,7 +703,7 @@ def test_one_worker_per_identity_and_none_without_a_liveliness_token(
     assert coordinator.state.job_of("t.r901") is None  # no token
     first = _job_for(coordinator, "t")
     later = _job_for(coordinator, "t.r1")  # its restart: the first one's job goes back
-    assert coordinator.state.job_of("t") is None and later.child == first.child
+    assert coordinator.state.job_of("t") is None and later.agent == first.agent
     for _ in range(3):
         _ready(coordinator, "t")  # the earlier incarnation, back: refused
     coordinator.settle()

@@ -56,7 +56,7 @@ def test_sampled_crash_states_run_to_the_end(recorded: crash.Recorded) -> None:
     best ones' folders whole. The sample: the state where the last birth is journaled and its
     checkpoint is not in place (`crash.last_checkpoint_late`), and 10 others drawn at random."""
     end = crash.last_checkpoint_late(recorded)
-    births = {m.child for m in crash.journaled(recorded, end) if isinstance(m, Birth)}
+    births = {m.agent for m in crash.journaled(recorded, end) if isinstance(m, Birth)}
     assert len(births) == crash.config().total
     files = {name.removeprefix("checkpoints/").removesuffix(".pt") for name in end.state}
     assert not births <= files

@@ -46,7 +46,7 @@ def whole(tmp_path_factory: pytest.TempPathFactory) -> Whole:
     assert check(folder, Knowledge(idle, frozenset(), ()), {}) == []  # the run, start to end
     journal = list(replay(folder))
     jobs = {m.job: m for m in journal if isinstance(m, TrainJob)}
-    acked = tuple(sorted((m.child, m.job) for m in journal if isinstance(m, Ack)))
+    acked = tuple(sorted((m.agent, m.job) for m in journal if isinstance(m, Ack)))
     return Whole(folder, journal, Knowledge(idle, frozenset(jobs), acked), jobs)
 
 
@@ -63,7 +63,7 @@ def test_a_child_born_twice_is_rejected(whole: Whole, tmp_path: Path) -> None:
     with Journal(folder) as journal:
         journal.write(birth)
     assert journal_holds(folder, whole.knowledge, "at the end", finished=True) == [
-        f"at the end: {birth.child} born 2 times"
+        f"at the end: {birth.agent} born 2 times"
     ]
 
 
@@ -75,7 +75,7 @@ def test_an_acknowledged_birth_without_its_trainers_checkpoint_is_rejected(
     child's policy: at the start of a coordinator on the folder and at the end of the run it
     finishes (its trainers, told, never send that report again)."""
     births = [m for m in whole.journal if isinstance(m, Birth)]
-    child = (births[0] if which == "first" else births[-1]).child
+    child = (births[0] if which == "first" else births[-1]).agent
     folder = whole.copy(tmp_path / "run")
     (folder / "checkpoints" / f"{child}.pt").unlink()
     missing = f"acknowledged {child}'s checkpoint file is missing or not its trainer's"
@@ -86,7 +86,7 @@ def test_an_acknowledged_birth_without_its_trainers_checkpoint_is_rejected(
         f"at the end: {child} has no checkpoint file",
     ]
 
-    other = next(b.child for b in births if b.child != child)
+    other = next(b.agent for b in births if b.agent != child)
     (folder / "checkpoints" / f"{child}.pt").write_bytes(
         (folder / "checkpoints" / f"{other}.pt").read_bytes()
     )
@@ -119,7 +119,7 @@ def test_a_journal_that_lost_what_the_trainers_were_told_is_rejected(
     shutil.copytree(whole.folder / "checkpoints", folder / "checkpoints")
     problems = journal_holds(folder, whole.knowledge, "at the start")
     assert f"at the start: job {job.job}, received by a trainer, is not in the journal" in problems
-    assert (f"at the start: acknowledged birth of {job.child} (job {job.job}) is not in the "
+    assert (f"at the start: acknowledged birth of {job.agent} (job {job.job}) is not in the "
             "journal (born from None)") in problems  # fmt: skip
-    born = {m.child for m in whole.journal[:last] if isinstance(m, Birth)}
+    born = {m.agent for m in whole.journal[:last] if isinstance(m, Birth)}
     assert all(f"of {child} " not in p for child in born for p in problems)  # the rest holds

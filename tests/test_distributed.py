@@ -72,7 +72,7 @@ def test_smoke_run_end_to_end(tmp_path: Path) -> None:
     assert any(re.match(rf"{stamp} evolution: \d/8 born, best ", line) for line in lines)
     assert any(line.startswith("run ") and f"logs in {run_dir / 'logs'}" in line for line in lines)
     births = [m for m in replay(run_dir) if isinstance(m, Birth)]
-    assert len({m.child for m in births}) == len(births) == 8
+    assert len({m.agent for m in births}) == len(births) == 8
     assert len(list((run_dir / "checkpoints").glob("*.pt"))) == 8
     assert (run_dir / "summary.json").exists() and any((run_dir / "best").iterdir())
     assert {"patrol", "incline"} == {m.task for m in replay(run_dir) if m.type == "EvalResult"}
@@ -85,11 +85,11 @@ def test_killed_trainer_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("victim", local.trainer("victim"))
     procs.start("survivor", local.trainer("survivor"))
-    child = observer.training("victim").child
+    child = observer.training("victim").agent
     procs.kill("victim")
     wait_for(lambda: len(births(local.dir)) == 4, 300, "every body born")
     assert_born_once(local.dir, 4)
-    holders = [job.node for job in jobs(local.dir) if job.child == child]
+    holders = [job.node for job in jobs(local.dir) if job.agent == child]
     assert holders[0] == "victim" and "survivor" in holders[1:]
 
 
@@ -116,7 +116,7 @@ def test_stopped_trainer_is_noticed_within_its_lease(
         # still frozen, so its late report cannot win the race: once the other trainer is done
         # with its own body, the child is handed to it
         wait_for(
-            lambda: [j for j in jobs(local.dir) if j.child == progress.child and j.node == "other"],
+            lambda: [j for j in jobs(local.dir) if j.agent == progress.agent and j.node == "other"],
             120,
             "the child handed to the other trainer",
         )

@@ -170,7 +170,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
         job = TrainJob(
             run="r",
             job=f"{child.name}.1",
-            child=child.name,
+            agent=child.name,
             node="t0",
             genome=child.genome,
             task="ft",
@@ -181,7 +181,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
         state.apply(
             template.model_copy(
                 update={
-                    "child": child.name,
+                    "agent": child.name,
                     "parent": None,
                     "job": job.job,
                     "node": "t0",
@@ -204,7 +204,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
         TrainJob(
             run="r",
             job=f"{decided.name}.1",
-            child=decided.name,
+            agent=decided.name,
             node="t1",
             genome=genome,
             task="ft",
@@ -214,7 +214,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
             lease_s=10.0,
         )
     )
-    assert not state.waiting and state.job_of("t1").subject == decided.name
+    assert not state.waiting and state.job_of("t1").agent == decided.name
 
 
 def test_replicates_differ_by_their_seed_alone() -> None:

@@ -37,7 +37,7 @@ MESSAGE_DATA = 1  # binary opcode: subscription id (u32), receive time (u64), pa
 def _birth(run: str, index: int) -> Birth:
     birth = next(m for m in examples(run, 0) if isinstance(m, Birth))
     return birth.model_copy(
-        update={"birth": index, "child": f"a{index}", "fitness": 10.0 + index * (-1) ** index}
+        update={"birth": index, "agent": f"a{index}", "fitness": 10.0 + index * (-1) ** index}
     )
 
 
@@ -50,7 +50,7 @@ def coordinator() -> Iterator[tuple[str, Bus]]:
         first = _birth(bus.run, 0)
 
         def answer(query: zenoh.Query) -> None:
-            query.reply(bus.keys.births(first.child), encode(first))
+            query.reply(bus.keys.births(first.agent), encode(first))
 
         queryable = session.declare_queryable(bus.keys.all("births"), answer)
         yield endpoint, bus
@@ -146,7 +146,7 @@ def test_summary_slots_workers_and_marks_the_silent_ones_idle() -> None:
     bridge = Bridge("r", foxglove.Context())
     for node, at in (("t1", 0.0), ("t2", 1.0), ("t1", 2.0)):
         progress = TrainProgress(
-            run="r", child="a1", job="j", node=node, env_steps=1, total_steps=8, steps_per_s=100.0
+            run="r", agent="a1", job="j", node=node, env_steps=1, total_steps=8, steps_per_s=100.0
         )
         bridge.apply(progress, at)
     bridge.apply(_birth("other", 3), 0.0)  # another run's birth is not this run's

@@ -57,8 +57,8 @@ def test_a_full_disk_stalls_the_coordinator_until_it_has_room(
     assert str(local.dir) in failures[0] and reason in failures[0]
     assert "writing works again" in log
     assert_born_once(local.dir, 8)
-    births = {m.child: m for m in journaled(local.dir, Birth)}
+    births = {m.agent: m for m in journaled(local.dir, Birth)}
     for msg in heard:  # every birth and Ack published is in the journal
-        assert msg.child in births and (isinstance(msg, Birth) or births[msg.child].job == msg.job)
+        assert msg.agent in births and (isinstance(msg, Birth) or births[msg.agent].job == msg.job)
     for name in ("a", "b"):
         assert procs.finish(procs.started[name], timeout=30) == 0

@@ -23,7 +23,15 @@ from mcap.writer import CompressionType, Writer
 from nodes_fixtures import FullDisk
 
 from derl.evolution import load_profile
-from derl.messages import MESSAGE_TYPES, KeySpace, MessageBase, decode, encode, kind_of
+from derl.messages import (
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    KeySpace,
+    MessageBase,
+    decode,
+    encode,
+    kind_of,
+)
 from derl.messages.examples import examples
 from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import Coordinator
@@ -34,6 +42,7 @@ from derl.nodes.journal.segments import (
     JournalFault,
     JournalWriter,
     compact,
+    read_logged,
     read_segment,
     records,
     replay,
@@ -154,10 +163,11 @@ def test_undecodable_records_are_skipped(tmp_path: Path, caplog) -> None:
 
 
 def test_a_journal_of_another_schema_version_is_refused_as_a_whole(tmp_path: Path) -> None:
-    """A journal written by a derl of schema version 3 (its jobs carried a parent's body and a
-    mutation seed): every message of it would be skipped, and a coordinator would have started
+    """A journal written by the derl before this one's schema (version 4: its messages named the
+    agent `child`): every message of it would be skipped, and a coordinator would have started
     the run again from nothing in its directory. It is refused in one line instead, by the
     coordinator (exit status 78) and by every reader."""
+    old = SCHEMA_VERSION - 1
     (tmp_path / "journal").mkdir()
     path = tmp_path / "journal" / "segment-0001.mcap"
     with path.open("wb") as f:
@@ -165,17 +175,74 @@ def test_a_journal_of_another_schema_version_is_refused_as_a_whole(tmp_path: Pat
         writer.start()
         schema = writer.register_schema("Birth", SchemaEncoding.JSONSchema, b"{}")
         channel = writer.register_channel("derl/run1/births", MessageEncoding.MessagePack, schema,
-                                          {"schema_version": "3"})  # fmt: skip
-        raw = {**mixed(13)[-1].model_dump(), "schema_version": 3}
+                                          {"schema_version": str(old)})  # fmt: skip
+        birth = mixed(13)[-1].model_dump()
+        raw = {**birth, "schema_version": old, "child": birth.pop("agent")}
         writer.add_message(channel, log_time=1, data=msgpack.packb(raw), publish_time=1)
         writer.finish()
+    said = f"schema version {old}, and this derl reads version {SCHEMA_VERSION}"
     for read in (lambda: list(read_segment(path)), lambda: list(replay(tmp_path))):
-        with pytest.raises(DerlError, match="schema version 3, and this derl reads version 4"):
+        with pytest.raises(DerlError, match=said):
             read()
     with pytest.raises(DerlError) as refused:
         Coordinator("run1", tmp_path, EvolutionPolicy("run1", tmp_path, load_profile("smoke")))
     assert refused.value.code == REFUSED and "derl that wrote it" in str(refused.value)
     assert segments(tmp_path) == [path]  # no new segment was started beside it
+
+
+V4_CHILD = {"Tournament", "TrainJob", "TrainProgress", "FitnessReport", "Ack", "Reject", "Birth",
+            "ChildFailed", "Quarantine", "Retrained"}  # fmt: skip
+
+
+def _as_version_4(msg: MessageBase) -> bytes:
+    """`msg` as the derl of schema version 4 wrote it: its agent named `child` or `subject`."""
+    raw = msgpack.unpackb(encode(msg))
+    raw["schema_version"] = 4
+    if msg.type in V4_CHILD:
+        raw["child"] = raw.pop("agent")
+    elif msg.type == "JobFailed":
+        raw["subject"] = raw.pop("agent")
+    return msgpack.packb(raw)
+
+
+def test_a_version_4_journal_is_upgraded_in_place(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`derl log upgrade RUN_DIR`: every message of a version-4 journal, in order with its times,
+    as this version's (its agent renamed, nothing else), the old segments kept beside it; a
+    second upgrade is refused."""
+    from derl.nodes.cli.main import main
+
+    sent = mixed(2 * len(MESSAGE_TYPES))
+    (tmp_path / "journal").mkdir()
+    for n, part in enumerate((sent[:7], sent[7:])):
+        path = tmp_path / "journal" / f"segment-{n + 1:04d}.mcap"
+        with path.open("wb") as f:
+            writer = Writer(f, compression=CompressionType.NONE)
+            writer.start()
+            schema = writer.register_schema("any", SchemaEncoding.JSONSchema, b"{}")
+            channel = writer.register_channel("derl/run1/x", MessageEncoding.MessagePack, schema,
+                                              {"schema_version": "4"})  # fmt: skip
+            for k, msg in enumerate(part):
+                writer.add_message(channel, log_time=100 + k, data=_as_version_4(msg),
+                                   publish_time=k)  # fmt: skip
+            writer.finish()
+    old = {p.name: p.read_bytes() for p in segments(tmp_path)}
+    with pytest.raises(DerlError, match="schema version 4"):
+        list(replay(tmp_path))
+    assert main(["log", "upgrade", str(tmp_path)]) == 0
+    said = capsys.readouterr().out
+    assert (
+        f"journal.v4/segment-0002.mcap -> {tmp_path}/journal/segment-0002.mcap: 31 messages" in said
+    )
+    assert list(replay(tmp_path)) == sent
+    times = [(m.log_time, m.publish_time) for p in segments(tmp_path) for m in read_logged(p)]
+    assert times == [(100 + k, k) for part in (sent[:7], sent[7:]) for k in range(len(part))]
+    kept = tmp_path / "journal.v4"
+    assert {p.name: p.read_bytes() for p in kept.iterdir()} == old
+    with pytest.raises(SystemExit) as refused:
+        main(["log", "upgrade", str(tmp_path)])
+    assert refused.value.code == 1 and "journal.v4 exists" in capsys.readouterr().err
 
 
 def test_a_corrupt_chunk_is_skipped_with_a_warning_and_reading_goes_on(
@@ -248,7 +315,7 @@ from derl.nodes.journal.segments import Journal
 
 journal = Journal(sys.argv[1])
 for i in range(10**9):
-    journal.write(TrainProgress(run="run1", child=f"a{i}", job="j", node="n", env_steps=i,
+    journal.write(TrainProgress(run="run1", agent=f"a{i}", job="j", node="n", env_steps=i,
                                 total_steps=10**12, recent_return=None, steps_per_s=1.0))
     print(i + 1, flush=True)
 """

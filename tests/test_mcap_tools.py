@@ -31,7 +31,7 @@ STEPS = 5
 def _messages(run: str = "r1") -> list[MessageBase]:
     sent = [m for i in range(STEPS) for m in examples(run, i)]
     report = next(m for m in sent if isinstance(m, FitnessReport))
-    return [*sent, report.model_copy(update={"child": "a99", "energy": math.nan})]
+    return [*sent, report.model_copy(update={"agent": "a99", "energy": math.nan})]
 
 
 @pytest.fixture
@@ -270,8 +270,8 @@ def test_damage_in_the_last_segment_is_damage_for_every_tool(tmp_path: Path) -> 
     crashed.write_bytes(data)
     kept = [entry for entry in read_log(run)]
     assert _same([entry.message for entry in kept], messages[1:])
-    births = [m.child for m in messages[1:] if isinstance(m, Birth)]
-    assert [b.child for b in load_history(run).births] == births  # derl report's reading
+    births = [m.agent for m in messages[1:] if isinstance(m, Birth)]
+    assert [b.agent for b in load_history(run).births] == births  # derl report's reading
     assert [entry.topic for entry in kept] == [f"derl/r1/{kind_of(m)}" for m in messages[1:]]
     done = _derl("log", "info", str(run))
     assert done.returncode == 3 and "integrity:   corrupt: damaged at byte" in done.stdout

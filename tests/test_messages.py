@@ -174,7 +174,7 @@ def test_unknown_keys_are_rejected(msg: MessageBase) -> None:
 @pytest.mark.parametrize(
     ("raw", "reason"),
     [
-        ({**_dump(SAMPLES[0]), "schema_version": 3}, "schema version 3, expected 4"),
+        ({**_dump(SAMPLES[0]), "schema_version": 4}, "schema version 4, expected 5"),
         ({k: v for k, v in _dump(SAMPLES[0]).items() if k != "schema_version"}, "schema version"),
         ({**_dump(SAMPLES[0]), "type": "Teleport"}, "unknown message type 'Teleport'"),
         ({**_dump(SAMPLES[0]), "type": [1, 2]}, "unknown message type"),

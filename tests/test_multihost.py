@@ -187,15 +187,15 @@ def test_run_survives_a_host_dropping_off(tmp_path: Path, network: Network) -> N
         network.link_down("hostA")  # hostA vanishes: no FIN, the lease (2.5 s) notices
         network.kill_all("hostA")
         time.sleep(0.5)
-        held = {j.child for j in jobs(run_dir) if j.node.startswith("hostA-")} - set(
+        held = {j.agent for j in jobs(run_dir) if j.node.startswith("hostA-")} - set(
             births(run_dir)
         )
         assert held, "hostA's trainers finished their jobs before the test cut them off"
         wait_for(lambda: processes.started["coord"].poll() is not None, 180, "the run to end")
         assert processes.started["coord"].returncode == 0, processes.log("coord")
         assert_born_once(run_dir, 4)
-        after = [j for j in jobs(run_dir) if j.child in held and j.node.startswith("hostB-")]
-        assert {j.child for j in after} == held  # hostA's bodies were trained on hostB
+        after = [j for j in jobs(run_dir) if j.agent in held and j.node.startswith("hostB-")]
+        assert {j.agent for j in after} == held  # hostA's bodies were trained on hostB
         coordinator_log = (run_dir / "logs" / "coord-coordinator-0.log").read_text()
         assert "hostA-trainer-" in coordinator_log and "goes back to the queue" in coordinator_log
         wait_for(lambda: processes.started["hostB"].poll() is not None, 30, "hostB's launcher")

@@ -108,7 +108,7 @@ def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
         synced.append(len(list(read_segment(journal.segment))))
 
     outbox = Outbox(sync)
-    ack = Ack(run="r", of="FitnessReport", job="j1", child="c1", node="n1")
+    ack = Ack(run="r", of="FitnessReport", job="j1", agent="c1", node="n1")
     written, lost = Future(), Future()
     for future in (written, lost):
         future.set_running_or_notify_cancel()

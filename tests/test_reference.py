@@ -26,7 +26,7 @@ def test_protocol_names_every_message_and_key() -> None:
     assert f"Schema version: **{SCHEMA_VERSION}**" in text
     for name in MESSAGE_TYPES:
         assert f"### {name}\n" in text
-    fitness = "| `derl/<run>/fitness/<node>/<child>` | [FitnessReport](#fitnessreport) | trainer |"
+    fitness = "| `derl/<run>/fitness/<node>/<agent>` | [FitnessReport](#fitnessreport) | trainer |"
     assert fitness in text
     assert "| `derl/<run>/status` | [RunStatus](#runstatus) | coordinator | DROP |" in text
 

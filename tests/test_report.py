@@ -55,7 +55,7 @@ def _job(
     return TrainJob(
         run="hand",
         job=f"{child}.{attempt}",
-        child=child,
+        agent=child,
         node="t0",
         genome=genome,
         task="vt",
@@ -75,7 +75,7 @@ def _report(
 ):
     return FitnessReport(
         run="hand",
-        child=child,
+        agent=child,
         job=f"{child}.{attempt}",
         node="t0",
         genome=genome,
@@ -99,7 +99,7 @@ def _birth(
 ) -> Birth:
     """The coordinator's Birth of an accepted `report` (of a job made by `mutation`)."""
     return Birth(
-        run=report.run, child=report.child, parent=parent, job=report.job, node=report.node,
+        run=report.run, agent=report.agent, parent=parent, job=report.job, node=report.node,
         birth=birth, generation=generation, fitness=report.fitness,
         cost_of_work=report.cost_of_work, energy=report.energy, mass=report.mass,
         mutation=mutation, genome=report.genome,
@@ -119,7 +119,7 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
             journal.write(report)
             journal.write(_birth(report, None, k, 0, None))
             journal.write(
-                Ack(run="hand", of="FitnessReport", job=f"i{k}.1", child=f"i{k}", node="t0")
+                Ack(run="hand", of="FitnessReport", job=f"i{k}.1", agent=f"i{k}", node="t0")
             )
         journal.write(_report("i1", 99.0, (1.0, 2.0, 3.0), founders[1]))  # repeated: 1st counts
         made = {"c0": "grow_limb", "c1": "gear"}
@@ -127,7 +127,7 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
             journal.write(
                 Tournament(
                     run="hand",
-                    child=child,
+                    agent=child,
                     contestants=(parent,),
                     fitness=(1.0,),
                     parent=parent,
@@ -142,7 +142,7 @@ def write_journal(run_dir: Path, genome: Genome) -> None:
             (_report("c1", 400.0, (30.0, 200.0, 400.0), c1_body), "c0", 4),
         ):
             journal.write(report)
-            journal.write(_birth(report, parent, k, k - 2, made[report.child]))
+            journal.write(_birth(report, parent, k, k - 2, made[report.agent]))
         for task, seed, reward in (("patrol", 0, 5.0), ("patrol", 1, 7.0), ("incline", 0, 3.0)):
             result = EvalResult(
                 run="hand",

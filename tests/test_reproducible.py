@@ -38,7 +38,7 @@ def _births(run_dir: Path) -> Facts:
     """(child, parent, generation, the fitness's bits, body) of every birth, in child order."""
     born = journaled(run_dir, Birth)
     return sorted(
-        (b.child, b.parent, b.generation, b.fitness.hex(), body_hash(b.genome)) for b in born
+        (b.agent, b.parent, b.generation, b.fitness.hex(), body_hash(b.genome)) for b in born
     )
 
 

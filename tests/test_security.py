@@ -143,7 +143,7 @@ def sessions() -> Iterator[list[zenoh.Session]]:
 
 def _report(run: str, job: str, child: str, node: str) -> FitnessReport:
     template = next(m for m in examples(run, 0) if isinstance(m, FitnessReport))
-    update = {"job": job, "child": child, "node": node, "fitness": FORGED_FITNESS}
+    update = {"job": job, "agent": child, "node": node, "fitness": FORGED_FITNESS}
     return template.model_copy(update=update)
 
 
@@ -211,12 +211,12 @@ def test_tls_and_per_node_access_control(tmp_path: Path, sessions: list) -> None
         trainer = job.node
         assert trainer == "h-trainer-0"
         # on the trainer's own key, under its name: the access control drops it at once
-        other.bus.publish(_report(run, job.job, job.child, trainer))
+        other.bus.publish(_report(run, job.job, job.agent, trainer))
         other.bus.publish(job.model_copy(update={"job": "forged-job", "node": trainer}))
         # on its own keys: heard, and the coordinator rejects it (not its job; not its name)
-        other.bus.publish(_report(run, job.job, job.child, "h-trainer-1"))
-        own_key = other.bus.keys.fitness("h-trainer-1", job.child)
-        other.session.put(own_key, encode(_report(run, job.job, job.child, trainer)))
+        other.bus.publish(_report(run, job.job, job.agent, "h-trainer-1"))
+        own_key = other.bus.keys.fitness("h-trainer-1", job.agent)
+        other.session.put(own_key, encode(_report(run, job.job, job.agent, trainer)))
         other.bus.publish(_report(run, "restart-job", "c88888", "h-trainer-1.r1"))  # its restart
         for sender in (monitor, stranger):
             sender.bus.publish(_report(run, "monitor-forged", "cmon", trainer))
@@ -247,7 +247,7 @@ def test_tls_and_per_node_access_control(tmp_path: Path, sessions: list) -> None
         assert {m.node for m in births} == {trainer}
         assert all(m.fitness != FORGED_FITNESS for m in births)
         log = processes.log("coordinator")
-        assert f"job {job.job} was never issued to h-trainer-1 for {job.child}" in log
+        assert f"job {job.job} was never issued to h-trainer-1 for {job.agent}" in log
         assert [m.sender for m in journal if isinstance(m, Rejection)] == [trainer]  # wrong key
         assert "monitor-forged" not in log and "forged-job" not in processes.log("trainer")
         assert max(s.rejected for s in monitor.of(RunStatus)) >= 3
@@ -281,13 +281,13 @@ def test_a_report_with_another_body_than_its_job_is_rejected(tmp_path: Path, pro
         forged_body, _ = breed(job.genome, 12345)
         template = next(m for m in examples(local.run, 0) if isinstance(m, FitnessReport))
         forged = template.model_copy(update={
-            "job": job.job, "child": job.child, "node": "a", "genome": forged_body,
+            "job": job.job, "agent": job.agent, "node": "a", "genome": forged_body,
             "fitness": FORGED_BODY_FITNESS, "env_steps": job.steps})  # fmt: skip
         observer.bus.publish(forged)
         assert procs.finish(procs.started["coordinator"], timeout=120) == 0
     assert_born_once(local.dir, 3)
     journal = list(replay(local.dir))
-    birth = next(m for m in journal if isinstance(m, Birth) and m.child == job.child)
+    birth = next(m for m in journal if isinstance(m, Birth) and m.agent == job.agent)
     assert birth.fitness != FORGED_BODY_FITNESS and birth.genome != forged_body
     rejects = [m for m in journal if isinstance(m, Reject) and m.job == job.job]
     assert [m.reason for m in rejects] == ["not the body of its job"]

@@ -111,7 +111,7 @@ def test_the_tests_wait_for_every_retraining_and_take_the_best_by_mean(quadruped
     for attempt in range(CONFIG.max_attempts):  # the last one fails: given up, not forever
         state.apply(EvalJob(run="s", job=f"f{attempt}", agent="r3.c1", node="w", genome=genome,
                             task="patrol", ppo=ppo, lease_s=30.0))  # fmt: skip
-        state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject="r3.c1", error="x"))
+        state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", agent="r3.c1", error="x"))
     assert state.eval_given_up == {tests[3]} and state.finished
 
 
@@ -132,7 +132,7 @@ def test_the_kept_hold_each_body_once_ranked_on_every_seed(quadruped: Genome) ->
             for attempt in range(config.max_attempts):
                 state.apply(EvalJob(run="s", job=f"f{attempt}", agent=key[0], node="w",
                                     genome=genome, task=key[1], ppo=ppo, lease_s=30.0))  # fmt: skip
-                state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject=key[0],
+                state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", agent=key[0],
                                       error="x"))  # fmt: skip
             continue
         for msg in _answer(state, key, reward, n):
@@ -151,7 +151,7 @@ def test_a_retraining_given_up_still_lets_the_tests_start(quadruped: Genome) -> 
     for attempt in range(CONFIG.max_attempts):
         state.apply(EvalJob(run="s", job=f"f{attempt}", agent=first[0], node="w", genome=genome,
                             task=first[1], ppo=ppo, lease_s=30.0))  # fmt: skip
-        state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", subject=first[0], error="x"))
+        state.apply(JobFailed(run="s", job=f"f{attempt}", node="w", agent=first[0], error="x"))
     for n, key in enumerate(rest):
         for msg in _answer(state, key, 1.0, n):
             state.apply(msg)

@@ -40,10 +40,10 @@ def _run(run: str) -> list[MessageBase]:
         child, job, initial = f"b{k}", f"j{k}", k < INITIAL
         curve = Curve(env_steps=(1000, 2000, 3000), returns=RETURNS[k % len(RETURNS)])
         messages.append(report.model_copy(update={
-            "child": child, "job": job, "fitness": fitness, "curve": curve, "wall_s": 2.0,
+            "agent": child, "job": job, "fitness": fitness, "curve": curve, "wall_s": 2.0,
             "steps_per_s": 1000.0 + k}))  # fmt: skip
         messages.append(birth.model_copy(update={
-            "child": child, "job": job, "birth": k, "fitness": fitness, "cost_of_work": 0.5 * k,
+            "agent": child, "job": job, "birth": k, "fitness": fitness, "cost_of_work": 0.5 * k,
             "parent": None if initial else "b1", "generation": 0 if initial else 1,
             "mutation": None if initial else "grow_limb", "repeat_of": None}))  # fmt: skip
     return messages

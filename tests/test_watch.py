@@ -332,11 +332,11 @@ def _a_run(run: str) -> list[MessageBase]:
     return [
         RunStatus(run=run, born=7, target=40, best_fitness=12.5, best_agent="a3", in_flight=2,
                   workers_alive=2, evaluated=1, eval_target=4, steps_per_s=2345.0),
-        TrainProgress(run=run, child="a9", job="j9", node="trainer-1", env_steps=4096,
+        TrainProgress(run=run, agent="a9", job="j9", node="trainer-1", env_steps=4096,
                       total_steps=8192, recent_return=1.5, steps_per_s=1200.0),
-        Tournament(run=run, child="a8", contestants=("a3", "a1"), fitness=(12.5, 3.0),
+        Tournament(run=run, agent="a8", contestants=("a3", "a1"), fitness=(12.5, 3.0),
                    parent="a3", mutation_seed=5, iteration=5),
-        birth.model_copy(update={"child": "a8", "parent": "a3", "fitness": 9.75}),
+        birth.model_copy(update={"agent": "a8", "parent": "a3", "fitness": 9.75}),
     ]  # fmt: skip
 
 
@@ -377,7 +377,7 @@ def test_example_monitor_prints_fitness(
     reports = [m for i in range(3) for m in examples(bus.run, i) if isinstance(m, Birth)]
     repeater.start(reports, 0.2, raw=((bus.keys.births("x"), b"\xffjunk"),))
     procs.start("example", [sys.executable, "examples/fitness_monitor.py", bus.run, endpoint])
-    wanted = {f"{r.child} fitness {r.fitness:.2f} ({r.node})" for r in reports}
+    wanted = {f"{r.agent} fitness {r.fitness:.2f} ({r.node})" for r in reports}
     wait_for(lambda: wanted <= set(procs.log("example").splitlines()), 30, "fitness lines")
     lines = procs.log("example").splitlines()
     assert sum(line in wanted for line in lines) == 3  # each child once
@@ -398,7 +398,7 @@ def test_a_birth_never_published_is_asked_for_again(
     def answer(query: zenoh.Query) -> None:
         asked.append(time.monotonic())
         for b in list(journaled):
-            query.reply(bus.keys.births(b.child), encode(b))
+            query.reply(bus.keys.births(b.agent), encode(b))
 
     queryable = bus.session.declare_queryable(bus.keys.all("births"), answer)
     try:
@@ -418,7 +418,7 @@ def test_a_birth_never_published_is_asked_for_again(
         for _ in range(8):  # the restarted coordinator's status, once a second
             bus.publish(counts)
             time.sleep(0.5)
-        shown = f"{birth.child} fitness {birth.fitness:.2f}" if watcher == "example" else "born 1/"
+        shown = f"{birth.agent} fitness {birth.fitness:.2f}" if watcher == "example" else "born 1/"
         wait_for(lambda: shown in procs.log(watcher), 20, "the birth asked for again")
         if watcher == "monitor":
             assert procs.finish(procs.started["monitor"]) == 0, procs.log("monitor")
@@ -437,7 +437,7 @@ def test_run_view_folds_births_and_draws_them() -> None:
     for message in _a_run("r"):
         view.apply(message, 100.0)
     view.apply(_a_run("r")[-1], 101.0)  # a birth heard twice (query and stream) is one
-    assert [(b.child, b.parent, b.mutation, b.fitness) for b in view.births] == [
+    assert [(b.agent, b.parent, b.mutation, b.fitness) for b in view.births] == [
         ("a8", "a3", "grow_limb", 9.75)
     ]
     assert view.best() == (12.5, "a3")

@@ -31,6 +31,7 @@ from derl.messages.keys import ARITY
 from derl.nodes.cli.options import (
     add_bus_arguments,
     at_least_one,
+    fail,
     how_joined,
     publish_options,
     watch_options,
@@ -164,6 +165,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     repair.add_argument("source", type=Path, metavar="IN.mcap")
     repair.add_argument("out", type=Path, metavar="OUT.mcap", help="new file")
     repair.set_defaults(handler=_clearly(_log_repair))
+    upgrade = log_verbs.add_parser(
+        "upgrade",
+        help="bring a journal or recording of schema version 4 to this derl's: a run directory "
+        "in place (its old segments kept in journal.v4/), a file into OUT.mcap",
+    )
+    upgrade.add_argument("source", type=Path, metavar="LOG", help="a run directory or an MCAP file")
+    upgrade.add_argument("out", type=Path, metavar="OUT.mcap", nargs="?", help="new file (a file)")
+    upgrade.set_defaults(handler=_clearly(_log_upgrade))
 
 
 def _non_negative(text: str) -> float:
@@ -437,6 +446,23 @@ def _log_info(args: argparse.Namespace) -> int:
     else:
         print(describe(files))
     return 0 if all(f.integrity in HEALTHY for f in files) else 3
+
+
+def _log_upgrade(args: argparse.Namespace) -> int:
+    from derl.nodes.journal.upgrade import upgrade, upgrade_run
+
+    if args.source.is_dir():
+        if args.out is not None:
+            fail("a run directory is upgraded in place: give no OUT.mcap")
+        done = upgrade_run(args.source)
+    elif args.out is None:
+        fail(f"{args.source} is a file: give the new file to write, OUT.mcap")
+    else:
+        done = [upgrade(args.source, args.out)]
+    for file in done:
+        dropped = f", {file.dropped} dropped (see the warnings)" if file.dropped else ""
+        print(f"{file.source} -> {file.out}: {file.messages} messages{dropped}")
+    return 0
 
 
 def _log_repair(args: argparse.Namespace) -> int:

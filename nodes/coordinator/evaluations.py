@@ -60,6 +60,6 @@ def on_evaluation(ledger: Ledger, result: EvalResult) -> None:
 
 def log_given_up(state: JobBook, job: Job, max_attempts: int) -> None:
     """Say so if `job`'s failure gave its evaluation up."""
-    if job.evaluation is not None and (job.subject, *job.evaluation) in state.eval_given_up:
-        log.error("evaluation of %s in %s given up after %d failures", job.subject,
+    if job.evaluation is not None and (job.agent, *job.evaluation) in state.eval_given_up:
+        log.error("evaluation of %s in %s given up after %d failures", job.agent,
                   job.evaluation[0], max_attempts)  # fmt: skip

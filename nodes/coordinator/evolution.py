@@ -91,8 +91,8 @@ class EvolutionPolicy:
         for child in self.state.by_child:  # children in training hold later equal ones
             self.state.training(child)
         for birth in self.state.births:
-            if birth.repeat_of is not None and not ledger.checkpoints.path(birth.child).exists():
-                ledger.checkpoints.link(birth.child, birth.repeat_of).add_done_callback(
+            if birth.repeat_of is not None and not ledger.checkpoints.path(birth.agent).exists():
+                ledger.checkpoints.link(birth.agent, birth.repeat_of).add_done_callback(
                     _log_failed_link
                 )
 
@@ -134,7 +134,7 @@ class EvolutionPolicy:
         job = TrainJob(
             run=self.run,
             job=state.next_job_id(child),
-            child=child,
+            agent=child,
             node=node,
             genome=genome,
             task=self.config.world,
@@ -172,7 +172,7 @@ class EvolutionPolicy:
             self.ledger.commit(
                 ChildFailed(
                     run=self.run,
-                    child=child,
+                    agent=child,
                     parent=self.state.evolution.parents[child],
                     attempts=0,
                     error=f"MutationFailed: {failure}"[:1000],
@@ -193,7 +193,7 @@ class EvolutionPolicy:
         parent = state.evolution.parents[child]
         birth = first.model_copy(
             update={
-                "child": child,
+                "agent": child,
                 "parent": parent,
                 "birth": len(state.births),
                 "generation": state.generation(parent),
@@ -213,7 +213,7 @@ class EvolutionPolicy:
     def on_fitness(self, report: FitnessReport) -> None:
         state, ledger = self.state, self.ledger
         order = state.orders.get(report.job)
-        child = report.child
+        child = report.agent
         if not state.issued_to(report.job, report.node, child):
             ledger.never_issued(report, child)  # whatever the child's state
         elif identity(report.node) in state.quarantined:
@@ -250,7 +250,7 @@ class EvolutionPolicy:
         state = self.state
         birth = Birth(
             run=self.run,
-            child=report.child,
+            agent=report.agent,
             parent=order.parent,
             job=report.job,
             node=report.node,
@@ -265,7 +265,7 @@ class EvolutionPolicy:
             genome=order.genome,
         )
         self.ledger.commit(birth)
-        log.debug("born %s fitness %.2f", report.child, report.fitness)
+        log.debug("born %s fitness %.2f", report.agent, report.fitness)
 
     def _end_other_job(self, child: str, done: str) -> None:
         """A report for `child` was taken from job `done`: another job for it is cancelled."""
@@ -277,7 +277,7 @@ class EvolutionPolicy:
 
     def _decided(self, decided: Verdict, order: TrainJob) -> None:
         """An audit's trials decided: the birth, and the liar's quarantine (`audits`)."""
-        state, child = self.state, order.child
+        state, child = self.state, order.agent
         jobs = tuple(r.job for r in trials(state.trials[child]))
         if decided.undecided:
             log.warning("%s: its trainings %s disagree, none alike: the trainers do not train "
@@ -287,12 +287,12 @@ class EvolutionPolicy:
         if decided.liar is None:
             return
         liar = decided.liar
-        retrain = tuple(b.child for b in state.births if b.repeat_of is None
-                        and identity(b.node) == liar and b.child not in state.checked)  # fmt: skip
+        retrain = tuple(b.agent for b in state.births if b.repeat_of is None
+                        and identity(b.node) == liar and b.agent not in state.checked)  # fmt: skip
         log.error("%s lied about %s (trainings %s): quarantined; %d of its births are trained "
                   "again", liar, child, ", ".join(jobs), len(retrain))  # fmt: skip
         self.ledger.commit(
-            Quarantine(run=self.run, node=liar, child=child, jobs=jobs, retrain=retrain)
+            Quarantine(run=self.run, node=liar, agent=child, jobs=jobs, retrain=retrain)
         )
         for job in list(state.jobs.values()):
             if identity(job.node) == liar:
@@ -301,16 +301,16 @@ class EvolutionPolicy:
 
     def _retrained(self, report: FitnessReport) -> None:
         """A child born from a liar's report, trained again: its result is this one's."""
-        was = self.state.born[report.child].fitness
-        same = ("child", "job", "node", "fitness", "cost_of_work", "energy", "mass")
+        was = self.state.born[report.agent].fitness
+        same = ("agent", "job", "node", "fitness", "cost_of_work", "energy", "mass")
         result = {k: getattr(report, k) for k in same}
         self.ledger.commit(Retrained(run=self.run, was=was, **result))
         for birth in self.state.births:  # its repeats' files: links to the new one
-            if birth.repeat_of == report.child:
-                self.ledger.checkpoints.link(birth.child, report.child).add_done_callback(
+            if birth.repeat_of == report.agent:
+                self.ledger.checkpoints.link(birth.agent, report.agent).add_done_callback(
                     _log_failed_link
                 )
-        log.info("%s trained again: fitness %.2f (it was born with %.2f)", report.child,
+        log.info("%s trained again: fitness %.2f (it was born with %.2f)", report.agent,
                  report.fitness, was)  # fmt: skip
 
     def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
@@ -337,14 +337,14 @@ class EvolutionPolicy:
         trainings is a ChildFailed."""
         state, attempts = self.state, self.config.max_attempts
         log_given_up(state, job, attempts)
-        if job.evaluation is None and state.failed_trainings(job.subject) >= attempts:
-            log.error("%s given up after %d failed trainings", job.subject, attempts)
+        if job.evaluation is None and state.failed_trainings(job.agent) >= attempts:
+            log.error("%s given up after %d failed trainings", job.agent, attempts)
             self.ledger.commit(
                 ChildFailed(
                     run=self.run,
-                    child=job.subject,
-                    parent=state.evolution.parents.get(job.subject),
-                    attempts=state.failed_trainings(job.subject),
+                    agent=job.agent,
+                    parent=state.evolution.parents.get(job.agent),
+                    attempts=state.failed_trainings(job.agent),
                     error=failure.error,
                 )
             )
@@ -399,7 +399,7 @@ def check_jobs(run: str, config: EvolutionConfig) -> None:
     head = Genome(head_density=DENSITIES[0], limb_density=DENSITIES[0])
     try:
         ids = {"run": run, "job": "check", "node": "check", "genome": head}
-        TrainJob(**ids, child="check", task=config.world, ppo=config.training_ppo(),
+        TrainJob(**ids, agent="check", task=config.world, ppo=config.training_ppo(),
                  lease_s=config.lease_s)  # fmt: skip
         for task in config.eval_tasks:
             for seed in range(config.eval_seeds):

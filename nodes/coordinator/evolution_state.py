@@ -55,7 +55,7 @@ def tournament_message(run: str, decided: Child) -> Tournament:
     `on_tournament` turns it back into the `Child` it records."""
     return Tournament(
         run=run,
-        child=decided.name,
+        agent=decided.name,
         contestants=decided.contestants,
         fitness=decided.fitness,
         parent=decided.parent,
@@ -99,11 +99,11 @@ class EvolutionState(JobBook):
             if msg.parent in evolution.genomes:
                 return True
             evolution.skip(msg.iteration)
-            what = f"Tournament of {msg.child}: its parent {msg.parent} was never born"
+            what = f"Tournament of {msg.agent}: its parent {msg.parent} was never born"
         elif isinstance(msg, TrainJob | FitnessReport | Birth | ChildFailed):
-            if msg.child in evolution.parents:
+            if msg.agent in evolution.parents:
                 return True
-            what = f"{msg.type} of {msg.child}: no tournament decided it"
+            what = f"{msg.type} of {msg.agent}: no tournament decided it"
         else:
             return True
         log.warning("journal: %s (lost with a damaged segment?): skipped", what)
@@ -113,7 +113,7 @@ class EvolutionState(JobBook):
     def on_tournament(self, msg: Tournament) -> None:
         self.evolution.record(
             Child(
-                msg.child,
+                msg.agent,
                 None,
                 msg.parent,
                 msg.contestants,
@@ -122,13 +122,13 @@ class EvolutionState(JobBook):
                 msg.iteration,
             )
         )
-        if msg.child not in self.by_child and msg.child not in self.waiting:
-            self.waiting.append(msg.child)  # until its TrainJob (lost if the node died)
+        if msg.agent not in self.by_child and msg.agent not in self.waiting:
+            self.waiting.append(msg.agent)  # until its TrainJob (lost if the node died)
 
     @handles(TrainJob)
     def on_train_job(self, msg: TrainJob) -> None:
         super().on_train_job(msg)
-        child = msg.child
+        child = msg.agent
         made = None if msg.mutation is None else Mutation(msg.mutation, msg.mutation_detail)
         self.evolution.decided(child, msg.genome, made)
         if child in self.by_child:
@@ -146,24 +146,24 @@ class EvolutionState(JobBook):
         training by another identity. Nothing else is kept: the coordinator needs no learning
         curve (the journal holds them for `derl report`), and keeping each report's was most of
         its memory's growth per birth."""
-        if not self.is_audited(msg.child) or msg.child in self.evolution.fitness:
+        if not self.is_audited(msg.agent) or msg.agent in self.evolution.fitness:
             return
-        self.trials.setdefault(msg.child, []).append(msg)
+        self.trials.setdefault(msg.agent, []).append(msg)
         self._remove(msg.job)
-        if msg.child not in self.by_child and msg.child not in self.waiting:
-            self.waiting.appendleft(msg.child)
+        if msg.agent not in self.by_child and msg.agent not in self.waiting:
+            self.waiting.appendleft(msg.agent)
 
     @handles(Birth)
     def on_birth(self, msg: Birth) -> None:
         super().on_birth(msg)
-        if len(trials(self.trials.pop(msg.child, []))) > 1:
-            self.checked.add(msg.child)
-        self._forget_orders(msg.child)
-        self.evolution.birth(msg.child, msg.fitness, msg.genome, msg.repeat_of)
+        if len(trials(self.trials.pop(msg.agent, []))) > 1:
+            self.checked.add(msg.agent)
+        self._forget_orders(msg.agent)
+        self.evolution.birth(msg.agent, msg.fitness, msg.genome, msg.repeat_of)
         self._remove(msg.job)
-        if msg.child in self.waiting:  # born from a late report while it waited
-            self.waiting.remove(msg.child)
-        self._release(msg.child)
+        if msg.agent in self.waiting:  # born from a late report while it waited
+            self.waiting.remove(msg.agent)
+        self._release(msg.agent)
 
     @handles(Quarantine)
     def on_quarantine(self, msg: Quarantine) -> None:
@@ -180,39 +180,39 @@ class EvolutionState(JobBook):
     @handles(Retrained)
     def on_retrained(self, msg: Retrained) -> None:
         super().on_retrained(msg)
-        self.retraining.pop(msg.child, None)
-        self.evolution.correct(msg.child, msg.fitness)
-        self._forget_orders(msg.child)
+        self.retraining.pop(msg.agent, None)
+        self.evolution.correct(msg.agent, msg.fitness)
+        self._forget_orders(msg.agent)
         self._remove(msg.job)
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
-        self.failed_on.setdefault(msg.subject, set()).add(msg.node)
+        self.failed_on.setdefault(msg.agent, set()).add(msg.node)
         super().on_job_failed(msg)
 
     @handles(ChildFailed)
     def on_child_failed(self, msg: ChildFailed) -> None:
         super().on_child_failed(msg)
-        self._forget_orders(msg.child)
-        self.evolution.give_up(msg.child)
-        if msg.child in self.waiting:
-            self.waiting.remove(msg.child)
-        self._release(msg.child)
+        self._forget_orders(msg.agent)
+        self.evolution.give_up(msg.agent)
+        if msg.agent in self.waiting:
+            self.waiting.remove(msg.agent)
+        self._release(msg.agent)
 
     def _take_back(self, job_id: str) -> Job | None:
         """A job ends without its result: its child (not born, or to train again) waits first in
         the queue for the next ready trainer."""
         job = super()._take_back(job_id)
         if job is not None and job.evaluation is None:
-            unborn = job.subject not in self.evolution.fitness and job.subject not in self.failed
-            if unborn or job.subject in self.retraining:
-                self.waiting.appendleft(job.subject)
+            unborn = job.agent not in self.evolution.fitness and job.agent not in self.failed
+            if unborn or job.agent in self.retraining:
+                self.waiting.appendleft(job.agent)
         return job
 
     def _remove(self, job_id: str) -> Job | None:
         job = super()._remove(job_id)
-        if job is not None and self.by_child.get(job.subject) == job_id:
-            del self.by_child[job.subject]
+        if job is not None and self.by_child.get(job.agent) == job_id:
+            del self.by_child[job.agent]
         return job
 
     def training(self, child: str) -> None:

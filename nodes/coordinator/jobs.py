@@ -6,7 +6,7 @@ sent), the orders of subjects with no result yet (a late result is checked again
 and the evaluations: planned, waiting for an evaluator, given up after `max_attempts` failed jobs,
 done. Its handlers are the only way it changes, both live and when a restarted coordinator replays
 its journal: an EvalJob puts a job in flight, an EvalResult completes an evaluation, a Cancel ends
-a job, a JobLost or a JobFailed takes a job back (its subject waits for the next worker). What
+a job, a JobLost or a JobFailed takes a job back (its agent waits for the next worker). What
 each state plans (`_plan_evaluations`), how it orders an evaluation (`evaluation_order`) and when
 it is over (`finished`) is its own; time (leases) and the checks of incoming messages are the
 node's business.
@@ -31,7 +31,7 @@ class Job:
     """An assignment in flight."""
 
     id: str
-    subject: str  # the child (training) or agent (evaluation)
+    agent: str  # the child (training) or agent (evaluation)
     node: str
     order: TrainJob | EvalJob  # as sent (sent again to a worker that missed it)
     evaluation: tuple[str, int, int] | None = None  # (task, seed, steps) for an evaluation
@@ -44,8 +44,9 @@ class JobBook(RunHistory, ABC):
         super().__init__()
         self.max_attempts = max_attempts
         self.jobs: dict[str, Job] = {}  # in flight
-        # the orders of jobs whose subject has no result yet (a late result is checked against
-        # its order); a result forgets them, so the state grows by results, not by jobs
+        # the orders of jobs whose subject (a child, an evaluation) has no result yet (a late
+        # result is checked against its order); a result forgets them, so the state grows by
+        # results, not by jobs
         self.orders: dict[str, TrainJob | EvalJob] = {}
         self.orders_of: dict[str | EvalKey, list[str]] = {}  # subject -> its jobs
         self.by_node: dict[str, str] = {}  # node -> its job in flight
@@ -91,7 +92,7 @@ class JobBook(RunHistory, ABC):
         super().on_job_failed(msg)
         job = self.jobs.get(msg.job)
         if job is not None and job.evaluation is not None:
-            key = (job.subject, *job.evaluation)
+            key = (job.agent, *job.evaluation)
             self.eval_failures[key] = self.eval_failures.get(key, 0) + 1
             if self.eval_failures[key] >= self.max_attempts:
                 self.eval_given_up.add(key)
@@ -121,7 +122,7 @@ class JobBook(RunHistory, ABC):
         state that trains puts its child back: it extends this). The job, if it was in flight."""
         job = self._remove(job_id)
         if job is not None and job.evaluation is not None:
-            key = (job.subject, *job.evaluation)
+            key = (job.agent, *job.evaluation)
             if key not in self.evaluations and key not in self.eval_given_up:
                 self.eval_waiting.appendleft(key)
         return job

@@ -166,38 +166,38 @@ class Ledger:
         self.replies = []
 
     def ack(
-        self, msg: FitnessReport | EvalResult, subject: str, after: Future[None] | None = None
+        self, msg: FitnessReport | EvalResult, agent: str, after: Future[None] | None = None
     ) -> None:
-        ack = Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node)
+        ack = Ack(run=self.run, of=msg.type, job=msg.job, agent=agent, node=msg.node)
         self.commit(ack, after=after)
 
     def answer_again(
-        self, msg: FitnessReport | EvalResult, subject: str, after: Future[None] | None = None
+        self, msg: FitnessReport | EvalResult, agent: str, after: Future[None] | None = None
     ) -> None:
         """Acknowledge once more a result taken already (its sender missed the Ack, or floods
         copies of it): published, not journaled, so copies do not grow the journal; its log
         line is rate-limited as warnings are."""
-        log.info("%s already taken: a repeated %s from %s acknowledged", subject, msg.type,
+        log.info("%s already taken: a repeated %s from %s acknowledged", agent, msg.type,
                  msg.node, extra=FLOOD)  # fmt: skip
-        self.send(Ack(run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node), after)
+        self.send(Ack(run=self.run, of=msg.type, job=msg.job, agent=agent, node=msg.node), after)
 
-    def reject(self, msg: FitnessReport | EvalResult, subject: str, reason: str) -> None:
+    def reject(self, msg: FitnessReport | EvalResult, agent: str, reason: str) -> None:
         """Refuse a result for good: journaled, counted, and the sender told to drop it."""
         self.rejected += 1
         what = "fitness" if isinstance(msg, FitnessReport) else "evaluation"
-        log.warning("rejected %s of %s from %s: %s", what, subject, msg.node, reason)
+        log.warning("rejected %s of %s from %s: %s", what, agent, msg.node, reason)
         reject = Reject(
-            run=self.run, of=msg.type, job=msg.job, child=subject, node=msg.node, reason=reason
+            run=self.run, of=msg.type, job=msg.job, agent=agent, node=msg.node, reason=reason
         )
         if self._journal_refusal(msg.node):
             self.commit(reject)
         else:
             self.send(reject)
 
-    def never_issued(self, msg: FitnessReport | EvalResult, subject: str, also: str = "") -> None:
-        """Reject a result of a job its sender was never given for `subject`."""
-        self.reject(msg, subject, f"job {msg.job} was never issued to {msg.node} for "
-                    f"{subject}{also}")  # fmt: skip
+    def never_issued(self, msg: FitnessReport | EvalResult, agent: str, also: str = "") -> None:
+        """Reject a result of a job its sender was never given for `agent`."""
+        self.reject(msg, agent, f"job {msg.job} was never issued to {msg.node} for "
+                    f"{agent}{also}")  # fmt: skip
 
     def rejection(
         self, why: str, key: str, msg: MessageBase | None = None, sender: str | None = None

@@ -8,11 +8,11 @@ and only then published, so nothing is seen that a crash could forget. A worker 
 work (WorkerReady) gets the job its policy chooses, or waits among the idle workers and gets one
 as soon as there is some; one that asks again while it holds a job gets that job again. A worker
 that loses its liveliness token, or sends no progress for its job's lease, loses the job (JobLost,
-journaled): its subject goes to the next ready worker. Results go to the policy (`Policy`:
+journaled): its agent goes to the next ready worker. Results go to the policy (`Policy`:
 accept or reject), and so do failed jobs once checked and journaled; a message whose node differs
 from its key's node segment is rejected by the bus check, journaled and counted. Once a second
 the loop publishes the run's status, every 5 s its population; births and failed children go out
-on ``births/<child>``, and a Zenoh query on ``births/*`` or ``population`` answers a monitor that
+on ``births/<agent>``, and a Zenoh query on ``births/*`` or ``population`` answers a monitor that
 starts late. When the state says the run is over, the policy writes its results and the loop
 announces the end a few times, then returns. While the journal or a checkpoint file cannot be
 written (a full disk: `Ledger.stalled`) the loop commits nothing and publishes only what was on
@@ -379,10 +379,10 @@ class Coordinator(Handler):
     @handles(JobFailed)
     def _job_failed(self, failure: JobFailed) -> None:
         job = self.state.jobs.get(failure.job)
-        if job is None or job.node != failure.node or job.subject != failure.subject:
+        if job is None or job.node != failure.node or job.agent != failure.agent:
             self.ledger.rejection("failure of a job not held by its sender", "", failure)
             return
-        log.warning("%s failed on %s: %s", failure.subject, failure.node, failure.error)
+        log.warning("%s failed on %s: %s", failure.agent, failure.node, failure.error)
         self.ledger.commit(failure, publish=False)
         self.policy.on_failure(failure, job)
 
@@ -437,7 +437,7 @@ class Coordinator(Handler):
         self.rates.pop(node, None)
         job = self.state.job_of(node)
         if job is not None:
-            log.warning("%s: %s; %s goes back to the queue", node, reason, job.subject)
+            log.warning("%s: %s; %s goes back to the queue", node, reason, job.agent)
             self.ledger.commit(JobLost(run=self.run, job=job.id, node=node, reason=reason))
 
     def _check_leases(self, now: float) -> None:
@@ -445,7 +445,7 @@ class Coordinator(Handler):
             lease_s = job.order.lease_s
             if now - self.heard.get(job.id, now) > lease_s:
                 reason = f"no progress for {lease_s:g} s"
-                log.warning("%s: %s; %s goes back to the queue", job.node, reason, job.subject)
+                log.warning("%s: %s; %s goes back to the queue", job.node, reason, job.agent)
                 self.ledger.commit(JobLost(run=self.run, job=job.id, node=job.node, reason=reason))
 
     # --- what the run looks like -------------------------------------------------------------

@@ -106,7 +106,7 @@ def write_results(
         "failed": sorted(state.failed),
         "audited": len(state.checked),
         "quarantined": {
-            q.node: {"caught_at": q.child, "retrained": list(q.retrain)}
+            q.node: {"caught_at": q.agent, "retrained": list(q.retrain)}
             for q in state.quarantined.values()
         },
         "best": [vars(m) for m in ranked[:10]],

@@ -57,7 +57,7 @@ class StudyPolicy:
         return evaluation_job(self.state, self.run, node, self.config.lease_s)
 
     def on_fitness(self, report: FitnessReport) -> None:
-        self.ledger.never_issued(report, report.child)  # a study trains no children
+        self.ledger.never_issued(report, report.agent)  # a study trains no children
 
     def on_evaluation(self, result: EvalResult) -> None:
         on_evaluation(self.ledger, result)

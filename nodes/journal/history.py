@@ -56,13 +56,13 @@ class RunHistory(Handler):
     def __init__(self) -> None:
         self.run: str | None = None
         self.first_job: TrainJob | None = None  # the run's first (its world and budget)
-        self.issued: dict[str, tuple[str, str]] = {}  # every job ever sent -> (node, subject)
+        self.issued: dict[str, tuple[str, str]] = {}  # every job ever sent -> (node, agent)
         self.births: list[Birth] = []  # in birth order
         self.born: dict[str, Birth] = {}
         self.repeats = 0  # births with the result of an earlier body's (`Birth.repeat_of`)
         self.reports: dict[str, FitnessReport] = {}  # child -> the report it was born from
         self.failed: dict[str, ChildFailed] = {}
-        self.failures: dict[str, list[JobFailed]] = {}  # subject -> its failed jobs
+        self.failures: dict[str, list[JobFailed]] = {}  # agent -> its failed jobs
         self.lost: list[JobLost] = []
         self.evaluations: dict[EvalKey, EvalResult] = {}
         self.audited = 0  # births from two or more trainings (an audit: `EvolutionConfig.audit`)
@@ -74,7 +74,7 @@ class RunHistory(Handler):
     def fingerprint(self) -> str:
         """The run's fingerprint (`derl.evolution.fingerprint`) over its births so far."""
         return fingerprint(
-            (b.child, b.parent, b.generation, b.fitness, b.genome) for b in self.births
+            (b.agent, b.parent, b.generation, b.fitness, b.genome) for b in self.births
         )
 
     def apply(self, msg: MessageBase) -> None:
@@ -87,13 +87,13 @@ class RunHistory(Handler):
 
     # --- handlers (the coordinator's state extends them) -------------------------------------
 
-    def issued_to(self, job: str, node: str, subject: str) -> bool:
-        """Whether `job` was given to `node` for `subject` (a child, or an evaluated agent)."""
-        return self.issued.get(job) == (node, subject)
+    def issued_to(self, job: str, node: str, agent: str) -> bool:
+        """Whether `job` was given to `node` for `agent` (a child, or an evaluated agent)."""
+        return self.issued.get(job) == (node, agent)
 
     @handles(TrainJob)
     def on_train_job(self, msg: TrainJob) -> None:
-        self.issued[msg.job] = (msg.node, msg.child)
+        self.issued[msg.job] = (msg.node, msg.agent)
         if self.first_job is None:
             self.first_job = msg
 
@@ -103,15 +103,15 @@ class RunHistory(Handler):
 
     @handles(FitnessReport)
     def on_fitness_report(self, msg: FitnessReport) -> None:
-        self._accepted.setdefault(msg.child, []).append(msg)
+        self._accepted.setdefault(msg.agent, []).append(msg)
 
     @handles(Birth)
     def on_birth(self, msg: Birth) -> None:
-        if msg.child in self.born:
+        if msg.agent in self.born:
             return
         self.births.append(msg)
-        self.born[msg.child] = msg
-        reports = self._accepted.pop(msg.child, [])
+        self.born[msg.agent] = msg
+        reports = self._accepted.pop(msg.agent, [])
         self.audited += len(reports) > 1
         report = next((r for r in reports if r.job == msg.job), None)
         if msg.repeat_of is not None:
@@ -119,11 +119,11 @@ class RunHistory(Handler):
             if report is None:
                 report = self.reports.get(msg.repeat_of)
         if report is not None:
-            self.reports[msg.child] = report
+            self.reports[msg.agent] = report
 
     @handles(ChildFailed)
     def on_child_failed(self, msg: ChildFailed) -> None:
-        self.failed.setdefault(msg.child, msg)
+        self.failed.setdefault(msg.agent, msg)
 
     @handles(Quarantine)
     def on_quarantine(self, msg: Quarantine) -> None:
@@ -132,21 +132,21 @@ class RunHistory(Handler):
     @handles(Retrained)
     def on_retrained(self, msg: Retrained) -> None:
         """The child's result, and its repeats', is the new training's from now on."""
-        if msg.child not in self.born:
+        if msg.agent not in self.born:
             return
-        self.retrained[msg.child] = msg
-        report = next((r for r in self._accepted.pop(msg.child, []) if r.job == msg.job), None)
+        self.retrained[msg.agent] = msg
+        report = next((r for r in self._accepted.pop(msg.agent, []) if r.job == msg.job), None)
         fields = ("job", "node", "fitness", "cost_of_work", "energy", "mass")
         result = {k: getattr(msg, k) for k in fields}
         for k, birth in enumerate(self.births):
-            if msg.child in (birth.child, birth.repeat_of):
-                self.births[k] = self.born[birth.child] = birth.model_copy(update=result)
+            if msg.agent in (birth.agent, birth.repeat_of):
+                self.births[k] = self.born[birth.agent] = birth.model_copy(update=result)
                 if report is not None:
-                    self.reports[birth.child] = report
+                    self.reports[birth.agent] = report
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
-        self.failures.setdefault(msg.subject, []).append(msg)
+        self.failures.setdefault(msg.agent, []).append(msg)
 
     @handles(JobLost)
     def on_job_lost(self, msg: JobLost) -> None:
@@ -207,12 +207,12 @@ def run_log(path: Path) -> RunLog:
 
     history = load_history(path)
     bodies = []
-    in_child_order = sorted(history.births, key=lambda b: child_order(b.child))
+    in_child_order = sorted(history.births, key=lambda b: child_order(b.agent))
     for place, birth in enumerate(in_child_order):
-        report = history.reports.get(birth.child)
+        report = history.reports.get(birth.agent)
         bodies.append(
             Body(
-                id=birth.child,
+                id=birth.agent,
                 parent=birth.parent,
                 birth=place,
                 fitness=birth.fitness,

@@ -73,9 +73,9 @@ def report_of(job: TrainJob) -> FitnessReport:
     """`job`'s report (`fake_report`, with the job's body) with this child's checkpoint
     (`policy_of`) and fitness: later children are fitter (as evolution hopes), so the last ones
     born are the best, whose checkpoints the run's results must hold."""
-    fitness = int(job.child[1:]) + (50.0 if job.child.startswith("c") else 0.0)
+    fitness = int(job.agent[1:]) + (50.0 if job.agent.startswith("c") else 0.0)
     report = fake_report(job.run, job, fitness)
-    checkpoint = policy_of(job.child, job.genome, job.task)
+    checkpoint = policy_of(job.agent, job.genome, job.task)
     return report.model_copy(update={"env_steps": job.steps, "checkpoint": checkpoint})
 
 
@@ -95,12 +95,12 @@ class Trainer:
             if self.job is not None and msg.job == self.job.job and not self.acknowledged:
                 return []  # the order sent again while it answers: its report goes on
             self.job, self.acknowledged = msg, False
-            self.marks.append(f"job {self.node} {msg.job} {msg.child}")
+            self.marks.append(f"job {self.node} {msg.job} {msg.agent}")
             return [report_of(msg)]
         if isinstance(msg, Ack | Reject) and self.job is not None and msg.job == self.job.job:
             if not self.acknowledged:
                 kind = "ack" if isinstance(msg, Ack) else "reject"
-                self.marks.append(f"{kind} {self.node} {msg.job} {msg.child}")
+                self.marks.append(f"{kind} {self.node} {msg.job} {msg.agent}")
             self.acknowledged = True
             return [self.ready()]
         if isinstance(msg, Cancel) and self.job is not None and msg.job == self.job.job:
@@ -280,7 +280,7 @@ def last_checkpoint_late(recorded: Recorded) -> Cut:
     for cut in cuts(recorded.ops, recorded.work / "run", NODES):
         if cut.kind != "kill":
             continue
-        births = {m.child for m in journaled(recorded, cut) if isinstance(m, Birth)}
+        births = {m.agent for m in journaled(recorded, cut) if isinstance(m, Birth)}
         if len(births) < config().total:
             continue
         late = births - {child for child, _ in cut.knowledge.acked}

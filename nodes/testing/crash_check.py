@@ -56,9 +56,9 @@ def journal_holds(folder: Path, knowledge: Knowledge, when: str, finished: bool 
     issued = {m.job for m in journal if isinstance(m, TrainJob)}
     for job in sorted(knowledge.received - issued):
         problems.append(f"{when}: job {job}, received by a trainer, is not in the journal")
-    births = Counter(m.child for m in journal if isinstance(m, Birth))
-    born_from = {m.child: m.job for m in journal if isinstance(m, Birth)}
-    bodies = {m.child: m.genome for m in journal if isinstance(m, Birth)}
+    births = Counter(m.agent for m in journal if isinstance(m, Birth))
+    born_from = {m.agent: m.job for m in journal if isinstance(m, Birth)}
+    bodies = {m.agent: m.genome for m in journal if isinstance(m, Birth)}
     for child, job in knowledge.acked:
         if born_from.get(child) != job:
             problems.append(f"{when}: acknowledged birth of {child} (job {job}) is not in the "

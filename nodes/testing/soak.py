@@ -270,8 +270,8 @@ class Soak:
 
     def report(self, code: int | None, wall_s: float) -> dict[str, object]:
         births = [m for m in replay(self.run_dir) if isinstance(m, Birth | ChildFailed)]
-        born = Counter(m.child for m in births if isinstance(m, Birth))
-        given_up = {m.child for m in births if isinstance(m, ChildFailed)}
+        born = Counter(m.agent for m in births if isinstance(m, Birth))
+        given_up = {m.agent for m in births if isinstance(m, ChildFailed)}
         warmup_s = min(WARMUP[0], WARMUP[1] * wall_s)
         span_s = wall_s / 4
         processes: dict[str, list[dict[str, object]]] = {}

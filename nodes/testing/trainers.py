@@ -40,7 +40,7 @@ def fake_report(run: str, job: TrainJob, fitness: float, points: int = 100) -> F
     """A result for `job` that trained nothing: its body (bred by the coordinator), `fitness`, a
     learning curve of `points` points and an untrained policy of the body."""
     return FitnessReport(
-        run=run, child=job.child, job=job.job, node=job.node, genome=job.genome, fitness=fitness,
+        run=run, agent=job.agent, job=job.job, node=job.node, genome=job.genome, fitness=fitness,
         fitness_source="window", fitness_episodes=10,
         curve=Curve(env_steps=tuple(range(4096, 4096 * (points + 1), 4096)),
                     returns=tuple(float(k) for k in range(points))),
@@ -59,9 +59,9 @@ def honest_report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
     """`job`'s report with the child's `honest` fitness plus `lie` (a liar's: not 0) and the
     child's own policy (`policy_of`)."""
     return FitnessReport(
-        run=job.run, child=job.child, job=job.job, node=job.node, genome=job.genome,
-        fitness=honest(job.child) + lie, fitness_source="window", fitness_episodes=4,
+        run=job.run, agent=job.agent, job=job.job, node=job.node, genome=job.genome,
+        fitness=honest(job.agent) + lie, fitness_source="window", fitness_episodes=4,
         curve=Curve(env_steps=(job.steps,), returns=(1.0,)), energy=2.0, cost_of_work=0.5,
         mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
-        checkpoint=policy_of(job.child, job.genome, job.task),
+        checkpoint=policy_of(job.agent, job.genome, job.task),
     )  # fmt: skip

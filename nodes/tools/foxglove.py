@@ -59,7 +59,7 @@ class CannotServe(OSError):
 
 class BirthRow(BaseModel):
     birth: int
-    child: str
+    agent: str
     parent: str | None
     mutation: str | None
     fitness: float
@@ -68,7 +68,7 @@ class BirthRow(BaseModel):
 
 class WorkerSpeed(BaseModel):
     node: str
-    child: str
+    agent: str
     steps_per_s: float
 
 
@@ -122,8 +122,8 @@ class Bridge(Handler):
     @handles(ChildFailed)
     def _failure(self, msg: ChildFailed, now: float) -> bool:
         """Whether it is new."""
-        new = msg.child not in self._failed
-        self._failed.add(msg.child)
+        new = msg.agent not in self._failed
+        self._failed.add(msg.agent)
         return new
 
     @handles(TrainProgress)
@@ -143,7 +143,7 @@ class Bridge(Handler):
             recent=[
                 BirthRow(
                     birth=b.birth,
-                    child=b.child,
+                    agent=b.agent,
                     parent=b.parent,
                     mutation=b.mutation,
                     fitness=b.fitness,
@@ -154,7 +154,7 @@ class Bridge(Handler):
             workers=[
                 WorkerSpeed(
                     node=p.node,
-                    child=p.child,
+                    agent=p.agent,
                     steps_per_s=p.steps_per_s if now - heard < STALE_S else 0.0,
                 )
                 for p, heard in workers

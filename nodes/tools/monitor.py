@@ -80,7 +80,7 @@ class WorkerRow:
     role: str = "?"
     state: str = "idle"  # idle | working | delivering | gone
     job: str = ""
-    subject: str = ""  # the child trained or the agent evaluated
+    agent: str = ""  # the child trained or the agent evaluated
     env_steps: int = 0
     total_steps: int = 0
     recent_return: float | None = None
@@ -143,7 +143,7 @@ class RunView(Handler):
         row = self._row(msg.node, now)
         row.role = "trainer" if isinstance(msg, TrainJob) else "evaluator"
         row.state, row.job, row.env_steps, row.total_steps = "working", msg.job, 0, msg.steps
-        row.subject = msg.child if isinstance(msg, TrainJob) else f"{msg.agent}/{msg.task}"
+        row.agent = msg.agent if isinstance(msg, TrainJob) else f"{msg.agent}/{msg.task}"
         row.recent_return = None
 
     @handles(TrainProgress)
@@ -155,8 +155,8 @@ class RunView(Handler):
             msg.env_steps,
             msg.total_steps,
         )
-        if not row.subject.startswith(msg.child):  # keeps an evaluation's "agent/task"
-            row.subject = msg.child
+        if not row.agent.startswith(msg.agent):  # keeps an evaluation's "agent/task"
+            row.agent = msg.agent
         row.steps_per_s = msg.steps_per_s
         if msg.recent_return is not None:
             row.recent_return = msg.recent_return
@@ -185,7 +185,7 @@ class RunView(Handler):
             return s.best_fitness, s.best_agent
         if self.births:
             top = max(self.births, key=lambda b: b.fitness)
-            return top.fitness, top.child
+            return top.fitness, top.agent
         return None
 
     def render(self, now: float) -> Group:
@@ -237,7 +237,7 @@ class RunView(Handler):
                 w.role,
                 w.state,
                 w.job,
-                w.subject,
+                w.agent,
                 f"{w.env_steps:,}/{w.total_steps:,}{share}" if w.total_steps else "",
                 "" if w.recent_return is None else f"{w.recent_return:.2f}",
                 f"{w.steps_per_s:,.0f}",
@@ -249,7 +249,7 @@ class RunView(Handler):
     def _births(self) -> Table:
         table = Table(title="recent births", title_justify="left")
         table.add_column("#", justify="right")
-        for column in ("child", "parent", "mutation"):
+        for column in ("agent", "parent", "mutation"):
             table.add_column(column)
         table.add_column("fitness", justify="right")
         table.add_column("node (or the body it repeats)")
@@ -258,7 +258,7 @@ class RunView(Handler):
             trained = f"= {b.repeat_of}" if b.repeat_of else b.node
             table.add_row(
                 str(number),
-                b.child,
+                b.agent,
                 b.parent or "-",
                 b.mutation or "-",
                 f"{b.fitness:.2f}",

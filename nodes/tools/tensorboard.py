@@ -206,7 +206,7 @@ class Scalars:
 
 
 def _report(history: RunHistory, birth: Birth) -> FitnessReport | None:
-    return history.reports.get(birth.child)
+    return history.reports.get(birth.agent)
 
 
 # --- live ------------------------------------------------------------------------------------
@@ -245,7 +245,7 @@ class LiveRun:
                 status = (message, wall)
         self._births(now)  # those of the folds before
         for birth, wall in births:
-            if birth.child not in self.history.born:
+            if birth.agent not in self.history.born:
                 self.pending.setdefault(birth.birth, (birth, wall))
         if status is not None:
             s, wall = status
@@ -385,7 +385,7 @@ def _trainings(history: RunHistory, reports: dict[str, float]) -> list[Training]
     """The accepted trainings (of the children born), by start time."""
     runs = []
     for birth in history.births:
-        report = history.reports.get(birth.child)
+        report = history.reports.get(birth.agent)
         if birth.repeat_of is None and report is not None and report.job in reports:
             end = reports[report.job]
             runs.append(Training(end - report.wall_s, end, report.steps_per_s))

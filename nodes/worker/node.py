@@ -178,15 +178,14 @@ class Worker:
         return job
 
     def _failed(self, job: TrainJob | EvalJob, error: Exception) -> None:
-        subject = job.child if isinstance(job, TrainJob) else job.agent
         text = f"{type(error).__name__}: {error}"[:1000]
         self.bus.publish(
-            JobFailed(run=self.run, job=job.job, node=self.node, subject=subject, error=text)
+            JobFailed(run=self.run, job=job.job, node=self.node, agent=job.agent, error=text)
         )
 
     def _work(self, job: TrainJob | EvalJob) -> FitnessReport | EvalResult:
-        subject = job.child if isinstance(job, TrainJob) else job.agent
-        log.info("%s: %s of %s on %s (%d steps)", self.node, job.job, subject, job.task, job.steps)
+        log.info("%s: %s of %s on %s (%d steps)", self.node, job.job, job.agent, job.task,
+                 job.steps)  # fmt: skip
         last = 0.0
 
         def progress(p: Progress) -> None:
@@ -201,7 +200,7 @@ class Worker:
                 self.bus.publish(
                     TrainProgress(
                         run=self.run,
-                        child=subject,
+                        agent=job.agent,
                         job=job.job,
                         node=self.node,
                         env_steps=p.env_steps,
@@ -234,7 +233,7 @@ class Worker:
     ) -> FitnessReport:
         return FitnessReport(
             run=self.run,
-            child=job.child,
+            agent=job.agent,
             job=job.job,
             node=self.node,
             genome=job.genome,
