@@ -28,7 +28,7 @@ from derl.messages.types import (
 )
 from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome
-from derl.unimal.mutations import OPERATORS
+from derl.unimal.space import OPERATOR_NAMES
 
 SCHEMA_VERSION: Final = 5
 
@@ -159,8 +159,9 @@ class TrainJob(MessageBase):
     @field_validator("mutation")
     @classmethod
     def _known_operator(cls, value: str | None) -> str | None:
-        if value is not None and value not in OPERATORS:
-            raise ValueError(f"unknown mutation operator {value!r}; known: {', '.join(OPERATORS)}")
+        if value is not None and value not in OPERATOR_NAMES:
+            known = ", ".join(OPERATOR_NAMES)
+            raise ValueError(f"unknown mutation operator {value!r}; known: {known}")
         return value
 
     @model_validator(mode="after")

@@ -73,3 +73,21 @@ def test_the_science_imports_neither_the_bus_nor_the_nodes() -> None:
             assert not name.startswith(("derl.nodes", "zenoh", "mcap")), (
                 f"{path.relative_to(ROOT)} imports {name}"
             )
+
+
+def test_the_messages_load_neither_mujoco_nor_torch() -> None:
+    """A monitor that decodes messages needs pydantic and msgpack, not the simulator: loading
+    `derl.messages` (whose messages carry a genome and PPO settings) imports neither."""
+    loaded = subprocess.run(
+        [sys.executable, "-c", "import sys, derl.messages; "
+         "print(sorted({'mujoco', 'torch'} & set(sys.modules)))"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    assert loaded.strip() == "[]"
+
+
+def test_the_mutation_operators_are_named_once_for_the_wire() -> None:
+    from derl.unimal.mutations import OPERATORS
+    from derl.unimal.space import OPERATOR_NAMES
+
+    assert tuple(OPERATORS) == OPERATOR_NAMES

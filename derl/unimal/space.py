@@ -27,6 +27,17 @@ JOINT_RANGES: Final = (
     (-30, 60),
 )
 JOINT_AXES: Final = ("x", "y")
+OPERATOR_NAMES: Final = (
+    "grow_limb",
+    "delete_limb",
+    "limb_params",
+    "density",
+    "dof",
+    "joint_angle",
+    "gear",
+)
+"""The mutation operators (`derl.unimal.mutations.OPERATORS`), named here for what needs only
+their names (a message's `mutation` field) and not MuJoCo."""
 AXIS_SETS: Final = (("x",), ("y",), ("x", "y"))
 
 if TYPE_CHECKING:  # a Literal takes no float for type checkers; pydantic checks the values
