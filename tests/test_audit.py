@@ -199,5 +199,5 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert list(resumed.quarantined) == [LIAR] and not resumed.retraining
     assert resumed.evolution.fitness == state.evolution.fitness
     assert resumed.checked == state.checked
-    status = coordinator._status()
+    status = coordinator.status()
     assert status.quarantined == (LIAR,) and status.audited == len(state.checked) > 0

@@ -34,7 +34,7 @@ from derl.nodes.tools.logs import read_log
 
 PROFILE = {
     "total": 20,  # room for the coordinator kill after the trainer faults, on a fast machine too
-    "train_steps": 36864,  # 18 PPO iterations of 16 envs x 128 steps: time to interrupt one
+    "train_steps": 24576,  # 12 PPO iterations of 16 envs x 128 steps: time to interrupt one
     "lease_s": 8.0,
     "max_attempts": 1,  # a failed training gives its child up
 }

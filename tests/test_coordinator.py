@@ -252,7 +252,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         while not (isinstance(msg := heard.get(timeout=10), Birth) and msg.agent == "c00000"):
             pass
         assert msg.repeat_of == twin  # in the birth stream
-        assert coordinator._status().repeats == 1
+        assert coordinator.status().repeats == 1
         checkpoint = coordinator.ledger.checkpoints.path("c00000")
         assert _wait_for(checkpoint) == coordinator.ledger.checkpoints.path(twin).read_bytes()
 
@@ -262,7 +262,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         state = restarted.state
         assert state.born["c00000"].repeat_of == twin
         assert state.evolution.repeat_of(child_body) == twin
-        assert "c00000" not in state.waiting and restarted._status().repeats == 1
+        assert "c00000" not in state.waiting and restarted.status().repeats == 1
         assert _wait_for(checkpoint) == restarted.ledger.checkpoints.path(twin).read_bytes()
     finally:
         restarted.close()
@@ -402,7 +402,7 @@ def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
     assert [(m.agent, m.attempts) for m in failed] == [("c00000", 0)]
     assert failed[0].error.startswith("MutationFailed: ")
     assert not [m for m in _journaled(coordinator) if isinstance(m, TrainJob) and m.parent]
-    assert coordinator.state.evolution.complete and coordinator._status().failed == 1
+    assert coordinator.state.evolution.complete and coordinator.status().failed == 1
 
 
 def test_a_journal_that_lost_a_tournament_resumes_without_that_child_and_its_descendants(
@@ -710,4 +710,4 @@ def test_one_worker_per_identity_and_none_without_a_liveliness_token(
     assert coordinator.state.job_of("t") is None
     refused = [m for m in _journaled(coordinator) if isinstance(m, Rejection)]
     assert len(refused) == 1 and "t.r1 is alive" in refused[0].reason
-    assert coordinator._status().workers_alive == 1
+    assert coordinator.status().workers_alive == 1

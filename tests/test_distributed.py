@@ -39,7 +39,7 @@ from derl.nodes.testing.processes import sample
 
 PROFILE = {
     "total": 4,
-    "train_steps": 49152,  # a few seconds per body: time to interrupt a training
+    "train_steps": 16384,  # 8 PPO iterations, ~2 s a body: time to interrupt a training
     "lease_s": 20.0,
 }
 
@@ -179,16 +179,38 @@ def test_garbage_on_every_key_is_rejected(
 # A client of the user's own (Zenoh's default config: shared memory on; multicast off) sending
 # large samples, as a trainer sends its checkpoints
 OWN_CLIENT = """
-import json, sys, time, zenoh
+import json, os, re, subprocess, sys, time, zenoh
 config = zenoh.Config()
 for key, value in (("mode", "client"), ("connect/endpoints", [sys.argv[1]]),
                    ("scouting/multicast/enabled", False), ("connect/timeout_ms", 30000)):
     config.insert_json5(key, json.dumps(value))
 count, size = (int(a) for a in sys.argv[2:4]) if len(sys.argv) > 2 else (20, 10_000)
+
+def delivered():  # what this process sent to the router and had acknowledged, with nothing
+    try:          # left in its sockets (`ss`), else 0
+        said = subprocess.run(["ss", "-tinpH", "state", "established", "dst",
+                               sys.argv[1].split("/")[1]], capture_output=True, text=True).stdout
+    except OSError:
+        return 0
+    acked, mine = 0, False
+    for line in said.splitlines():
+        if not line[:1].isspace():  # a socket: Recv-Q Send-Q local peer users
+            mine = f"pid={os.getpid()}," in line
+            if mine and line.split()[1] != "0":
+                return 0
+        elif mine and (found := re.search("bytes_acked:([0-9]+)", line)):
+            acked += int(found[1])
+    return acked
+
 with zenoh.open(config) as session:
     for _ in range(count):  # over the size Zenoh moves by shared memory, as a checkpoint is
         session.put("derl/churn/x", bytes(size), congestion_control=zenoh.CongestionControl.BLOCK)
-    time.sleep(size / 1e7)  # a large sample goes out in fragments after `put` returns
+    # a large sample goes out in fragments after `put` returns: open until the router has them
+    # (measured: all but 45 kB of 80 MB had reached it then, the rest 50 ms later), or, where
+    # `ss` says nothing, for a while (4 s for 40 MB)
+    deadline = time.monotonic() + size / 1e7
+    while delivered() < count * size and time.monotonic() < deadline:
+        time.sleep(0.01)
 """
 
 

@@ -14,6 +14,9 @@ from PIL import Image
 from derl.nodes.cli.main import main
 from derl.replay import Trained
 
+# one process runs them all: `tiny_run` is made once (under `-n 2` each process made its own)
+pytestmark = pytest.mark.xdist_group(name="replay")
+
 
 def frames(gif: Path) -> int:
     with Image.open(gif) as image:

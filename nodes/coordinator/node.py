@@ -231,7 +231,7 @@ class Coordinator(Handler):
         gc.freeze()
         self.policy.log_progress()
         self._check_leases(now)
-        self._say(self._status())
+        self._say(self.status())
         if not self.state.finished:
             return False
         if last_end:
@@ -466,7 +466,8 @@ class Coordinator(Handler):
         snapshot = encode(self.policy.snapshot())
         query.reply(self.keys.population(), snapshot, encoding=MSGPACK)
 
-    def _status(self) -> RunStatus:
+    def status(self) -> RunStatus:
+        """The run now, as the loop publishes it every second."""
         progress, state = self.policy.progress(), self.state
         return RunStatus(
             run=self.run,
