@@ -41,17 +41,23 @@ clips: install
 	$(call clip,mvt,1000,8)
 
 # mypy on the package as installed: `derl`, with messages/ and nodes/ as `derl.messages` and
-# `derl.nodes` (pyproject's package-dir, an import hook mypy cannot follow), read through a tree of
-# links laid out that way, build/typecheck/derl; its messages name the repository's files.
-# Options in pyproject's [tool.mypy]; tests/ and bench/ are not checked. Its cache stays in
-# build/typecheck/.mypy_cache: a first check takes about 30 s of CPU, a later one a few seconds.
+# `derl.nodes` (pyproject's package-dir, which the editable install maps by an import hook mypy
+# cannot follow), read through setuptools' strict editable tree: the package's files linked as
+# installed, in build/__editable__.derl-*, made afresh each time by the build backend's PEP 660
+# hook (as `pip install -e . --config-settings editable_mode=strict` does, without installing);
+# its messages name the repository's files. Options in pyproject's [tool.mypy]; tests/ and bench/
+# are not checked. Its cache stays in build/typecheck/.mypy_cache: a first check takes about 30 s
+# of CPU, a later one a few seconds.
 TYPECHECK := build/typecheck
 define typecheck
-rm -rf $(TYPECHECK)/derl && mkdir -p $(TYPECHECK)/derl
-ln -s $(CURDIR)/derl/* $(CURDIR)/messages $(CURDIR)/nodes $(TYPECHECK)/derl/
-cd $(TYPECHECK) && { $(abspath $(BIN))/mypy --config-file $(CURDIR)/pyproject.toml -p derl \
-	>mypy.txt; status=$$?; sed -e 's#^derl/messages/#messages/#' -e 's#^derl/nodes/#nodes/#' \
-	mypy.txt; exit $$status; }
+rm -rf build/__editable__.derl-* && mkdir -p $(TYPECHECK)
+$(BIN)/python -c "import setuptools.build_meta as backend; \
+	backend.build_editable('$(TYPECHECK)', {'editable_mode': 'strict'})" \
+	>$(TYPECHECK)/build.txt 2>&1 || { cat $(TYPECHECK)/build.txt; exit 1; }
+cd build/__editable__.derl-* && { $(abspath $(BIN))/mypy --config-file $(CURDIR)/pyproject.toml \
+	--cache-dir $(CURDIR)/$(TYPECHECK)/.mypy_cache -p derl >$(CURDIR)/$(TYPECHECK)/mypy.txt; \
+	status=$$?; sed -e 's#^derl/messages/#messages/#' -e 's#^derl/nodes/#nodes/#' \
+	$(CURDIR)/$(TYPECHECK)/mypy.txt; exit $$status; }
 endef
 
 lint: install-test

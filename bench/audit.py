@@ -11,6 +11,7 @@ births before it was caught and whether any lie stayed. The cost of an audit is 
 extra trainings, plus the wait of children whose population includes an audited child still in
 its second training.
 Run: python bench/audit.py [--shares 0 0.02 0.05 0.2] [--trainers 4] [--seeds 3] [--liar]
+(`bench/audit_scale.py`: the audit rules at the paper's scale, 288 trainers and 4,000 births.)
 """
 
 from __future__ import annotations

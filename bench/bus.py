@@ -92,6 +92,7 @@ from derl.nodes.coordinator.node import Liveliness
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.testing.processes import free_port
 from derl.nodes.testing.trainers import fake_report
+from derl.nodes.testing.waiting import wait_until
 from derl.nodes.worker.node import ready_wait
 from derl.policy_check import untrained_policy
 from derl.unimal import Genome, sample_population
@@ -105,6 +106,7 @@ SCALE_PROFILE = {
     "eval_tasks": [],
 }
 GOAL_RATE = 1000.0
+WINDOW = [("timing", "window")]  # the coordinator's own pace, not a virtual clock's
 # the coordinator's Zenoh config: its session stamps each sample it puts with the time (HLC), so
 # the generator can tell the coordinator's part of a latency from its own
 TIMESTAMPING = {"timestamping": {"enabled": True}}
@@ -388,12 +390,12 @@ def bench_assignments(workers: int, duration: float, work: Path) -> dict[str, ob
     )  # fmt: skip
     result: dict[str, object] = {"workers": workers}
     try:
-        _wait(lambda: "replayed" in log.read_text(), 60, "the coordinator to start")
+        wait_until(lambda: "replayed" in log.read_text(), 60, "the coordinator to start")
         generator = LoadGenerator(run, endpoint, workers)
         try:
             generator.start()
             started = time.perf_counter()
-            _wait(generator.tournaments_started, 120, "the initial population to be born")
+            wait_until(generator.tournaments_started, 120, "the initial population to be born")
             result["initial_population_born_s"] = round(time.perf_counter() - started, 1)
             saturated = _phase(generator, coordinator.pid, 0.0, duration)
             result["saturated"] = saturated
@@ -438,14 +440,6 @@ def _phase(
     cycles = start - generator.started >= 2 * len(generator.nodes) / rate
     out["steady_state"] = cycles and settle <= MAX_SETTLE_S
     return out
-
-
-def _wait(condition, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out waiting for {what}")
-        time.sleep(0.1)
 
 
 # --- 2. the coordinator's own cost ---------------------------------------------------------
@@ -553,7 +547,9 @@ BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
 
 
 def bench_coordinator_profile(work: Path, in_flight: list[int], births: int) -> list[dict]:
-    config = load_profile("paper").model_copy(update={"total": 10_000_000, "lease_s": 3600.0})
+    config = load_profile("paper", WINDOW).model_copy(
+        update={"total": 10_000_000, "lease_s": 3600.0}
+    )
     out = []
     for k in in_flight:
         coordinator = _coordinator(f"prof-{k}", work / f"prof-{k}", config)
@@ -601,7 +597,7 @@ def _rss_mb() -> float:
 
 
 def bench_memory(work: Path, births: int = 4000, every: int = 500) -> dict[str, object]:
-    config = load_profile("paper").model_copy(
+    config = load_profile("paper", WINDOW).model_copy(
         update={"population": 8, "total": 10_000_000, "lease_s": 3600.0}
     )
     coordinator = _coordinator("memory", work / "memory", config)
@@ -686,7 +682,7 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
     `repeats` times each."""
     from derl.nodes.journal.segments import read_segment, segments
 
-    config = load_profile("paper").model_copy(update={"total": bodies_total + 64})
+    config = load_profile("paper", WINDOW).model_copy(update={"total": bodies_total + 64})
     run_dir = work / "recovery"
     start = time.perf_counter()
     coordinator = _coordinator("recovery", run_dir, config)
@@ -816,7 +812,7 @@ def bench_bus_share(steps: int, samples: int = 200) -> dict[str, object]:
             bus.subscribe(bus.keys.status(), statuses.append, (RunStatus,))  # as a worker does
             bus.subscribe(bus.keys.job(node), lambda m: None)
             bus.subscribe(bus.keys.ack(node), lambda m: None)
-            _wait(lambda: statuses, 30, "the hub's status")
+            wait_until(lambda: statuses, 30, "the hub's status")
             # (1) the open session's own threads (keep-alives, the 1 Hz status): the CPU this
             # process uses while its main thread sleeps
             cpu0, idle0 = time.process_time(), time.perf_counter()

@@ -95,7 +95,7 @@ def bench_world(world: str, limbs: int, repeats: int, steps: int) -> dict[str, o
 @contextmanager
 def _uneven(env: UnimalEnv) -> Iterator[None]:
     """Every heightmap read point by point, as if no head stood above level ground."""
-    terrains = env.task.terrains
+    terrains = env.task.arena.terrains
     terrains.heightmap = lambda xy, yaw, which=None: terrains.lookup(
         terrains.vertices(xy, which), yaw
     )
@@ -107,7 +107,7 @@ def _uneven(env: UnimalEnv) -> Iterator[None]:
 
 def _heightmap_ms(env: UnimalEnv, environment: Callable[[int], None], steps: int) -> float:
     """Milliseconds per environment step spent in heightmap lookups (all of a step's calls)."""
-    terrains, spent = env.task.terrains, [0.0]
+    terrains, spent = env.task.arena.terrains, [0.0]
     lookup = terrains.heightmap
 
     def timed(*args: object) -> np.ndarray:
@@ -128,7 +128,7 @@ def bench_terrain(repeats: int) -> dict[str, float]:
     (`TerrainStack.renew`), then written (into the height stack and the copy's heightfield) where
     a body at the spawn point can touch or see it; and the cost of writing all of it."""
     env = make_env(reference_body(6), "vt", num_envs=1, seed=0)
-    terrains, rng, one = env.task.terrains, np.random.default_rng(0), np.zeros(1, np.intp)
+    terrains, rng, one = env.task.arena.terrains, np.random.default_rng(0), np.zeros(1, np.intp)
     spawn = np.array([env.task.spawn])
     reset, whole = [], []
     for _ in range(repeats * 10):
@@ -152,7 +152,7 @@ def first_obstacles(limbs: int, steps: int) -> dict[str, object]:
     VT rollout of random actions start: the share of episodes at each distance."""
     env = make_env(reference_body(limbs), "vt", num_envs=32, seed=0)
     env.reset(0)
-    terrains, rng = env.task.terrains, np.random.default_rng(1)
+    terrains, rng = env.task.arena.terrains, np.random.default_rng(1)
     starts = [terrains.first_obstacle.copy()]
     lengths = []
     for _ in range(steps):

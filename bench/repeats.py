@@ -131,7 +131,7 @@ def bench(
 ) -> list[dict[str, object]]:
     results = []
     for profile in profiles:
-        config = load_profile(profile)
+        config = load_profile(profile, [("timing", "window")])
         start = time.perf_counter()
         initial = sample_population(config.population, np.random.default_rng([config.seed, 0]))
         sampled_s = time.perf_counter() - start

@@ -59,7 +59,7 @@ def windows(trainers: int, population: int) -> dict[str, int]:
 
 def simulated(profiles: list[str], trainer_counts: list[int], seeds: int) -> None:
     for profile in profiles:
-        config = load_profile(profile)
+        config = load_profile(profile, [("timing", "window")])  # W = 0 is measured too
         initial = sample_population(config.population, np.random.default_rng([config.seed, 0]))
         for trainers in trainer_counts:
             chosen = windows(trainers, config.population)

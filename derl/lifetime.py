@@ -24,6 +24,7 @@ from derl.rl.config import PPOConfig
 from derl.unimal import Genome
 
 if TYPE_CHECKING:
+    from derl.rl.inherit import Inheritance
     from derl.rl.ppo import Progress, TrainResult
 
 Saved = Callable[["LifetimeResult", "TrainResult", bytes], None]
@@ -55,6 +56,7 @@ class LifetimeResult(BaseModel):
     wall_time_s: float
     steps_per_second: float
     unstable_steps: int
+    constraint_rows: int  # MuJoCo's constraint rows summed over the control steps (`UnimalEnv`)
     time_split: dict[str, float]
 
 
@@ -76,6 +78,14 @@ def ppo_config(task: str, steps: int, seed: int, **overrides: object) -> PPOConf
     return base.model_copy(update={"fitness_component": component, "fitness_window_steps": window})
 
 
+def with_budget(config: PPOConfig, steps: int) -> PPOConfig:
+    """`config` with a budget of `steps` and the fitness window scaled to it (`ValidationError`
+    below one rollout)."""
+    window = fitness_window(steps, config.batch_size)
+    changed = {"total_steps": steps, "fitness_window_steps": window}
+    return PPOConfig.model_validate({**config.model_dump(), **changed})
+
+
 def learn(
     genome: Genome,
     task: str,
@@ -87,11 +97,15 @@ def learn(
     every: int = 0,
     stop: threading.Event | None = None,
     resume: bytes | None = None,
+    last: bool = False,
+    parent: tuple[Genome, bytes] | None = None,
 ) -> tuple[LifetimeResult, TrainResult]:
     """Train a fresh controller for `genome` in `task`; returns the summary and the full result.
-    With `save`, the training's state is saved every `every` iterations (0: never) and once
-    `stop` is set, after which it returns what it did (`derl.rl.ppo.Saver`); `resume` (such a
-    state) goes on from it, bit for bit."""
+    With `save`, the training's state is saved every `every` iterations (0: never), once `stop`
+    is set, after which it returns what it did, and with `last` at the end
+    (`derl.rl.ppo.Saver`); `resume` (such a state) goes on from it, bit for bit, or extends it
+    where `config` has a larger budget. `parent` (its body and its checkpoint's bytes): the
+    controller starts from the parent's where their parts match (`derl.rl.inherit`)."""
     from derl.rl.ppo import Saver, train  # torch: imported by trainings only, not by config users
 
     env = UnimalEnv(
@@ -100,15 +114,30 @@ def learn(
         EnvConfig(num_envs=config.num_envs, nthread=nthread),
         seed=config.seed,
     )
+    initial = None if parent is None else inheritance(parent[0], parent[1], task, env)
     saver = None
     if save is not None:
 
         def saved(result: TrainResult, state: bytes) -> None:
             save(summarize(env, task, config, result), result, state)
 
-        saver = Saver(saved, every, stop or threading.Event())
-    result = train(env, config, callback, saver=saver, resume=resume)
+        saver = Saver(saved, every, stop or threading.Event(), last)
+    result = train(env, config, callback, saver=saver, resume=resume, initial=initial)
     return summarize(env, task, config, result), result
+
+
+def inheritance(parent: Genome, checkpoint: bytes, task: str, child: UnimalEnv) -> Inheritance:
+    """How `child`'s controller (in `task`) starts from `parent`'s, its trained `checkpoint`
+    in the same task: the two bodies' parts matched by name (`derl.rl.inherit`)."""
+    from derl.rl.checkpoint import Checkpoint
+    from derl.rl.inherit import Inheritance, Layout
+
+    ancestor = UnimalEnv(parent, make_task(task), EnvConfig(num_envs=1))
+    return Inheritance(
+        Checkpoint.from_bytes(checkpoint),
+        Layout(tuple(ancestor.proprioception_labels), tuple(ancestor.action_labels)),
+        Layout(tuple(child.proprioception_labels), tuple(child.action_labels)),
+    )
 
 
 def summarize(env: UnimalEnv, task: str, config: PPOConfig, result: TrainResult) -> LifetimeResult:
@@ -137,5 +166,6 @@ def summarize(env: UnimalEnv, task: str, config: PPOConfig, result: TrainResult)
         wall_time_s=result.wall_time_s,
         steps_per_second=result.steps_per_second,
         unstable_steps=env.unstable_count,
+        constraint_rows=env.constraint_rows,
         time_split={k: round(v, 3) for k, v in vars(result.time_split).items() if v is not None},
     )

@@ -1,9 +1,8 @@
 """A trained body acting again: loaded from a folder (genome, checkpoint, task), its episodes
 played with the deterministic policy, the first one filmed if asked (`derl rollout`).
 
-Two kinds of folder hold a trained body: the output of `derl train` (the task in its
-``result.json``) and a run's ``best/NN-agent`` folder (the task in its ``training.json``, the
-run's training settings). Both carry ``genome.json`` and ``checkpoint.pt``. From Python::
+Two kinds of folder hold a trained body, in one layout (`derl.agent_folder`): the output of
+`derl train` and a run's ``best/NN-agent`` folder. From Python::
 
     import derl
 
@@ -18,7 +17,6 @@ run's training settings). Both carry ``genome.json`` and ``checkpoint.pt``. From
 
 from __future__ import annotations
 
-import json
 import pickle
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -27,22 +25,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from derl.envs import TASKS, EnvConfig, UnimalEnv, make_task
+from derl.agent_folder import AgentFolder, NotTrained
+from derl.envs import EnvConfig, UnimalEnv, make_task
+from derl.envs.registry import TASK_REGISTRY
+from derl.plugins import PluginError
 from derl.unimal import Genome
 
 if TYPE_CHECKING:
-    from derl.envs.gym_env import UnimalGymEnv
+    import gymnasium
+
     from derl.rl import Policy
 
-GENOME, CHECKPOINT = "genome.json", "checkpoint.pt"
-RESULT, SETTINGS = "result.json", "training.json"
-TASK_FILES = (RESULT, SETTINGS)
-"""Where a folder names its task: `derl train`'s result, or a run's best/ folder's settings."""
 EPISODE_STEPS = EnvConfig().episode_steps
-
-
-class NotTrained(ValueError):
-    """A folder that does not hold what a replay needs."""
 
 
 @dataclass(frozen=True)
@@ -66,23 +60,23 @@ class Trained:
     @classmethod
     def load(cls, folder: Path) -> Trained:
         """The trained body of `folder`; `NotTrained` says what is missing or unreadable."""
-        missing = [name for name in (GENOME, CHECKPOINT) if not (folder / name).is_file()]
-        named = next((folder / n for n in TASK_FILES if (folder / n).is_file()), None)
-        if named is None:
-            missing.append(" or ".join(TASK_FILES))
-        if missing or named is None:
+        agent = AgentFolder(folder)
+        missing = agent.missing()
+        if missing:
             raise NotTrained(
                 f"{folder} holds no trained body: no {', no '.join(missing)} (a `derl train` "
                 "output folder or a run's best/NN-agent folder has them)"
             )
+        task = agent.task()
         try:
-            task = json.loads(named.read_text())["task"]
-            if task not in TASKS:
-                raise ValueError(f"unknown task {task!r} in {named.name}")
-            genome = Genome.model_validate_json((folder / GENOME).read_text())
-            return cls.of(genome, task, (folder / CHECKPOINT).read_bytes())
-        except (OSError, ValueError, KeyError) as error:
-            raise NotTrained(f"{folder}: cannot read its trained body: {error}") from None
+            TASK_REGISTRY.get(task)  # a plugin's task: installed here too?
+        except PluginError as error:
+            raise NotTrained(f"{folder}: {error}") from None
+        try:
+            checkpoint = agent.checkpoint()
+        except OSError as error:
+            raise NotTrained(f"{folder}: cannot read its checkpoint: {error}") from None
+        return cls.of(agent.genome(), task, checkpoint)
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """The policy's mean action, clipped to [-1, 1]: for one observation (a dict of
@@ -92,12 +86,16 @@ class Trained:
         actions = self.policy({key: value[None] if one else value for key, value in obs.items()})
         return actions[0] if one else actions
 
-    def gym_env(self, render_mode: str | None = None, **options: Any) -> UnimalGymEnv:
-        """The body in the task it learnt, as a gymnasium environment (`UnimalGymEnv`'s
-        `render_mode`, frame size and task options)."""
-        from derl.envs.gym_env import UnimalGymEnv
+    def gym_env(self, render_mode: str | None = None, **options: Any) -> gymnasium.Env:
+        """The body in the task it learnt, as ``gymnasium.make`` makes it (its registered id,
+        `gym_id`: the same wrappers), with `UnimalGymEnv`'s `render_mode`, frame size and task
+        options."""
+        import gymnasium
 
-        return UnimalGymEnv(self.genome, self.task, render_mode, **options)
+        from derl.envs.gym_env import gym_id
+
+        return gymnasium.make(gym_id(self.task), genome=self.genome, render_mode=render_mode,
+                              **options)  # fmt: skip
 
 
 def load_trained(folder: str | Path) -> Trained:

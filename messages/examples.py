@@ -19,8 +19,8 @@ from derl.messages.schema import (
     FitnessReport,
     JobFailed,
     JobLost,
-    Member,
     MessageBase,
+    PopulationEntry,
     PopulationSnapshot,
     Quarantine,
     Reject,
@@ -111,6 +111,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             mass=6.25,
             episodes=160,
             env_steps=5_000_000,
+            constraint_rows=61_250_000,
             wall_s=3600.5,
             steps_per_s=1388.9,
             checkpoint=random.Random(i).randbytes(checkpoint_bytes),
@@ -147,6 +148,8 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             mutation="grow_limb",
             mutation_detail="pair on limb 0 end",
             genome=GENOME,
+            episodes=160,
+            constraint_rows=61_250_000,
         ),
         ChildFailed(run=run, agent=child, parent=parent, attempts=3, error="ValueError: again"),
         Quarantine(
@@ -175,8 +178,8 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             run=run,
             birth_counter=i + 2,
             members=(
-                Member(agent=parent, fitness=10.0 + i, parent=None, birth=0),
-                Member(agent=child, fitness=-0.5, parent=parent, birth=i + 1),
+                PopulationEntry(agent=parent, fitness=10.0 + i, parent=None, birth=0),
+                PopulationEntry(agent=child, fitness=-0.5, parent=parent, birth=i + 1),
             ),
         ),
         RunStatus(

@@ -28,6 +28,7 @@ ARITY: Final[dict[str, int]] = {
     "ack": 1,
     "eval": 3,
     "births": 1,
+    "checkpoint": 1,
     "lost": 1,
     "rejected": 0,
     "population": 0,
@@ -46,6 +47,7 @@ PUBLISHERS: Final[dict[str, tuple[str, ...]]] = {
     "ack": ("coordinator",),
     "eval": ("evaluator",),
     "births": ("coordinator",),
+    "checkpoint": ("coordinator",),
     "lost": ("coordinator",),
     "rejected": (),
     "population": ("coordinator",),
@@ -165,6 +167,10 @@ class KeySpace:
 
     def births(self, child: str) -> str:
         return self.key("births", child)
+
+    def checkpoint(self, agent: str) -> str:
+        """Where the coordinator answers a query for `agent`'s checkpoint (the file's bytes)."""
+        return self.key("checkpoint", agent)
 
     def ack(self, node: str) -> str:
         return self.key("ack", node)

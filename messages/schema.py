@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated, Final, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from derl.messages.types import (
     MAX_CHECKPOINT_BYTES,
@@ -26,6 +26,7 @@ from derl.messages.types import (
     Steps,
     Text,
 )
+from derl.plugins import Plugin
 from derl.rl.config import PPOConfig
 from derl.unimal.genome import Genome
 from derl.unimal.space import OPERATOR_NAMES
@@ -85,8 +86,8 @@ class Curve(_Model):
         return self
 
 
-class Member(_Model):
-    """One agent of the population."""
+class PopulationEntry(_Model):
+    """One agent of the population, as a snapshot lists it."""
 
     agent: Id
     """The agent's id."""
@@ -112,6 +113,16 @@ class WorkerReady(MessageBase):
     """Its process id."""
     nthread: Annotated[int, Field(ge=1, le=4096)] = 1
     """Simulation threads it runs."""
+
+
+class ParentWeights(_Model):
+    """The trained controller a child starts from where the run inherits (`inherit: parent`):
+    its parent's, the file the coordinator answers a query on `checkpoint/<parent>` from."""
+
+    genome: Genome
+    """The parent's body (what its weights are of)."""
+    sha256: Annotated[bytes, Field(strict=True, min_length=32, max_length=32)]
+    """SHA-256 of the parent's checkpoint: the trainer trains only from bytes that have it."""
 
 
 class TrainJob(MessageBase):
@@ -147,6 +158,12 @@ class TrainJob(MessageBase):
     """What the mutation changed, in words."""
     lease_s: LeaseSeconds
     """Seconds without progress after which the job is taken back."""
+    inherit: ParentWeights | None = None
+    """The parent's trained controller the child's starts from (`inherit: parent`: where their
+    parts match); None: from scratch."""
+    plugins: tuple[Plugin, ...] = ()
+    """Every plugin the run's profile names (docs/extending.md): a node that lacks one or holds
+    another version refuses the job (`JobRefused`)."""
 
     @property
     def steps(self) -> int:
@@ -156,18 +173,16 @@ class TrainJob(MessageBase):
     def seed(self) -> int:
         return self.ppo.seed
 
-    @field_validator("mutation")
-    @classmethod
-    def _known_operator(cls, value: str | None) -> str | None:
-        if value is not None and value not in OPERATOR_NAMES:
-            known = ", ".join(OPERATOR_NAMES)
-            raise ValueError(f"unknown mutation operator {value!r}; known: {known}")
-        return value
-
     @model_validator(mode="after")
     def _mutated_from_parent(self) -> TrainJob:
+        operators = {p.name for p in self.plugins if p.kind == "operator"}
+        if self.mutation is not None and self.mutation not in {*OPERATOR_NAMES, *operators}:
+            known = ", ".join([*OPERATOR_NAMES, *sorted(operators)])
+            raise ValueError(f"unknown mutation operator {self.mutation!r}; known: {known}")
         if (self.mutation is None) != (self.parent is None):
             raise ValueError("a child has a parent and the mutation that made it, or neither")
+        if self.inherit is not None and self.parent is None:
+            raise ValueError("a child inherits its parent's weights: it needs a parent")
         return self
 
 
@@ -190,6 +205,8 @@ class EvalJob(MessageBase):
     """The learning configuration of the evaluation (its budget and seed)."""
     lease_s: LeaseSeconds
     """Seconds without progress after which the job is taken back."""
+    plugins: tuple[Plugin, ...] = ()
+    """As in `TrainJob`."""
 
     @property
     def steps(self) -> int:
@@ -289,6 +306,10 @@ class FitnessReport(MessageBase):
     """Episodes finished in the training."""
     env_steps: Count
     """Env steps done (all copies)."""
+    constraint_rows: Count = 0
+    """MuJoCo's constraint rows (contacts, joint limits) at the end of each control step, summed
+    over the copies and the steps: the deterministic cost measure of the cluster timing
+    (`derl.evolution.timing`; 0 in journals from before it)."""
     wall_s: NonNegative
     """Wall-clock seconds of the training."""
     steps_per_s: NonNegative
@@ -382,7 +403,10 @@ class JobLost(MessageBase):
 
 class JobFailed(MessageBase):
     """A worker's report that `job` failed: what failed and the exception's text. The worker
-    then asks for work again; the coordinator retries its agent up to `max_attempts` times."""
+    then asks for work again; the coordinator retries its agent up to `max_attempts` times. A
+    worker that cannot run the run's jobs at all (`unfit`: it lacks one of the job's plugins or
+    holds another version) refuses the job: that is no attempt of its agent, and the
+    coordinator gives that worker no more jobs."""
 
     type: Literal["JobFailed"] = "JobFailed"
     job: Id
@@ -393,6 +417,8 @@ class JobFailed(MessageBase):
     """The child trained or the agent evaluated."""
     error: Text
     """The exception's type and text."""
+    unfit: bool = False
+    """The worker refused the job: it cannot run any of the run's (`error` says why)."""
 
 
 class Birth(MessageBase):
@@ -428,6 +454,11 @@ class Birth(MessageBase):
     """What the mutation changed, in words."""
     genome: Genome
     """The child's body."""
+    episodes: Count = 0
+    """As in FitnessReport (with `constraint_rows`: the training's cost in the cluster timing;
+    0 in journals from before it)."""
+    constraint_rows: Count = 0
+    """As in FitnessReport."""
     repeat_of: Id | None = None
     """The earlier agent with the same body whose result it takes (None: trained)."""
 
@@ -509,7 +540,7 @@ class PopulationSnapshot(MessageBase):
     type: Literal["PopulationSnapshot"] = "PopulationSnapshot"
     birth_counter: Count
     """Births so far."""
-    members: Annotated[tuple[Member, ...], Field(max_length=MAX_ITEMS)] = ()
+    members: Annotated[tuple[PopulationEntry, ...], Field(max_length=MAX_ITEMS)] = ()
     """The population: the most recent births."""
 
     @model_validator(mode="after")

@@ -11,7 +11,7 @@ once with the node's reason.
 | --- | --- |
 | 0 | done (a coordinator: its run finished) |
 | 1 | failed (`DerlError`, or a crash): a supervisor restarts a node by its restart policy |
-| 2 | a usage error (argparse), or a port or a run directory in use (`InUse`) |
+| 2 | a usage error (`USAGE`: a flag, its value, a path given that is missing), or `InUse` |
 | 78 | a node refused to start (`Refused`; 78 is EX_CONFIG of sysexits.h) |
 """
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 from typing import Final
 
 FAILED: Final = 1
+USAGE: Final = 2
 IN_USE: Final = 2
 REFUSED: Final = 78
 FINAL: Final = frozenset({IN_USE, REFUSED})

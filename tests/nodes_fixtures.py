@@ -1,4 +1,4 @@
-"""Helpers for tests that start real derl node processes: free ports, tiny profiles, waiting,
+"""Helpers for tests that start real derl node processes: free ports, tiny profiles,
 children in their own process groups that die with the test, and what the journal says."""
 
 from __future__ import annotations
@@ -12,10 +12,9 @@ import socket
 import subprocess
 import sys
 import tempfile
-import time
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from derl.nodes.journal.segments import Journal, replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.processes import child_setup, stop_all
 from derl.nodes.testing.processes import descendants
+from derl.nodes.testing.waiting import wait_until
 from derl.rl import PPOConfig
 from derl.unimal import Genome
 
@@ -84,16 +84,6 @@ def write_profile(path: Path, **overrides: object) -> Path:
     return path
 
 
-def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-
 def derl_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "derl.nodes.cli", *args]
 
@@ -111,7 +101,7 @@ class Processes:
     def start(
         self, name: str, argv: list[str], env: dict[str, str] | None = None
     ) -> subprocess.Popen:
-        environment = {**os.environ, "PYTHONPATH": str(REPO), **(env or {})}
+        environment = {**os.environ, **(env or {})}
         with (self.logs / f"{name}.log").open("ab") as out:
             process = subprocess.Popen(
                 argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -183,7 +173,7 @@ class Observer:
 
     def training(self, node: str, after: int = 0, timeout: float = 120) -> TrainProgress:
         """Progress of a job `node` is training now, heard after the first `after` progress."""
-        return wait_for(
+        return wait_until(
             lambda: next((p for p in self.progress[after:]
                           if p.node == node and p.env_steps < p.total_steps), None),
             timeout, f"{node} mid-job",

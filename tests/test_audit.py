@@ -1,39 +1,34 @@
-"""Audits (`nodes.coordinator.audits`): a share of the children trained twice by two identities,
-a disagreement decided by a third, the liar quarantined and its unchecked births trained again.
-The coordinator's own handlers are driven in this process by simulated trainers whose results
-depend only on the child (training is deterministic), one of which adds 1.0 to every fitness."""
+"""Audits (`nodes.coordinator.audits`): children trained twice by two identities (a share drawn
+from the seed, every report of an identity until one agreed, then a share falling with its
+record, and likely parents), a disagreement decided by a third, the liar quarantined and its
+unchecked births trained again. The coordinator's own handlers are driven in this process by
+simulated trainers whose results depend only on the child (training is deterministic), one of
+which adds 1.0 to every fitness."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+import sys
 from functools import cache
 from pathlib import Path
 
 import pytest
+from nodes_fixtures import LocalRun, Processes
 
 from derl.evolution import load_profile
 from derl.messages import (
-    Ack,
     Birth,
-    Cancel,
     FitnessReport,
-    MessageBase,
     Quarantine,
-    Reject,
     Retrained,
     TrainJob,
-    WorkerReady,
-    decode,
-    encode,
 )
 from derl.nodes.coordinator.audits import audited, journaled, verdict
-from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.evolution_state import EvolutionState
-from derl.nodes.coordinator.node import Coordinator, Liveliness
+from derl.nodes.coordinator.node import Coordinator
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import replay
-from derl.nodes.testing.trainers import Recorder, honest, honest_report
+from derl.nodes.testing.trainers import honest, honest_report, simulate_run
 from derl.unimal import Genome
 
 RUN = "audit"
@@ -41,7 +36,10 @@ RUN = "audit"
 LIAR = "t3"
 
 
-def _config(audit: float):
+SHARE_ALONE = {"audit_first": 0, "audit_top": 0.0}  # the drawn share alone audits
+
+
+def _config(audit: float, **rules: object):
     return load_profile("smoke").model_copy(
         update={
             "population": 6,
@@ -50,63 +48,14 @@ def _config(audit: float):
             "audit": audit,
             "eval_top": 0,
             "eval_tasks": (),
+            **rules,
         }
     )
 
 
-@dataclass
-class Trainers:
-    """Simulated trainers: each answers its job at once and, once answered, asks for work once:
-    an idle one then waits among the coordinator's idle workers for its next job."""
-
-    names: list[str]
-    liar: str | None = None
-    jobs: dict[str, TrainJob] = field(default_factory=dict)  # node -> its unanswered job
-    asked: set[str] = field(default_factory=set)  # idle nodes that asked
-
-    def answer(self, heard: list[MessageBase]) -> list[MessageBase]:
-        out: list[MessageBase] = []
-        for msg in heard:
-            node = getattr(msg, "node", None)
-            if node not in self.names:
-                continue
-            if isinstance(msg, TrainJob):
-                self.jobs[node] = msg
-                self.asked.discard(node)
-                out.append(honest_report(msg, 1.0 if node == self.liar else 0.0))
-            elif isinstance(msg, Ack | Reject | Cancel) and msg.job == self.jobs.get(node, msg).job:
-                del self.jobs[node]
-        return out
-
-    def asking(self) -> list[MessageBase]:
-        new = [n for n in self.names if n not in self.jobs and n not in self.asked]
-        self.asked.update(new)
-        return [WorkerReady(run=RUN, node=n, role="trainer", host="sim", pid=1) for n in new]
-
-
-def run_with(folder: Path, audit: float, liar: str | None, rounds: int = 400) -> Coordinator:
+def run_with(folder: Path, audit: float, liar: str | None, **rules: object) -> Coordinator:
     """The run to its end (every child born, none waiting to be trained again)."""
-    heard = Recorder()
-    policy = EvolutionPolicy(RUN, folder, _config(audit))
-    coordinator = Coordinator(RUN, folder, policy, publisher=heard)
-    trainers = Trainers(["t0", "t1", "t2", "t3"], liar)
-    for node in trainers.names:
-        coordinator.take(Liveliness("trainer", node, True))
-    try:
-        inbox = trainers.asking()
-        for _ in range(rounds):
-            if coordinator.state.finished:
-                coordinator.policy.finish()
-                return coordinator
-            for msg in inbox:
-                coordinator.take(decode(encode(msg)))
-            coordinator.assign_idle()
-            coordinator.settle()
-            inbox = trainers.answer(heard.messages) + trainers.asking()
-            heard.messages.clear()
-        raise AssertionError(f"the run did not finish: {coordinator.policy.born} born")
-    finally:
-        coordinator.close()
+    return simulate_run(RUN, folder, _config(audit, **rules), ["t0", "t1", "t2", "t3"], liar)
 
 
 def test_the_same_children_are_audited_in_every_run_of_a_seed_and_about_the_share() -> None:
@@ -144,10 +93,20 @@ def test_a_verdict_needs_two_identities_alike_and_a_third_decides_a_disagreement
     assert verdict([a, other_policy]) is None
 
 
+@pytest.fixture(scope="module")
+def unaudited(tmp_path_factory: pytest.TempPathFactory) -> Coordinator:
+    """The run trained honestly, unaudited (made once for the tests that compare with it)."""
+    return run_with(tmp_path_factory.mktemp("unaudited") / "run", 0.0, liar=None)
+
+
 @pytest.mark.parametrize("audit", [0.0, 0.3])
-def test_honest_trainers_give_the_births_of_an_unaudited_run(tmp_path: Path, audit: float) -> None:
+def test_honest_trainers_give_the_births_of_an_unaudited_run(
+    tmp_path: Path, audit: float, unaudited: Coordinator
+) -> None:
     """An audit changes which trainings are done, never a birth: honest trainings agree."""
-    coordinator = run_with(tmp_path / "run", audit, liar=None)
+    coordinator = unaudited if audit == 0 else run_with(tmp_path / "run", audit, liar=None)
+    records = coordinator.state.records
+    assert audit == 0 or all(records[t].agreed >= 1 for t in ("t0", "t1", "t2", "t3"))
     state = coordinator.state
     assert not state.quarantined
     assert (len(state.checked) > 0) == (audit > 0)
@@ -157,14 +116,34 @@ def test_honest_trainers_give_the_births_of_an_unaudited_run(tmp_path: Path, aud
     assert len(fitness) == _config(audit).total
 
 
+def test_a_new_identity_that_lies_is_caught_at_its_first_report_and_never_born_from(
+    tmp_path: Path, unaudited: Coordinator
+) -> None:
+    """Every report of a new identity is audited: a liar is caught at the first audit it takes
+    part in (its own first child's, or one it was sent as the second identity), none of its
+    reports is born from, and the run's births and fingerprint are the honest run's."""
+    honest_run = unaudited
+    coordinator = run_with(tmp_path / "run", 0.05, liar=LIAR)
+    state, journal = coordinator.state, list(replay(tmp_path / "run"))
+    (caught,) = [m for m in journal if isinstance(m, Quarantine)]
+    tried = [m for m in journal if isinstance(m, FitnessReport) and m.node == LIAR]
+    assert caught.agent in {m.agent for m in tried[:2]} and caught.retrain == ()
+    assert not [b for b in state.births if b.node == LIAR]
+    assert state.fingerprint() == honest_run.state.fingerprint()
+    assert {b.agent: b.fitness for b in state.births} == {
+        b.agent: b.fitness for b in honest_run.state.births
+    }
+
+
 def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     tmp_path: Path,
 ) -> None:
-    """The liar is caught at the first audited child it trains; each of its births that no audit
-    checked is trained again, so no lie stays in the population, the births or the results;
-    after the catch it gets no job, and a coordinator started on the journal knows all of it."""
+    """Audited by the drawn share alone, the liar is caught at the first audited child it trains;
+    each of its births that no audit checked is trained again, so no lie stays in the population,
+    the births or the results; after the catch it gets no job, and a coordinator started on the
+    journal knows all of it."""
     folder = tmp_path / "run"
-    coordinator = run_with(folder, 0.3, liar=LIAR)
+    coordinator = run_with(folder, 0.3, liar=LIAR, **SHARE_ALONE)
     state, journal = coordinator.state, list(replay(folder))
     assert list(state.quarantined) == [LIAR]
     (caught,) = [m for m in journal if isinstance(m, Quarantine)]
@@ -193,7 +172,7 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert list(summary["quarantined"]) == [LIAR]
     assert all(b["fitness"] == truth[b["agent"]] for b in summary["best"])
 
-    resumed = EvolutionState.start(_config(0.3), None)
+    resumed = EvolutionState.start(_config(0.3, **SHARE_ALONE), None)
     for msg in journal:
         resumed.apply(msg)
     assert list(resumed.quarantined) == [LIAR] and not resumed.retraining
@@ -201,3 +180,32 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert resumed.checked == state.checked
     status = coordinator.status()
     assert status.quarantined == (LIAR,) and status.audited == len(state.checked) > 0
+
+
+def test_a_real_trainer_that_inflates_every_report_leaves_the_honest_run(
+    tmp_path: Path, procs: Processes
+) -> None:
+    """Real nodes: a trainer running derl's own code that reports 1.25 x + 1 of every fitness
+    with its real checkpoints (`derl.nodes.testing.liar`), beside two honest trainers, is caught
+    at the first audit it takes part in and never born from: the run ends with the births and
+    the fingerprint of the same profile and seed trained honestly by two trainers, unaudited."""
+    runs = {}
+    for name, audit, trainers in (("honest", 0.0, ("a", "b")), ("lied", 0.05, ("a", "b", "x"))):
+        (tmp_path / name).mkdir()
+        local = LocalRun.at(tmp_path / name, population=4, total=8, in_flight=2, audit=audit)
+        coordinator = procs.start(f"{name}-coordinator", local.coordinator())
+        for trainer in trainers:
+            argv = local.trainer(trainer)
+            if trainer == "x":  # the same options, the liar's code
+                argv = [sys.executable, "-m", "derl.nodes.testing.liar", *argv[4:]]
+            procs.start(f"{name}-{trainer}", argv)
+        assert procs.finish(coordinator, timeout=120) == 0, procs.log(f"{name}-coordinator")
+        runs[name] = load_history(local.dir)
+    honest_run, lied = runs["honest"], runs["lied"]
+    assert list(lied.quarantined) == ["x"]
+    assert not [b for b in lied.births if b.node == "x"]
+    assert [m for m in replay(tmp_path / "lied" / "run") if getattr(m, "node", None) == "x"]
+    assert {b.agent: b.fitness for b in lied.births} == {
+        b.agent: b.fitness for b in honest_run.births
+    }
+    assert lied.fingerprint() == honest_run.fingerprint()

@@ -12,12 +12,13 @@ from pathlib import Path
 import msgpack
 import pytest
 import yaml
-from nodes_fixtures import Processes, derl_argv, free_port, run_id, wait_for
+from nodes_fixtures import Processes, derl_argv, free_port, run_id
 
 from derl.messages import Birth, FitnessReport, Reject, Rejection, TrainProgress, encode
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.testing.waiting import wait_until
 from derl.unimal import Genome
 
 PROFILE = {
@@ -70,7 +71,7 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
     progress: list[TrainProgress] = []
     try:
         procs.start("coordinator", coordinator)
-        wait_for(lambda: "replayed" in procs.log("coordinator"), 60, "the coordinator")
+        wait_until(lambda: "replayed" in procs.log("coordinator"), 60, "the coordinator")
         # the test hears progress before any training starts: the forged reports must reach the
         # coordinator while their job is still in flight (a born child's reports are only acked)
         with open_session(ZenohOptions(connect=(endpoint,))) as session:
@@ -81,24 +82,24 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
                                             "--name", name))  # fmt: skip
             monitor = [sys.executable, "examples/fitness_monitor.py", run, endpoint]
             procs.start("monitor", monitor)
-            first = wait_for(
+            first = wait_until(
                 lambda: next((p for p in progress if 2 * p.env_steps <= p.total_steps), None),
                 180,
                 "a training in its first half",
             )
             _forge(bus, first, run_dir)
-            wait_for(lambda: len(_births(run_dir)) >= 2, 240, "two births")
+            wait_until(lambda: len(_births(run_dir)) >= 2, 240, "two births")
             procs.kill("coordinator")
             with segments(run_dir)[-1].open("ab") as torn:  # a write cut short by the kill
                 torn.write(b"\x05torn")
             procs.start("coordinator-2", coordinator)
-            wait_for(lambda: procs.started["coordinator-2"].poll() is not None, 300, "the end")
+            wait_until(lambda: procs.started["coordinator-2"].poll() is not None, 300, "the end")
         assert procs.started["coordinator-2"].returncode == 0, procs.log("coordinator-2")
         journal = _journal(run_dir)
         births = [m for m in journal if isinstance(m, Birth)]
         assert len(births) == PROFILE["total"] == len({b.agent for b in births})
         wanted = {f"{b.agent} fitness {b.fitness:.2f} ({b.node})" for b in births}
-        wait_for(
+        wait_until(
             lambda: wanted <= set(procs.log("monitor").splitlines()), 30, "every birth printed"
         )
         printed = [line for line in procs.log("monitor").splitlines() if " fitness " in line]

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import LocalRun, Processes, births, journaled, observe, wait_for
+from nodes_fixtures import LocalRun, Processes, births, journaled, observe
 
 from derl.messages import (
     Birth,
@@ -30,6 +30,7 @@ from derl.messages import (
 )
 from derl.nodes.runtime.bus import Bus
 from derl.nodes.testing.faults import put_garbage
+from derl.nodes.testing.waiting import wait_until
 from derl.nodes.tools.logs import read_log
 
 PROFILE = {
@@ -104,14 +105,14 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         procs.start(name, local.trainer(name))
     with observe(local) as observer:
         bus = observer.bus
-        wait_for(lambda: observer.statuses, 60, "the coordinator's status")
+        wait_until(lambda: observer.statuses, 60, "the coordinator's status")
 
         # a job that fails: its child given up (max_attempts 1)
         saboteur = Saboteur(bus, "saboteur")
-        failed = wait_for(saboteur.ask, 60, "a job for the saboteur")
+        failed = wait_until(saboteur.ask, 60, "a job for the saboteur")
         at["failed job"] = time.time()
         saboteur.fail(failed)
-        wait_for(lambda: journaled(local.dir, ChildFailed), 30, "the child given up")
+        wait_until(lambda: journaled(local.dir, ChildFailed), 30, "the child given up")
         saboteur.leave()
 
         # garbage on every key kind: rejected, counted, nobody falls over (once the test's
@@ -120,7 +121,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         at["garbage"] = time.time()
         put, _stray = put_garbage(bus)
         coordinator_kinds = 5 * 4  # ready, fitness, progress, eval, failure: all four payloads
-        wait_for(lambda: observer.statuses[-1].rejected >= coordinator_kinds, 30, "rejections")
+        wait_until(lambda: observer.statuses[-1].rejected >= coordinator_kinds, 30, "rejections")
         garbage_noticed = round(time.time() - at["garbage"], 1)
         assert all(procs.started[n].poll() is None for n in ("coordinator", *TRAINERS))
 
@@ -128,7 +129,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         killed = observer.training("a", len(observer.progress))
         at["SIGKILL trainer"] = time.time()
         procs.kill("a")
-        wait_for(_lost(local.dir, killed), lease + 10, "the killed trainer's job lost")
+        wait_until(_lost(local.dir, killed), lease + 10, "the killed trainer's job lost")
         procs.start("a", local.trainer("a"))
 
         # a trainer SIGSTOPped past its lease, then SIGCONT
@@ -136,7 +137,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         at["SIGSTOP trainer"] = time.time()
         os.killpg(procs.started["b"].pid, signal.SIGSTOP)
         try:
-            wait_for(_lost(local.dir, frozen), lease + 10, "the stopped trainer's job lost")
+            wait_until(_lost(local.dir, frozen), lease + 10, "the stopped trainer's job lost")
             time.sleep(max(0.0, at["SIGSTOP trainer"] + lease + 2 - time.time()))
         finally:
             os.killpg(procs.started["b"].pid, signal.SIGCONT)
@@ -150,7 +151,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
         time.sleep(1)
         heard = len(observer.statuses)
         coordinator = procs.start("coordinator-2", local.coordinator())
-        wait_for(lambda: len(observer.statuses) > heard, 60, "the restarted coordinator")
+        wait_until(lambda: len(observer.statuses) > heard, 60, "the restarted coordinator")
         coordinator_back = round(time.time() - at["SIGKILL coordinator"], 1)
         assert procs.finish(coordinator, timeout=240) == 0, procs.log("coordinator-2")
     ended = time.monotonic()

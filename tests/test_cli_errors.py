@@ -3,17 +3,19 @@ hang: one row per mistake a user makes (a budget below one rollout, an impossibl
 workers or copies, a port in use, a missing run directory or log, a run directory that is a
 file, a misspelt key in a profile or a launch file, a profile file that is empty or starts from
 no built-in profile, a tournament larger than the population, a job's own setting among a
-profile's PPO hyperparameters, a misspelt key or a wrong value in --set, an unknown message
-type, a folder with no trained body, a study with no runs, of a missing run or not made yet, a
-run directory of another run id, a monitor or a topic that hears nothing (the line says how it
-joined the bus: by default the local run's endpoint, $DERL_LOCAL_PORT here) or is asked to
-listen a negative time, a report of a file that is no log, an export with nothing to write, a
-missing or misspelt Zenoh config, an argument no option takes; a training's folder that is a
-file or cannot be made, a resume with a new training's flags or of no stopped training, a
-report into a folder that cannot be made, a video of a format derl does not write, in no folder
-or where no file can be made (said before the episode is filmed), an endpoint without a port or
-with one out of range). A mistake in a command's own flags (--set included) exits 2, as
-argparse's do."""
+profile's PPO hyperparameters, a misspelt key or a wrong value in --set or one breaking a rule
+between settings, a misspelt profile name, a missing genome or folder to resume, another value
+of a setting of a run begun (or fewer bodies to --extend it to), a training's folder as a run's,
+an unknown message type, a folder with no trained body, a study with no runs, of a missing run
+or not made yet, a run directory of another run id, a monitor or a topic that hears nothing (the
+line says how it joined the bus: by default the local run's endpoint, $DERL_LOCAL_PORT here) or is
+asked to listen a negative time, a report of a file that is no log, an export with nothing to
+write, a missing or misspelt Zenoh config, an argument no option takes; a training's folder that
+is a file or cannot be made, a resume with a new training's flags or of no stopped training, a
+report, an export or bodies into a folder that cannot be made, a video of a format derl does
+not write, in no folder or where no file can be made (said before the episode is filmed), an
+endpoint without a port or with one out of range). A mistake in a command's own flags (--set
+included) exits 2, as argparse's do."""
 
 from __future__ import annotations
 
@@ -27,8 +29,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from nodes_fixtures import REPO, derl_argv, free_port
+from nodes_fixtures import derl_argv, free_port
 
+from derl.evolution import load_profile
 from derl.messages import WorkerReady
 from derl.nodes.journal.segments import Journal
 from derl.unimal import Genome
@@ -79,6 +82,8 @@ def _files(tmp: Path, genome: Genome, trained: dict[str, bytes]) -> None:
     no_joints = genome.model_dump(mode="json")
     no_joints["limbs"][0]["joints"] = []
     (tmp / "no-joints.json").write_text(json.dumps(no_joints))
+    (tmp / "begun").mkdir()  # a run of the smoke profile begun there
+    (tmp / "begun" / "profile.json").write_text(load_profile("smoke").model_dump_json())
     with Journal(tmp / "other") as journal:  # a run directory of run "other"
         journal.write(WorkerReady(run="other", node="n", role="trainer", host="h", pid=1))
 
@@ -94,12 +99,13 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "a training's folder that cannot be made": (["train", "--genome", GENOME, "--out",
                                                  "/proc/x"], 1, "cannot make --out /proc/x"),
     "a training without a body": (["train", "--out", "t"], 2, "--genome required (or --resume"),
-    "a resume with a new training's flag": (["train", "--resume", "trained", "--steps", "100"],
+    "a resume with a new training's flag": (["train", "--resume", "trained", "--seed", "3"],
                                             2, "--resume takes the training's settings from its "
-                                            "folder: drop --steps"),
-    "a resume of no stopped training": (["train", "--resume", "trained"], 1,
-                                        "--resume trained: no training-state.pt (its training "
-                                        "finished)"),
+                                            "folder: drop --seed"),
+    "a resume of a finished training": (["train", "--resume", "trained"], 1,
+                                        "--resume trained: its training finished (0 env steps): "
+                                        "extend it with a larger --steps"),
+
     "a report into a folder that cannot be made": (["report", "missing", "--out", "/proc/x"], 1,
                                                    "cannot make --out /proc/x"),
     "a video format derl does not write": (["rollout", "trained", "--video", "x.avi"], 2,
@@ -139,6 +145,15 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "a misspelt key in --set": (["run", "--set", "ppo.lrr=1e-4"], 2,
                                 "profile smoke with --set ppo.lrr=1e-4: unknown key 'ppo.lrr'; "
                                 "valid keys: rollout_steps, gamma"),
+    "a --set that breaks a rule between settings": (["run", "--set", "in_flight=1000"], 2,
+                                                    "profile smoke with --set in_flight=1000: "
+                                                    "in_flight (1000) >= population (4)"),
+    "a misspelt profile name": (["run", "--profile", "smok"], 2,
+                                "profile smok: no profile 'smok': use smoke, demo, paper"),
+    "a missing genome": (["train", "--genome", "missing.json", "--out", "t"], 2,
+                         "missing.json: no such file"),
+    "a resume of a missing folder": (["train", "--resume", "missing"], 2,
+                                     "--resume missing: no such directory"),
     "a --set without a value": (["study", "--study-dir", "s", "--set", "seeds"], 2,
                                 "argument --set: 'seeds' is not KEY=VALUE (e.g. ppo.lr=1e-4)"),
     "a --set of a wrong value": (["run", "--set", "total=many"], 2,
@@ -152,10 +167,25 @@ CASES = {  # name: (arguments, exit status, what its last line says)
                                   "unknown key 'ppo.num_envs'; valid keys: rollout_steps, gamma"),
     "misspelt launch key": (["launch", "launch.yaml", "--dry-run"], 1,
                             "unknown key 'hosts.0.nodes.0.cont'; valid keys: role, count"),
+    "another value of a setting of a run begun": (["run", "--set", "total=10", "--run-dir",
+                                                   "begun"], 2,
+                                                  "--set total=10: the run in begun has total 8 "
+                                                  "(--extend raises it)"),
+    "an extension to fewer bodies": (["run", "--set", "total=6", "--extend", "--run-dir",
+                                      "begun"], 2, "--set total=6: the run in begun has total 8;"),
+    "a training's folder as a run directory": (["run", "--run-dir", "trained"], 2,
+                                               "--run-dir trained holds a `derl train` output"),
     "run directory is a file": (["run", "--run-dir", "a-file"], 1, "a-file is a file"),
-    "no run directory": (["report", "missing", "--out", "r"], 1,
+    "no run directory": (["report", "missing", "--out", "r"], 2,
                          "no run directory or log at missing"),
-    "no log": (["log", "info", "missing.mcap"], 1, "missing.mcap: no such file"),
+    "no log": (["log", "info", "missing.mcap"], 2, "missing.mcap: no such file"),
+    "an export into a folder that cannot be made": (["export", "other", "--tensorboard",
+                                                     "/proc/x"], 1,
+                                                    "cannot make --tensorboard /proc/x"),
+    "an export into a file that cannot be made": (["export", "other", "--json", "/proc/x.mcap"],
+                                                  1, "cannot write --json /proc/x.mcap"),
+    "bodies into a folder that cannot be made": (["unimal", "sample", "--out", "/proc/x"], 1,
+                                                 "cannot make --out /proc/x"),
     "an export of nothing": (["export", "other"], 1,
                              "say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both"),
     "no trained body": (["rollout", "."], 2, "holds no trained body"),
@@ -169,7 +199,7 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "run's port in use": (["run", "--port", "{port}", "--run-dir", "x"], 2,
                           "Address already in use"),
     "study without runs": (["study", "--study-dir", "s"], 1, "s is not a study yet"),
-    "study of a missing run": (["study", "missing", "--study-dir", "s"], 1,
+    "study of a missing run": (["study", "missing", "--study-dir", "s"], 2,
                                "no run directory or log at missing"),
     "misspelt study key": (["study", "a-file", "--study-dir", "s", "--profile", "typo.yaml"], 1,
                            "unknown key 'populaton'; valid keys: name, per_lineage"),
@@ -181,8 +211,8 @@ CASES = {  # name: (arguments, exit status, what its last line says)
     "a monitor that hears nothing": (["monitor", "--once", "1", "--run", "r"], 1,
                                      "heard nothing of run r in 1 s (peer, connected to "
                                      "tcp/127.0.0.1:{local}, where nothing listens)"),
-    "a monitor that finds no run": (["monitor", "--once", "1"], 1,
-                                    "no run heard in 2 s (no derl/*/status, no live node) (peer, "
+    "a monitor that finds no run": (["monitor", "--once", "3"], 1,  # it looks for 3 s, not 2
+                                    "no run heard in 3 s (no derl/*/status, no live node) (peer, "
                                     "connected to tcp/127.0.0.1:{local}, where nothing listens)"),
     "a topic list that hears nothing": (["topic", "list", "--duration", "1"], 1,
                                         "nothing heard on derl/** in 1 s (peer, connected to "
@@ -211,7 +241,7 @@ def test_bad_input_gets_one_line_and_an_exit_status(
         return text.replace("{port}", str(busy_port)).replace("{local}", str(local))
 
     argv = derl_argv(*map(filled, arguments))
-    env = {**os.environ, "PYTHONPATH": str(REPO), "DERL_LOCAL_PORT": str(local)}
+    env = {**os.environ, "DERL_LOCAL_PORT": str(local)}
     done = subprocess.run(argv, capture_output=True, text=True, cwd=tmp_path, env=env,
                           timeout=60)  # fmt: skip
     lines = done.stderr.strip().splitlines()

@@ -31,26 +31,28 @@ from derl.messages import (
     EvalJob,
     FitnessReport,
     JobFailed,
+    JobLost,
     MessageBase,
     Reject,
     Rejection,
     Tournament,
     TrainJob,
+    TrainProgress,
     WorkerReady,
     decode,
     encode,
 )
-from derl.nodes.coordinator import node
 from derl.nodes.coordinator.audits import journaled
 from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.evolution_state import EvolutionState
 from derl.nodes.coordinator.ledger import JOURNALED_REFUSALS
-from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.coordinator.node import RESEND_AFTER_S, Coordinator
 from derl.nodes.coordinator.run_files import INITIAL_FILE, PROFILE_FILE
 from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
-from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
+from derl.nodes.testing.waiting import ManualClock, wait_until
 from derl.policy_check import untrained_policy
 from derl.rl import PPOConfig, PPOHyperparameters
 from derl.unimal import Genome, Joint, Limb, body_hash, sample_population
@@ -61,10 +63,14 @@ QUIET_S = 0.5  # how long "nothing was published" is watched for
 
 @contextmanager
 def _serving(
-    run: str, run_dir: Path, config: EvolutionConfig, initial: list[Genome]
+    run: str,
+    run_dir: Path,
+    config: EvolutionConfig,
+    initial: list[Genome],
+    clock: Callable[[], float] = time.monotonic,
 ) -> Iterator[tuple[Coordinator, queue.Queue[MessageBase]]]:
-    """A coordinator of a run of `initial` bodies whose bus is a real Zenoh session, and a queue
-    of what an observer in another session hears it publish."""
+    """A coordinator of a run of `initial` bodies on `clock` whose bus is a real Zenoh session,
+    and a queue of what an observer in another session hears it publish."""
     (run_dir / INITIAL_FILE).write_text("[" + ",".join(g.model_dump_json() for g in initial) + "]")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     heard: queue.Queue[MessageBase] = queue.Queue()
@@ -75,8 +81,8 @@ def _serving(
         subscriber = observer.declare_subscriber(
             f"derl/{run}/**", lambda sample: heard.put(decode(sample.payload.to_bytes()))
         )
-        coordinator = Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config))
-        coordinator.bus = Bus(own, run)
+        policy = EvolutionPolicy(run, run_dir, config)
+        coordinator = Coordinator(run, run_dir, policy, Bus(own, run), clock)
         try:
             yield coordinator, heard
         finally:
@@ -86,10 +92,10 @@ def _serving(
 
 @pytest.fixture
 def coordinator(tmp_path: Path) -> Iterator[tuple[Coordinator, queue.Queue[MessageBase]]]:
-    """The coordinator of a 2-body run of 3 children."""
+    """The coordinator of a 2-body run of 3 children, on a clock the test moves (`ManualClock`)."""
     config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 3})
     initial = sample_population(2, np.random.default_rng(3))
-    with _serving(run_id(), tmp_path, config, initial) as served:
+    with _serving(run_id(), tmp_path, config, initial, ManualClock()) as served:
         yield served
 
 
@@ -184,7 +190,8 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert isinstance(ack, Ack) and ack.agent == first.agent
     assert coordinator.ledger.checkpoints.path(first.agent).read_bytes() == _weights(first, 1)
 
-    # the write fails (the folder is gone, a file in its place): born, but not acknowledged
+    # the write fails (the folder is gone, a file in its place): born, but neither published
+    # nor acknowledged
     folder = coordinator.ledger.checkpoints.folder
     shutil.rmtree(folder)
     folder.write_text("not a folder")
@@ -192,18 +199,19 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     with caplog.at_level(logging.ERROR, logger="derl.coordinator"):
         coordinator.dispatch(report)
         coordinator.settle()
-    assert isinstance(heard.get(timeout=10), Birth)
     assert second.agent in coordinator.state.evolution.fitness
     assert journaled(report) in _journaled(coordinator)  # its checkpoint: the SHA-256
-    assert _quiet(heard), "an Ack went out for a checkpoint that is not on disk"
+    assert _quiet(heard), "a Birth or an Ack went out for a checkpoint that is not on disk"
     assert f"cannot write {folder / second.agent}.pt (Not a directory)" in caplog.text
     assert coordinator.ledger.stalled
 
-    # the trainer sends its report again: the checkpoint is written, then acknowledged
+    # the trainer sends its report again: the checkpoint is written, then the Birth goes out
+    # and the report is acknowledged
     folder.unlink()
     folder.mkdir()
     coordinator.dispatch(report)
     coordinator.settle()
+    assert isinstance(heard.get(timeout=10), Birth)
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.agent == second.agent
     assert coordinator.ledger.checkpoints.path(second.agent).read_bytes() == _weights(second, 2)
@@ -211,10 +219,8 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert not coordinator.ledger.stalled
 
 
-def _wait_for(path: Path) -> bytes:
-    deadline = time.monotonic() + 10
-    while not path.exists() and time.monotonic() < deadline:
-        time.sleep(0.01)
+def _written(path: Path) -> bytes:
+    wait_until(path.exists, 10, f"{path} written")
     return path.read_bytes()
 
 
@@ -254,7 +260,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         assert msg.repeat_of == twin  # in the birth stream
         assert coordinator.status().repeats == 1
         checkpoint = coordinator.ledger.checkpoints.path("c00000")
-        assert _wait_for(checkpoint) == coordinator.ledger.checkpoints.path(twin).read_bytes()
+        assert _written(checkpoint) == coordinator.ledger.checkpoints.path(twin).read_bytes()
 
     checkpoint.unlink()  # as if the coordinator died before the link was on disk
     restarted = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
@@ -263,7 +269,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         assert state.born["c00000"].repeat_of == twin
         assert state.evolution.repeat_of(child_body) == twin
         assert "c00000" not in state.waiting and restarted.status().repeats == 1
-        assert _wait_for(checkpoint) == restarted.ledger.checkpoints.path(twin).read_bytes()
+        assert _written(checkpoint) == restarted.ledger.checkpoints.path(twin).read_bytes()
     finally:
         restarted.close()
     bodies = {body.id: body for body in run_log(tmp_path).bodies}  # what `derl report` reads
@@ -482,47 +488,72 @@ def test_an_evaluation_that_keeps_failing_is_given_up_and_the_run_finishes() -> 
 
 
 def test_a_job_goes_out_again_for_a_worker_that_asks_only_after_a_while(
-    coordinator: tuple[Coordinator, queue.Queue[MessageBase]], monkeypatch: pytest.MonkeyPatch
+    coordinator: tuple[Coordinator, queue.Queue[MessageBase]],
 ) -> None:
     """A WorkerReady sent before the job reached its worker does not send the job again (under a
     backlog those re-sends made a 10,000-worker run collapse); one a while later does (the job
     was lost, or the coordinator restarted)."""
-    monkeypatch.setattr(node, "RESEND_AFTER_S", 0.5)
     coordinator, heard = coordinator
     job = _job_for(coordinator, "w1")
     assert heard.get(timeout=10) == job
+    coordinator.clock.advance(RESEND_AFTER_S / 2)
     _ready(coordinator, "w1")
     coordinator.settle()
-    assert _quiet(heard), "the job was sent again at once"
-    time.sleep(0.5)
+    assert _quiet(heard), "the job was sent again too soon"
+    coordinator.clock.advance(RESEND_AFTER_S / 2)
     _ready(coordinator, "w1")
     coordinator.settle()
     assert heard.get(timeout=10) == job
 
 
+def test_progress_keeps_a_job_and_a_lease_without_it_takes_the_job_back(
+    coordinator: tuple[Coordinator, queue.Queue[MessageBase]],
+) -> None:
+    """On the coordinator's clock, moved by hand: progress within each lease keeps the job; a
+    lease without progress takes it back (JobLost, journaled), and the next worker gets it."""
+    coordinator, _ = coordinator
+    clock = coordinator.clock
+    job = _job_for(coordinator, "w1")
+    progress = TrainProgress(run=job.run, agent=job.agent, job=job.job, node="w1", env_steps=1,
+                             total_steps=job.steps, recent_return=None,
+                             steps_per_s=1.0)  # fmt: skip
+    for _ in range(3):
+        clock.advance(0.9 * job.lease_s)
+        coordinator.take(progress)
+        coordinator._check_leases(clock())
+    assert coordinator.state.job_of("w1") is not None
+    clock.advance(job.lease_s + 0.1)
+    coordinator._check_leases(clock())
+    coordinator.settle()
+    assert coordinator.state.job_of("w1") is None
+    lost = [m for m in _journaled(coordinator) if isinstance(m, JobLost)]
+    assert [(m.job, m.node) for m in lost] == [(job.job, "w1")], lost
+    assert f"no progress for {job.lease_s:g} s" in lost[0].reason
+    assert _job_for(coordinator, "w2").agent == job.agent
+
+
 def test_an_ask_that_waited_in_a_backlog_does_not_send_the_job_again(
-    coordinator: tuple[Coordinator, queue.Queue[MessageBase]], monkeypatch: pytest.MonkeyPatch
+    coordinator: tuple[Coordinator, queue.Queue[MessageBase]],
 ) -> None:
     """A WorkerReady handled long after the job went out, but that came in before (it waited in
     the coordinator's queue behind others: its inlet was not seen empty since), does not send
     the job again; one that came in RESEND_AFTER_S after the job went out does. Real Zenoh: the
     asks come into the coordinator's inlet through its session."""
-    monkeypatch.setattr(node, "RESEND_AFTER_S", 0.5)
     coordinator, heard = coordinator
-    bus = coordinator.bus
-    coordinator.ready_inlet = inlet = bus.inlet(bus.keys.all("ready"), (WorkerReady,))
+    bus, clock = coordinator.bus, coordinator.clock
+    coordinator.ready_inlet = inlet = bus.inlet(bus.keys.all("ready"), (WorkerReady,), clock=clock)
     changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
     job = _job_for(coordinator, "w1")
     assert heard.get(timeout=10) == job
     ask = WorkerReady(run=coordinator.run, node="w1", role="trainer", host="h", pid=1)
     bus.publish(ask)  # sent before the job could reach w1 ...
-    time.sleep(1.0)  # ... and handled after RESEND_AFTER_S, as behind a backlog
+    assert heard.get(timeout=10) == ask  # heard by the observer: in the inlet already
+    clock.advance(2 * RESEND_AFTER_S)  # ... and handled long after, as behind a backlog
     assert coordinator._take_group([inlet], changes)
     coordinator.settle()
     assert not _orders_heard(heard), "the job sent again for an ask that came in before it"
-    time.sleep(0.5)  # the inlet was seen empty RESEND_AFTER_S after the job went out
-    bus.publish(ask)
-    time.sleep(0.2)
+    bus.publish(ask)  # the inlet was seen empty RESEND_AFTER_S after the job went out
+    assert heard.get(timeout=10) == ask
     assert coordinator._take_group([inlet], changes)
     coordinator.settle()
     assert _orders_heard(heard) == [job]
@@ -561,8 +592,11 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
         with open_session(ZenohOptions(connect=(endpoint,))) as session:
             bus = Bus(session, run)
             bus.subscribe(bus.keys.all("job"), jobs.put, (TrainJob,))
-            tokens = [bus.token("trainer", worker) for worker in ("w1", "w2", "w3")]
-            time.sleep(1.0)  # the subscriptions and tokens are known on both sides
+            workers = ("w1", "w2", "w3")
+            tokens = [bus.token("trainer", worker) for worker in workers]
+            asking = session.declare_publisher(bus.keys.ready("w1"))
+            wait_until(lambda: matched(asking) and coordinator.tokens >= set(workers), 10,
+                       "the coordinator's subscriptions here, the tokens there")  # fmt: skip
             for worker in ("w1", "w2", "w3"):
                 bus.publish(WorkerReady(run=run, node=worker, role="trainer", host="h", pid=1))
             first, second = jobs.get(timeout=10), jobs.get(timeout=10)
@@ -573,7 +607,8 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
                 bus.publish(_report(job, 0))
             third = jobs.get(timeout=10)
             assert (third.node, third.agent) == ("w3", "c00000")
-            assert len(tokens) == 3
+            for token in tokens:
+                token.undeclare()
     finally:
         coordinator.stop.set()
         serving.join(timeout=30)

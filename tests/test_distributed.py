@@ -27,7 +27,6 @@ from nodes_fixtures import (
     jobs,
     journaled,
     observe,
-    wait_for,
 )
 
 from derl.messages import Birth, FitnessReport, JobLost, encode
@@ -36,6 +35,7 @@ from derl.messages.types import MAX_MESSAGE_BYTES
 from derl.nodes.journal.segments import replay, segments
 from derl.nodes.runtime.bus import ZenohOptions, open_session, zenoh_config
 from derl.nodes.testing.processes import sample
+from derl.nodes.testing.waiting import wait_until
 
 PROFILE = {
     "total": 4,
@@ -87,7 +87,7 @@ def test_killed_trainer_loses_nothing(
     procs.start("survivor", local.trainer("survivor"))
     child = observer.training("victim").agent
     procs.kill("victim")
-    wait_for(lambda: len(births(local.dir)) == 4, 300, "every body born")
+    wait_until(lambda: len(births(local.dir)) == 4, 300, "every body born")
     assert_born_once(local.dir, 4)
     holders = [job.node for job in jobs(local.dir) if job.agent == child]
     assert holders[0] == "victim" and "survivor" in holders[1:]
@@ -105,7 +105,7 @@ def test_stopped_trainer_is_noticed_within_its_lease(
     os.killpg(frozen.pid, signal.SIGSTOP)
     stopped = time.monotonic()
     try:
-        lost = wait_for(
+        lost = wait_until(
             lambda: [m for m in journaled(local.dir, JobLost) if m.job == job],
             local.lease_s + 30,
             "the frozen trainer's job lost",
@@ -115,14 +115,14 @@ def test_stopped_trainer_is_noticed_within_its_lease(
         assert noticed < local.lease_s + 3, (noticed, lost)
         # still frozen, so its late report cannot win the race: once the other trainer is done
         # with its own body, the child is handed to it
-        wait_for(
+        wait_until(
             lambda: [j for j in jobs(local.dir) if j.agent == progress.agent and j.node == "other"],
             120,
             "the child handed to the other trainer",
         )
     finally:
         os.killpg(frozen.pid, signal.SIGCONT)
-    wait_for(lambda: len(births(local.dir)) == 4, 300, "every body born")
+    wait_until(lambda: len(births(local.dir)) == 4, 300, "every body born")
     assert_born_once(local.dir, 4)
 
 
@@ -133,7 +133,7 @@ def test_coordinator_restart_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("a", local.trainer("a"))
     procs.start("b", local.trainer("b"))
-    wait_for(lambda: len(births(local.dir)) >= 2, 180, "two births")
+    wait_until(lambda: len(births(local.dir)) >= 2, 180, "two births")
     procs.kill("coordinator")
     before = births(local.dir)
     segment = segments(local.dir)[-1]
@@ -141,7 +141,7 @@ def test_coordinator_restart_loses_nothing(
         torn.write(b"\x05garbage-tail")
     time.sleep(2)  # trainers keep training and re-sending while no coordinator is up
     procs.start("coordinator", local.coordinator())
-    wait_for(lambda: len(births(local.dir)) == 4, 300, "every body born after the restart")
+    wait_until(lambda: len(births(local.dir)) == 4, 300, "every body born after the restart")
     assert_born_once(local.dir, 4)
     assert births(local.dir)[: len(before)] == before
     assert len(segments(local.dir)) == 2
@@ -154,7 +154,7 @@ def test_garbage_on_every_key_is_rejected(
 ) -> None:
     coordinator = procs.start("coordinator", local.coordinator())
     trainer = procs.start("t", local.trainer("t"))
-    wait_for(lambda: observer.progress, 120, "training to start")
+    wait_until(lambda: observer.progress, 120, "training to start")
     keys = observer.bus.keys
     targets = [keys.ready("t"), keys.job("t"), keys.ack("t"), keys.fitness("t", "x"),
                keys.progress("t", "x"), keys.eval("t", "x", "ft"), keys.status(),
@@ -169,11 +169,11 @@ def test_garbage_on_every_key_is_rejected(
                                        "genome": {"limbs": [{"id": -1}]}})):  # fmt: skip
             observer.bus.session.put(key, payload)
     observer.bus.publish(forged)
-    wait_for(lambda: observer.statuses and observer.statuses[-1].rejected >= 10, 30, "rejections")
+    wait_until(lambda: observer.statuses and observer.statuses[-1].rejected >= 10, 30, "rejections")
     assert coordinator.poll() is None and trainer.poll() is None
     assert "never issued" in procs.log("coordinator")
     assert "rejected" in procs.log("t")
-    wait_for(lambda: len(births(local.dir)) >= 1, 180, "the run going on")
+    wait_until(lambda: len(births(local.dir)) >= 1, 180, "the run going on")
 
 
 # A client of the user's own (Zenoh's default config: shared memory on; multicast off) sending
@@ -255,7 +255,7 @@ def test_an_oversized_sample_stops_at_the_transport(procs: Processes) -> None:
     with open_session(ZenohOptions(mode="client", connect=(router,))) as session:
         session.declare_subscriber("derl/churn/**", lambda s: heard.append(len(s.payload)))
         client(1, 1000)  # the router's own warm-up
-        wait_for(lambda: heard, 10, "a small sample")
+        wait_until(lambda: heard, 10, "a small sample")
         for _ in range(2):  # the transport's buffers, once (measured: +28 MB, then +2 MB)
             client(2, 40_000_000)
         before = sample(process.pid)["rss_mb"]
@@ -263,7 +263,7 @@ def test_an_oversized_sample_stops_at_the_transport(procs: Processes) -> None:
             client(2, 40_000_000)
         grown = sample(process.pid)["rss_mb"] - before
         client(1, 1000)
-        wait_for(lambda: len(heard) >= 2, 10, "a small sample after the large ones")
+        wait_until(lambda: len(heard) >= 2, 10, "a small sample after the large ones")
     assert heard == [1000, 1000]
     # a sample assembled adds its 40 MB (a 50 MB one kept 49 MB before the bound): 240 MB over
     # six; the allocator's noise over them was up to 13 MB

@@ -63,6 +63,50 @@ def test_forward_reward_is_fifty_times_the_distance(quadruped: Genome, task: str
     np.testing.assert_allclose(total, 50 * 1.5 * 20 * 0.02, rtol=0.02)
 
 
+@pytest.mark.parametrize("frame_skip", [2, 8])
+def test_forward_reward_is_metres_per_second_at_any_frame_skip(
+    quadruped: Genome, frame_skip: int
+) -> None:
+    """The control step is the timestep x the frame skip, read by every part that needs it: the
+    forward term stays the head's speed in m/s (an episode sum of distance / control step)."""
+    env = _env(quadruped, "ft", frame_skip=frame_skip)
+    assert env.control_dt == pytest.approx(0.005 * frame_skip)
+    env.reset(0)
+    _lift(env, 5.0, (1.5, 0.0, 0.0))
+    x0 = env.head_pos[:, 0].copy()
+    total = np.zeros(env.num_envs)
+    for _ in range(10):
+        total += env.step(np.zeros((env.num_envs, env.action_dim), np.float32)).components[
+            "forward"
+        ]
+    distance = env.head_pos[:, 0] - x0
+    np.testing.assert_allclose(total * env.control_dt, distance, rtol=1e-9)
+    np.testing.assert_allclose(total / 10, 1.5, rtol=0.02)  # m/s: the launch speed
+
+
+def test_fitness_bounds_come_from_the_terms_and_the_control_step() -> None:
+    """A world's bound is its fitness terms' episode bounds: forward progress is at most the
+    arena's diagonal per episode (so it scales with the weight and the control rate), MVT's
+    reach and push the diagonal each plus their bonuses; a term that states no bound makes a
+    fitness that sums it unbounded."""
+    ft = make_task("ft")
+    bound = EnvConfig().fitness_bound(ft)
+    assert bound == pytest.approx(ft.arena.diagonal / 0.02)
+    assert EnvConfig(frame_skip=8).fitness_bound(ft) == pytest.approx(bound / 2)
+    heavy = make_task("ft", weights=RewardWeights(forward=3.0))
+    assert EnvConfig().fitness_bound(heavy) == pytest.approx(3 * bound)
+    mvt = make_task("mvt")
+    w = REWARD_WEIGHTS["mvt"]
+    expected = (w.reach + w.push) * mvt.arena.diagonal + w.bonus * (1 + 1000)
+    assert EnvConfig().fitness_bound(mvt) == pytest.approx(expected)
+
+    class Unbounded(RewardTerm):
+        name = "mine"
+
+    mine = Task("mine", "Mine", "mine", ft.arena, ft.spawn, (Unbounded(), *ft.rewards))
+    assert EnvConfig().fitness_bound(mine) == float("inf")
+
+
 def test_ctrl_cost_and_energy(quadruped: Genome) -> None:
     """The control cost is on the actions as the policy gave them, unclipped (the released
     code); MuJoCo gets them clipped to [-1, 1], and the energy (cost of work) is theirs."""
@@ -415,7 +459,9 @@ def test_heightmap_follows_the_heading(quadruped: Genome) -> None:
     assert env.yaw[1] == pytest.approx(yaw)
     observed = env.task.observe(env, env.all)["heightmap"]
     for i in range(2):  # each copy reads its own terrain
-        terrain = Terrain(env.task.terrains.heights[i], SMALL_VT.resolution, SMALL_VT.max_height)
+        terrain = Terrain(
+            env.task.arena.terrains.heights[i], SMALL_VT.resolution, SMALL_VT.max_height
+        )
         expected = sample(terrain, env.head_pos[[i], :2], env.yaw[[i]], env.task.arena.grid)
         np.testing.assert_array_equal(observed[i], expected[0])
 
@@ -425,7 +471,7 @@ def test_new_terrain_for_every_episode(quadruped: Genome) -> None:
     its heightmap; the others keep theirs."""
     env = _env(quadruped, "vt", n=3)
     env.reset(0)
-    stack = env.task.terrains
+    stack = env.task.arena.terrains
     before = stack.heights.copy()
     assert not np.array_equal(before[0], before[1])
     env.qpos[:2, env.root + 2] = 0.0  # copies 0 and 1 fall
@@ -453,7 +499,7 @@ def test_first_obstacles_are_uniform_over_the_episodes_started(quadruped: Genome
         quadruped, make_task("vt", terrain=corridor), EnvConfig(num_envs=8, episode_steps=10)
     )
     env.reset(0)
-    stack = env.task.terrains
+    stack = env.task.arena.terrains
     starts = [stack.first_obstacle.copy()]
     rng = np.random.default_rng(0)
     for _ in range(250):
@@ -497,7 +543,7 @@ def test_flat_stretches_are_a_plane_and_obstacles_the_heightfield(quadruped: Gen
         for name, count in _ground_contacts(env).items():
             touched[name] += count.sum()
     assert touched["plane"] > 40 and touched["heightfield"] == 0
-    stack = env.task.terrains
+    stack = env.task.arena.terrains
     on_hill = np.column_stack([stack.first_obstacle + 1.0, np.zeros(env.num_envs)])
     ground = env.task.arena.ground(on_hill)
     assert np.isfinite(on_hill).all() and (ground > 0.0).all()  # hills, steps and rubble rise
@@ -536,7 +582,7 @@ def test_terrain_is_written_ahead_of_the_body(quadruped: Genome) -> None:
     config = EnvConfig(num_envs=2, fall_ratio=0.0)
     env = UnimalEnv(quadruped, make_task("vt", terrain=corridor), config)
     env.reset(0)
-    stack = env.task.terrains
+    stack = env.task.arena.terrains
     rows, cols = stack.padded.shape[1:]
     area = stack.written[:, 0] * (stack.written[:, 2] - stack.written[:, 1])
     assert (area < rows * cols / 4).all()  # the start and what lies around it

@@ -244,7 +244,7 @@ def _ray_heights(model: mujoco.MjModel, xy: np.ndarray) -> np.ndarray:
 def test_heightmap_reads_the_heightfield(quadruped: Genome, task: str) -> None:
     env = _env(quadruped, task)
     env.reset(1)
-    terrains = env.task.terrains
+    terrains = env.task.arena.terrains
     layout = terrains.layout
     for i in range(env.num_envs):
         raised = terrains.heights[i] > 0.3
@@ -265,7 +265,7 @@ def test_heightmap_reads_the_heightfield(quadruped: Genome, task: str) -> None:
 def test_obstacles_are_boxes_beyond_the_start_area(quadruped: Genome) -> None:
     env = _env(quadruped, "obstacle")
     env.reset(0)
-    heights = env.task.terrains.heights
+    heights = env.task.arena.terrains.heights
     assert set(np.unique(heights)) == {0.0, 2.0}
     assert not heights[:, :, : int(6.0 / 0.1)].any()  # the first 6 m are free
     assert 0.05 < (heights > 0).mean() < 0.9

@@ -1,6 +1,8 @@
 """derl from Python as a gymnasium user meets it: `import derl` registers every task (without
-importing the simulation), the environments render RGB frames for gymnasium's video wrappers,
-a trained body loads and acts in a few lines, and the version is the package's."""
+importing the simulation) with its episode length, the environments render RGB frames for
+gymnasium's video wrappers, flatten for a learner of one array (Stable-Baselines3's MlpPolicy),
+and come as a vector environment of copies in one batch; a trained body loads and acts in a few
+lines, in the environment `gymnasium.make` makes; the version is the package's."""
 
 from __future__ import annotations
 
@@ -13,11 +15,12 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
-from gymnasium.wrappers import RenderCollection
+from gymnasium.vector import AutoresetMode
+from gymnasium.wrappers import FlattenObservation, RenderCollection
 from nodes_fixtures import REPO, derl_argv
 
 import derl
-from derl.envs import TASKS, make_task
+from derl.envs import TASKS, EnvConfig, make_task
 from derl.lifetime import learn, ppo_config
 from derl.unimal import Genome
 
@@ -38,6 +41,40 @@ def test_import_derl_registers_every_task_with_gymnasium(quadruped: Genome, tmp_
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert made.returncode == 0, made.stderr
     assert made.stdout.split() == ["['proprioception']", "10"]
+
+
+def test_the_registered_episode_length_is_the_simulations() -> None:
+    assert gymnasium.spec("derl/FT-v0").max_episode_steps == EnvConfig().episode_steps
+    assert EnvConfig().episode_steps == derl.GYM_EPISODE_STEPS
+
+
+def test_a_flattened_observation_for_a_learner_of_one_array(quadruped: Genome) -> None:
+    """What Stable-Baselines3's MlpPolicy takes (the README trains it so: slow)."""
+    env = FlattenObservation(gymnasium.make("derl/VT-v0", genome=quadruped))
+    assert isinstance(env.observation_space, gymnasium.spaces.Box)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape and obs.dtype == np.float32
+
+
+def test_copies_in_one_batch_as_a_gymnasium_vector_env(quadruped: Genome) -> None:
+    """`make_vec` of the vector entry point: (N, dim) observations; an episode that ends (here
+    after 3 steps) starts again in the same step, its last observation in the info."""
+    env = gymnasium.make_vec("derl/FT-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                             genome=quadruped, max_episode_steps=3)  # fmt: skip
+    assert env.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    first, _ = env.reset(seed=0)
+    again, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(first["proprioception"], again["proprioception"])
+    single = env.single_observation_space["proprioception"]
+    assert first["proprioception"].shape == (3, *single.shape)
+    actions = np.zeros(env.action_space.shape, np.float32)
+    for _ in range(2):
+        _, reward, _, _, info = env.step(actions)
+        assert reward.shape == (3,) and info["forward"].shape == (3,) and "final_obs" not in info
+    obs, _, _, truncated, info = env.step(actions)
+    assert truncated.all() and info["_final_obs"].all()
+    assert not np.array_equal(info["final_obs"][0]["proprioception"], obs["proprioception"][0])
+    env.close()
 
 
 def test_rgb_frames_for_gymnasiums_video_wrappers(quadruped: Genome) -> None:
@@ -65,6 +102,7 @@ def test_a_trained_body_loads_and_acts(quadruped: Genome, tmp_path: Path) -> Non
     (tmp_path / "result.json").write_text(json.dumps({"task": "ft"}))
     agent = derl.load_trained(tmp_path)
     env = agent.gym_env()
+    assert str(env) == str(gymnasium.make("derl/FT-v0", genome=quadruped))  # the same wrappers
     obs, _ = env.reset(seed=0)
     action = agent.act(obs)
     assert action.shape == env.action_space.shape and np.abs(action).max() <= 1.0

@@ -49,8 +49,6 @@ from derl.nodes.journal.segments import (
     segments,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def mixed(count: int, start: int = 0) -> list[MessageBase]:
     """`count` messages cycling through every type, ids and numbers varying."""
@@ -322,12 +320,10 @@ for i in range(10**9):
 
 
 def test_sigkilled_writer_loses_nothing_it_reported(tmp_path: Path, caplog) -> None:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     child = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(CHILD), str(tmp_path)],
         stdout=subprocess.PIPE,
         text=True,
-        env=env,
         start_new_session=True,
     )
     reported = 0

@@ -22,7 +22,6 @@ from nodes_fixtures import (
     jobs,
     pid_alive,
     run_id,
-    wait_for,
     write_profile,
 )
 
@@ -31,15 +30,14 @@ from derl.nodes.cli.main import build_parser
 from derl.nodes.launch.commands import build_commands, dry_run_text, plan
 from derl.nodes.launch.local import LOCAL_FILE, local_launch
 from derl.nodes.launch.model import LaunchFile, load
+from derl.nodes.testing.waiting import wait_until
 
 LOCAL = REPO / "launch" / "local.yaml"
 CLUSTER = REPO / "launch" / "cluster.example.yaml"
 
 
 def _derl(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run(derl_argv(*args), capture_output=True, text=True, env=env, cwd=cwd,
-                          timeout=60)  # fmt: skip
+    return subprocess.run(derl_argv(*args), capture_output=True, text=True, cwd=cwd, timeout=60)
 
 
 def _parses(line: str) -> None:
@@ -375,12 +373,12 @@ def test_launch_runs_to_the_end_and_restarts_a_killed_trainer(tmp_path: Path) ->
     processes = Processes(tmp_path / "test-logs")
     try:
         launcher = processes.start("launcher", derl_argv("launch", str(path)))
-        first = wait_for(lambda: jobs(run_dir), 90, "the first job")[0].node
+        first = wait_until(lambda: jobs(run_dir), 90, "the first job")[0].node
         victim = _pids(processes.log("launcher"))[first][0]
         os.killpg(victim, signal.SIGKILL)
-        wait_for(lambda: f"{first} exited with -9: restart 1/2" in processes.log("launcher"),
-                 10, "the launcher noticing the kill")  # fmt: skip
-        wait_for(lambda: launcher.poll() is not None, 150, "the launcher to finish the run")
+        wait_until(lambda: f"{first} exited with -9: restart 1/2" in processes.log("launcher"),
+                   10, "the launcher noticing the kill")  # fmt: skip
+        wait_until(lambda: launcher.poll() is not None, 150, "the launcher to finish the run")
         log = processes.log("launcher")
         assert launcher.returncode == 0, log
         assert "the coordinator finished the run" in log
@@ -401,7 +399,7 @@ def test_sigterm_stops_every_node(tmp_path: Path) -> None:
     processes = Processes(tmp_path / "test-logs")
     try:
         launcher = processes.start("launcher", derl_argv("launch", str(path)))
-        wait_for(lambda: jobs(run_dir), 90, "the first job")
+        wait_until(lambda: jobs(run_dir), 90, "the first job")
         pids = [pid for ps in _pids(processes.log("launcher")).values() for pid in ps]
         assert len(pids) == 2 and all(pid_alive(pid) for pid in pids)
         launcher.send_signal(signal.SIGTERM)

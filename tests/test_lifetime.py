@@ -78,9 +78,10 @@ def test_train_and_rollout_commands(quadruped: Genome, tmp_path: Path) -> None:
     assert result["env_steps"] == 8192
     rows = list(csv.reader((out / "curve.csv").open()))
     assert rows[0][:3] == ["iteration", "env_steps", "mean_return"] and len(rows) == 1 + 4
-    assert rows[0][3:] == ["policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
-                           "explained_variance", "learning_rate", "steps_per_s"]  # fmt: skip
-    assert not (out / "training-state.pt").exists()  # only a stopped training keeps its state
+    assert rows[0][3:] == ["ep_rew_mean", "ep_len_mean", "episodes", "policy_loss", "value_loss",
+                           "entropy", "approx_kl", "clip_fraction", "explained_variance",
+                           "learning_rate", "minibatches", "steps_per_s"]  # fmt: skip
+    assert result["finished"] and (out / "training-state.pt").is_file()  # what extends it
     video = tmp_path / "episode.gif"
     shown = subprocess.run(
         [*command, "rollout", str(out), "--episodes", "2", "--episode-steps", "100",

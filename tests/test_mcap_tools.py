@@ -16,13 +16,14 @@ import pytest
 from mcap.reader import make_reader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
-from nodes_fixtures import Processes, derl_argv, wait_for
+from nodes_fixtures import Processes, derl_argv
 
 from derl.messages import Birth, FitnessReport, MessageBase, encode, kind_of
 from derl.messages.examples import examples
 from derl.nodes.errors import REFUSED
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import Journal, JournalWriter, segments
+from derl.nodes.testing.waiting import wait_until
 from derl.nodes.tools.logs import LogError, export_json, info, read_log, repair
 
 STEPS = 5
@@ -227,7 +228,7 @@ def test_a_damaged_segment_stops_the_coordinator_and_its_advice_resumes_the_run(
     first.replace(tmp_path / "damaged.mcap")  # as the advice says
     repaired.replace(first)
     procs.start("coordinator", derl_argv(*coordinator))
-    wait_for(lambda: "journaled messages replayed" in procs.log("coordinator"), 60, "a resume")
+    wait_until(lambda: "journaled messages replayed" in procs.log("coordinator"), 60, "a resume")
     assert "Traceback" not in procs.log("coordinator")
     assert "no tournament decided it (lost with a damaged segment?): skipped" in procs.log(
         "coordinator"

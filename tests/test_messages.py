@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+import os
 import re
+import subprocess
+import sys
 import typing
 
 import msgpack
@@ -85,8 +88,24 @@ def test_missing_measure_is_nan_and_survives() -> None:
     assert math.isnan(back.energy) and encode(back) == encode(report)
 
 
-def test_encoding_is_deterministic() -> None:
-    assert [encode(m) for m in examples("run1", 3)] == PAYLOADS
+ENCODED_ELSEWHERE = (
+    "import sys, msgpack; from derl.messages import encode; "
+    "from derl.messages.examples import examples; "
+    "sys.stdout.buffer.write(msgpack.packb([encode(m) for m in examples('run1', 3)]))"
+)
+
+
+def test_encoding_is_deterministic_across_processes() -> None:
+    """The same messages encode to the same bytes in processes whose string hashes differ (an
+    order that follows a set's or a hash's would differ between them, never within one)."""
+    argv = [sys.executable, "-c", ENCODED_ELSEWHERE]
+    encoders = [
+        subprocess.Popen(argv, stdout=subprocess.PIPE, env={**os.environ, "PYTHONHASHSEED": seed})
+        for seed in ("1", "2")
+    ]
+    outputs = [encoder.communicate(timeout=60)[0] for encoder in encoders]
+    assert [encoder.returncode for encoder in encoders] == [0, 0]
+    assert [msgpack.unpackb(output) for output in outputs] == [PAYLOADS, PAYLOADS]
 
 
 def test_messages_are_frozen() -> None:

@@ -17,7 +17,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,12 +26,14 @@ import yaml
 from nodes_fixtures import (
     Processes,
     assert_born_once,
-    births,
     jobs,
+    journaled,
     run_id,
-    wait_for,
     write_profile,
 )
+
+from derl.messages import Birth
+from derl.nodes.testing.waiting import wait_until
 
 SUBNET = "10.213.0"  # only ever inside the namespaces this test makes
 HOSTS = {"coord": 1, "hostA": 2, "hostB": 3}  # host name -> last octet of its address
@@ -177,28 +178,26 @@ def test_run_survives_a_host_dropping_off(tmp_path: Path, network: Network) -> N
             processes.start(host, network.exec(host, *argv))
         # the mesh: hostB's trainer talks to hostA's trainers directly (gossip), not only to
         # the seed, over the namespaces' own addresses
-        wait_for(
+        wait_until(
             lambda: {ip for ip, _ in network.established("hostB")} >= {
                 network.address("coord"), network.address("hostA")},
             60, "hostB connected to coord and hostA",
         )  # fmt: skip
-        wait_for(lambda: [j for j in jobs(run_dir) if j.node.startswith("hostA-")], 120,
-                 "a job held by a hostA trainer")  # fmt: skip
+        wait_until(lambda: [j for j in jobs(run_dir) if j.node.startswith("hostA-")], 120,
+                   "a job held by a hostA trainer")  # fmt: skip
         network.link_down("hostA")  # hostA vanishes: no FIN, the lease (2.5 s) notices
         network.kill_all("hostA")
-        time.sleep(0.5)
-        held = {j.agent for j in jobs(run_dir) if j.node.startswith("hostA-")} - set(
-            births(run_dir)
-        )
-        assert held, "hostA's trainers finished their jobs before the test cut them off"
-        wait_for(lambda: processes.started["coord"].poll() is not None, 180, "the run to end")
+        wait_until(lambda: processes.started["coord"].poll() is not None, 180, "the run to end")
         assert processes.started["coord"].returncode == 0, processes.log("coord")
         assert_born_once(run_dir, 4)
+        on_a = {b.agent for b in journaled(run_dir, Birth) if b.node.startswith("hostA-")}
+        held = {j.agent for j in jobs(run_dir) if j.node.startswith("hostA-")} - on_a
+        assert held, "hostA's trainers finished their jobs before the test cut them off"
         after = [j for j in jobs(run_dir) if j.agent in held and j.node.startswith("hostB-")]
         assert {j.agent for j in after} == held  # hostA's bodies were trained on hostB
         coordinator_log = (run_dir / "logs" / "coord-coordinator-0.log").read_text()
         assert "hostA-trainer-" in coordinator_log and "goes back to the queue" in coordinator_log
-        wait_for(lambda: processes.started["hostB"].poll() is not None, 30, "hostB's launcher")
+        wait_until(lambda: processes.started["hostB"].poll() is not None, 30, "hostB's launcher")
         assert processes.started["hostB"].returncode == 0, processes.log("hostB")
     finally:
         processes.close()

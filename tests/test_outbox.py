@@ -13,7 +13,6 @@ import logging
 import subprocess
 import sys
 import threading
-import time
 from concurrent.futures import Future
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from derl.nodes.coordinator.outbox import Outbox
 from derl.nodes.journal.segments import Journal, read_segment
 from derl.nodes.runtime.checkpoint_writer import write_batch
 from derl.nodes.runtime.checkpoints import CheckpointFiles
+from derl.nodes.testing.waiting import ManualClock, wait_until
 
 
 def test_a_batch_of_checkpoints_is_written_whole_and_links_share_its_files(
@@ -56,7 +56,7 @@ def test_a_link_whose_source_file_is_missing_waits_for_it(tmp_path: Path) -> Non
     files = CheckpointFiles(tmp_path)
     waits = files.link("r0", "a0")
     never = files.link("r1", "a9")
-    time.sleep(0.5)
+    assert files.save("b0", b"w").result(timeout=10) is None  # written after the links' turn
     assert not waits.done() and not never.done()
     assert files.save("a0", b"w0").result(timeout=10) is None
     assert waits.result(timeout=10) is None
@@ -117,8 +117,8 @@ def test_the_outbox_releases_after_the_sync_and_an_ack_after_its_checkpoint(
     journal.flush()
     outbox.send([(ack, b"ack", written), (first, b"first", None)])
     outbox.send([(ack, b"lost", lost), (later, b"later", None)])
-    while outbox._pending > 2:  # the two statuses are released; the Acks wait for their files
-        outbox.released.wait(1)
+    # the two statuses are released; the Acks wait for their files
+    wait_until(lambda: outbox._pending <= 2, 10, "the statuses released")
     assert synced and synced[0] >= 1, "released before the journal file was synced"
     assert [data for _, data in outbox.take()] == [b"first", b"later"]
 
@@ -144,13 +144,11 @@ def test_an_outbox_whose_sync_fails_holds_every_reply_until_it_is_resumed() -> N
     outbox = Outbox(sync)
     outbox.send([(_status("r", 1), b"first", None)])
     outbox.send([(_status("r", 2), b"second", None)])
-    deadline = time.monotonic() + 5
-    while outbox.fault is None and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: outbox.fault, 10, "the sync's fault")
     assert isinstance(outbox.fault, OSError) and outbox.failure is None
     outbox.send([(_status("r", 3), b"third", None)])  # held too: no sync is tried
     outbox.drain()
-    time.sleep(0.2)
+    wait_until(lambda: len(outbox._held) == 3, 10, "the third reply held")
     assert outbox.take() == []
     fails[0] = False
     outbox.resume()
@@ -174,9 +172,7 @@ def test_an_outbox_with_a_fault_of_its_own_stops_the_coordinator_instead_of_stal
     outbox = Outbox(sync)
     status = _status("r", 1)
     outbox.send([(status, b"first", None)])
-    deadline = time.monotonic() + 5
-    while outbox.failure is None and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: outbox.failure, 10, "the outbox's failure")
     with pytest.raises(RuntimeError):
         outbox.send([(status, b"second", None)])
     drained = threading.Thread(target=outbox.drain, daemon=True)
@@ -190,12 +186,12 @@ def test_an_outbox_with_a_fault_of_its_own_stops_the_coordinator_instead_of_stal
 def test_what_cannot_be_written_is_said_at_once_then_once_a_minute(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    now = [0.0]
-    faults = DiskFaults(clock=lambda: now[0])
+    clock = ManualClock()
+    faults = DiskFaults(clock=clock)
     full = OSError(errno.ENOSPC, "No space left on device")
     with caplog.at_level(logging.WARNING, logger="derl.coordinator"):
         for second in range(130):  # a write tried every second for 130 s
-            now[0] = float(second)
+            clock.now = float(second)
             faults.failed(Path("/r/journal/segment-0001.mcap"), full, "it waits")
         faults.works("the journal goes on")
         faults.works("again: nothing to say")

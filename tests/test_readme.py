@@ -62,7 +62,7 @@ def test_every_derl_command_in_the_readme_parses() -> None:
 def test_the_readme_python_and_body_commands_run(tmp_path: Path) -> None:
     env = {**os.environ, "MUJOCO_GL": "egl"}
     snippets = _blocks("python")
-    assert len(snippets) == 2
+    assert len(snippets) == 3
     for snippet in snippets:  # from the repository (agents/ft), as a reader's checkout
         done = subprocess.run([sys.executable, "-c", snippet], cwd=REPO, env=env,
                               capture_output=True, text=True, timeout=300)  # fmt: skip

@@ -131,9 +131,9 @@ def test_the_fall_test_reads_the_ground_at_the_floored_cell(quadruped: Genome) -
     terrain = TerrainConfig.variable(size_x=40.0, size_y=10.0, obstacles=("rubble",))
     env = UnimalEnv(quadruped, make_task("vt", terrain=terrain), EnvConfig(num_envs=2))
     env.reset(0)
-    layout_ = env.task.terrains.layout
+    layout_ = env.task.arena.terrains.layout
     res = layout_.resolution
-    for i, heights in enumerate(env.task.terrains.heights):
+    for i, heights in enumerate(env.task.arena.terrains.heights):
         step = heights[:, 1:] - heights[:, :-1]  # vertex (r, c + 1) less vertex (r, c)
         rises = step > 0.1 if i == 0 else step < -0.1  # copy 0: uphill in +x; copy 1: downhill
         rows, cols = np.nonzero(rises)
@@ -152,8 +152,8 @@ def test_the_fall_test_reads_the_ground_at_the_floored_cell(quadruped: Genome) -
     # on a vertex, its own cell (floor(x * 10) as the released code: 0.3 / 0.1 < 3)
     cols, rows = np.meshgrid(np.arange(100, 300), np.arange(20, 80))
     xy = np.column_stack([(cols.ravel() - 200) / 10, (rows.ravel() - 50) / 10])
-    ground = env.task.terrains.ground(xy, np.zeros(len(xy), np.intp), floored=True)
-    np.testing.assert_array_equal(ground, env.task.terrains.heights[0][rows, cols].ravel())
+    ground = env.task.arena.terrains.ground(xy, np.zeros(len(xy), np.intp), floored=True)
+    np.testing.assert_array_equal(ground, env.task.arena.terrains.heights[0][rows, cols].ravel())
 
 
 def test_the_fall_test_on_a_slope_reads_the_released_staircase(quadruped: Genome) -> None:

@@ -7,6 +7,7 @@ import argparse
 import csv
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -286,10 +287,27 @@ def test_report_of_a_journal(tmp_path: Path, quadruped: Genome) -> None:
     assert (run["bodies"], run["population"], run["generations"]) == (5, 3, 3)
     assert (run["beneficial_threshold"], run["beneficial_mutations"]) == (120.0, 2)
     assert run["criterion"] == 25.0  # 75th percentile of 10, 20, 30
+    fingerprint = load_runs([tmp_path / "run"])[0].fingerprint
+    assert fingerprint and run["fingerprint"] == fingerprint
+    assert (run["audited"], run["quarantined"]) == (0, [])
+    page = (out / "index.html").read_text()
+    assert f"<td>{fingerprint}</td>" in page and "quarantined trainers" in page
     rows = (out / "bodies.csv").read_text().splitlines()
     assert len(rows) == 6 and rows[0].startswith("run,id,parent,founder,generation,birth")
     assert "hand,c1,c0,i2,2,4,400.0" in rows[5]
     assert len((out / "tests.csv").read_text().splitlines()) == 4
+
+
+def test_a_run_given_twice_under_two_names_is_refused(
+    tmp_path: Path, quadruped: Genome, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two runs with one fingerprint are one run's births: pooled, n would count them twice."""
+    write_journal(tmp_path / "run", quadruped)
+    shutil.copytree(tmp_path / "run", tmp_path / "copy")
+    with pytest.raises(SystemExit) as refused:
+        main(["report", str(tmp_path / "run"), str(tmp_path / "copy"), "--out", str(tmp_path)])
+    assert refused.value.code == 1
+    assert "hand and hand-2 are the same run (fingerprint " in capsys.readouterr().err
 
 
 def test_study_plan_only_writes_the_retraining_jobs(tmp_path: Path, quadruped: Genome) -> None:

@@ -1,6 +1,7 @@
-"""A run is a function of its profile and seed: the same births on 1 trainer or 3, with a trainer
-SIGKILLed and the coordinator SIGKILLed and resumed, with real processes on real Zenoh (loopback,
-multicast off); and, without a bus, whatever order the trainings finish in."""
+"""A run is a function of its profile and seed, in either timing (window, cluster): the same
+births on 1 trainer or 3, with a trainer SIGKILLed and the coordinator SIGKILLed and resumed, with
+real processes on real Zenoh (loopback, multicast off); and, without a bus, whatever order the
+trainings finish in."""
 
 from __future__ import annotations
 
@@ -13,13 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from nodes_fixtures import REPO, LocalRun, Processes, assert_born_once, journaled, wait_for
+from nodes_fixtures import REPO, LocalRun, Processes, assert_born_once, journaled
 from pydantic import ValidationError
 
 from derl.evolution import Evolution, EvolutionConfig, fingerprint, load_profile
+from derl.evolution.timing import ClusterClock
 from derl.lifetime import learn, ppo_config
 from derl.messages import Birth
 from derl.nodes.journal.history import load_history
+from derl.nodes.testing.waiting import wait_until
 from derl.rl.config import SAVED
 from derl.unimal import Genome, body_hash, canonical_genome, sample_population
 
@@ -42,22 +45,23 @@ def _births(run_dir: Path) -> Facts:
     )
 
 
-def _run(tmp_path: Path, trainers: int, faults: bool = False) -> Path:
-    """A run of PROFILE with `trainers` trainers until it finishes; with `faults`, a trainer is
-    SIGKILLed mid-job (and another started) and then the coordinator (and started again)."""
+def _run(tmp_path: Path, trainers: int, timing: str, faults: bool = False) -> Path:
+    """A run of PROFILE in `timing` with `trainers` trainers until it finishes; with `faults`, a
+    trainer is SIGKILLed mid-job (and another started) and then the coordinator (and started
+    again)."""
     folder = tmp_path / f"{trainers}{'-faults' if faults else ''}"
     folder.mkdir()
-    local = LocalRun.at(folder, **PROFILE)
+    local = LocalRun.at(folder, **PROFILE, timing=timing)
     processes = Processes(local.dir.parent / "logs")
     try:
         coordinator = processes.start("coordinator", local.coordinator())
         for k in range(trainers):
             processes.start(f"t{k}", local.trainer(f"t{k}"))
         if faults:
-            wait_for(lambda: len(journaled(local.dir, Birth)) >= 2, 120, "2 births")
+            wait_until(lambda: len(journaled(local.dir, Birth)) >= 2, 120, "2 births")
             processes.kill("t0")  # mid-job: the other trainers are busy too
             processes.start("t9", local.trainer("t9"))
-            wait_for(lambda: len(journaled(local.dir, Birth)) >= 5, 120, "5 births")
+            wait_until(lambda: len(journaled(local.dir, Birth)) >= 5, 120, "5 births")
             processes.kill("coordinator")
             coordinator = processes.start("coordinator", local.coordinator())
         assert processes.finish(coordinator, timeout=240) == 0, processes.log("coordinator")
@@ -68,25 +72,25 @@ def _run(tmp_path: Path, trainers: int, faults: bool = False) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("timing", ["window", "cluster"])
 def test_the_same_seed_gives_the_same_births_on_any_number_of_trainers_and_after_crashes(
-    tmp_path: Path,
+    tmp_path: Path, timing: str
 ) -> None:
-    alone = _run(tmp_path, trainers=1)
-    three = _run(tmp_path, trainers=3)
-    crashed = _run(tmp_path, trainers=2, faults=True)
+    alone = _run(tmp_path, trainers=1, timing=timing)
+    crashed = _run(tmp_path, trainers=3, timing=timing, faults=True)
     expected = _births(alone)
     assert len(expected) == PROFILE["total"]
-    assert _births(three) == expected
     assert _births(crashed) == expected
-    prints = {load_history(d).fingerprint() for d in (alone, three, crashed)}
+    prints = {load_history(d).fingerprint() for d in (alone, crashed)}
     assert len(prints) == 1, prints
 
 
-def _evolve(config_changes: dict[str, int], trainers: int, seed: int) -> list[tuple]:
+def _evolve(config_changes: dict[str, object], trainers: int, seed: int) -> list[tuple]:
     """An evolution of 40 children run by `trainers` simulated trainers whose trainings finish in
-    a random order (`seed`); a body's fitness is a function of the body (training is
-    deterministic). The births as (child, parent, fitness), in child order."""
-    config = load_profile("smoke").model_copy(update={"total": 40, **config_changes})
+    a random order (`seed`); a body's fitness and its training's counts (the cluster timing's
+    duration) are functions of the body (training is deterministic), and one child in 17 is
+    given up. The births as (child, parent, fitness), in child order."""
+    config = load_profile("smoke", list(config_changes.items()), total=40)
     evolution = Evolution(config, sample_population(config.population, np.random.default_rng(1)))
     rng = random.Random(seed)
     waiting = [child.name for child in evolution.initial]
@@ -105,19 +109,27 @@ def _evolve(config_changes: dict[str, int], trainers: int, seed: int) -> list[tu
             training.append(decided.name)
         done = training.pop(rng.randrange(len(training)))
         genome = evolution.genomes[done]
-        fitness = int(body_hash(genome)[:6], 16) / 1e5
-        evolution.birth(done, fitness, genome)
+        drawn = int(body_hash(genome)[:6], 16)
+        if drawn % 17 == 0 and evolution.index[done] >= config.population:
+            evolution.give_up(done)
+            continue
+        work = (drawn % 50, len(genome.limbs) * 10**7)  # episodes, constraint rows
+        evolution.birth(done, drawn / 1e5, genome, work=work)
     born = sorted(evolution.born, key=lambda m: evolution.index[m.agent])
     return [(m.agent, m.parent, m.fitness) for m in born]
 
 
-def test_births_do_not_depend_on_the_trainers_or_the_order_trainings_finish_in() -> None:
-    windowed = {"population": 8, "in_flight": 4, "tournament": 3}
+@pytest.mark.parametrize("timing", ["window", "cluster"])
+def test_births_do_not_depend_on_the_trainers_or_the_order_trainings_finish_in(
+    timing: str,
+) -> None:
+    windowed = {"population": 8, "in_flight": 4, "tournament": 3, "timing": timing}
     expected = _evolve(windowed, trainers=1, seed=0)
     for trainers, seed in [(2, 1), (4, 2), (4, 3), (9, 4)]:
         assert _evolve(windowed, trainers, seed) == expected, (trainers, seed)
-    free = {**windowed, "in_flight": 0}  # the released code's rule: it depends on both
-    assert _evolve(free, 4, 2) != _evolve(free, 4, 3)
+    if timing == "window":
+        free = {**windowed, "in_flight": 0}  # the released code's rule: it depends on both
+        assert _evolve(free, 4, 2) != _evolve(free, 4, 3)
 
 
 def test_the_pool_is_the_latest_born_of_the_first_children_in_child_order() -> None:
@@ -141,6 +153,25 @@ def test_the_pool_is_the_latest_born_of_the_first_children_in_child_order() -> N
     third = evolution.tournament()  # child 5: the P latest born of children 0-2
     assert third is not None and set(third.contestants) <= {"i0000", "i0002"}
     assert [m.agent for m in evolution.population] == ["i0000", "i0002", first.name]
+
+
+def test_the_cluster_timing_breeds_when_a_virtual_worker_comes_free_from_the_latest_finished():
+    """2 workers, P 3, every training at least 10 µs: initial bodies 0 and 2 are worker 0's, 1 is
+    worker 1's; a child bred later that trains fast joins before a slow initial body."""
+    clock = ClusterClock(workers=2, initial=3, population=3, least=10)
+    clock.done(1, 15, born=True)
+    assert clock.breeding(0) is None  # body 0 might still finish before 15
+    clock.done(0, 12, born=True)
+    assert clock.breeding(0) == (15, [0, 1])  # worker 1 is free at 15; body 2 ends at 22 or later
+    assert clock.breeding(1) is None  # child 3 started at 15 on worker 1 and trains still
+    clock.done(3, 11, born=True)
+    assert clock.breeding(1) is None  # body 2 (from 12) might end before child 3 (at 26)
+    clock.done(2, 20, born=True)
+    assert clock.breeding(1) == (26, [0, 1, 3])  # body 2 ends at 32: not in it yet
+    config = load_profile("smoke", [("timing", "cluster")])
+    assert config.training_time.least(1000) < config.training_time.duration(1000, 1, 1)
+    with pytest.raises(ValidationError, match="timing cluster needs"):
+        load_profile("smoke", [("timing", "cluster"), ("in_flight", 0)])
 
 
 def test_a_fingerprint_is_of_the_births_in_child_order_and_sees_every_bit() -> None:
@@ -219,3 +250,39 @@ def test_a_window_must_be_smaller_than_the_population_and_old_runs_resume_free_r
     assert EvolutionConfig.model_validate(saved, context=SAVED).in_flight == 0
     with pytest.raises(ValidationError, match="in_flight"):
         EvolutionConfig.model_validate(saved)  # a profile of the user's gets the default, 288
+
+
+def test_a_run_extended_with_more_bodies_gives_the_births_of_a_run_that_long_from_the_start(
+    tmp_path: Path,
+) -> None:
+    """`derl run --set total=N --extend` on a finished run raises its saved total, and the run
+    goes on to the births a run of N had from the start (simulated trainers, no bus); another
+    value of a setting on a run begun is refused, naming the setting and both values."""
+    from derl.nodes.cli.main import build_parser
+    from derl.nodes.cli.options import profile_from
+    from derl.nodes.cli.run import resumed_config
+    from derl.nodes.errors import USAGE, DerlError
+    from derl.nodes.testing.trainers import simulate_run
+
+    window = ["population=4", "in_flight=2", "tournament=2", "eval_top=0", "eval_tasks=[]"]
+
+    def config_of(run_dir: Path, *flags: str) -> EvolutionConfig:
+        argv = ["run", *(f"--set={s}" for s in window), *flags, "--run-dir", str(run_dir)]
+        args = build_parser().parse_args(argv)
+        return resumed_config(args, run_dir, profile_from(args))
+
+    names = ["t0", "t1", "t2"]
+    whole, extended = tmp_path / "whole", tmp_path / "extended"
+    simulate_run("r", whole, config_of(whole, "--set=total=12"), names)
+    simulate_run("r", extended, config_of(extended, "--set=total=8"), names)
+    assert len(load_history(extended).births) == 8
+    with pytest.raises(DerlError, match=r"--set total=12: the run in .* has total 8 \(--extend"):
+        config_of(extended, "--set=total=12")
+    with pytest.raises(DerlError, match=r"tournament=3: the run in .* has tournament 2") as no:
+        config_of(extended, "--set=total=8", "--set=tournament=3")
+    assert no.value.code == USAGE
+    config = config_of(extended, "--set=total=12", "--extend")
+    assert config.total == 12 and config_of(extended, "--set=total=12").total == 12  # saved
+    simulate_run("r", extended, config, names[:2])
+    assert _births(extended) == _births(whole) and len(_births(whole)) == 12
+    assert load_history(extended).fingerprint() == load_history(whole).fingerprint()

@@ -8,6 +8,7 @@ lines."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import json
 import re
@@ -58,7 +59,11 @@ def test_a_training_stopped_and_resumed_ends_with_the_bits_of_one_never_stopped(
     summary, resumed = learn(genome, task, config, resume=states[-1][1])
     assert _bits(resumed) == _bits(whole)
     assert resumed.iterations == ITERATIONS and summary.env_steps == STEPS
-    assert [p.diagnostics for p in resumed.progress] == [p.diagnostics for p in whole.progress]
+
+    def kept(progress):  # derl.rl.Progress, but for its speed
+        return dataclasses.replace(progress, steps_per_second=0.0)
+
+    assert [kept(p) for p in resumed.progress] == [kept(p) for p in whole.progress]
     _, again = learn(genome, task, config, resume=states[0][1])  # an older state: the same end
     assert _bits(again) == _bits(whole)
 
@@ -122,16 +127,10 @@ def test_derl_train_stops_on_sigterm_saving_everything_and_resumes(
     assert (out / "checkpoint.pt").is_file() and (out / "training-state.pt").is_file()
     assert len(list(csv.reader((out / "curve.csv").open()))) == 1 + saved["iterations"]
 
-    # the settings are the folder's: a flag of a new training is refused
-    refused = subprocess.run(derl_argv("train", "--resume", str(out), "--steps", "100"),
-                             capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert refused.returncode == 2 and "drop --steps" in refused.stderr
-    resumed = subprocess.run(
-        derl_argv("train", "--resume", str(out), "--tensorboard", str(board)),
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+    # TensorBoard where the first start wrote it, without being told again
+    resumed = subprocess.run(derl_argv("train", "--resume", str(out)),
+                             capture_output=True, text=True, timeout=300)  # fmt: skip
     assert resumed.returncode == 0, resumed.stderr
-    assert not (out / "training-state.pt").exists()  # finished: nothing to resume
 
     _, whole = learn(quadruped, "ft", ppo_config("ft", STEPS, seed=1409, num_envs=ENVS))
     checkpoint = hashlib.sha256((out / "checkpoint.pt").read_bytes()).hexdigest()
@@ -150,5 +149,6 @@ def test_derl_train_stops_on_sigterm_saving_everything_and_resumes(
     steps = [event.step for event in events.Scalars("train/approx_kl")]
     assert steps == [point.env_steps for point in whole.progress]  # both processes', once each
     assert {"train/policy_loss", "train/value_loss", "train/entropy", "train/clip_fraction",
-            "train/explained_variance", "train/learning_rate", "time/steps_per_s",
-            "rollout/fitness_term_mean"} <= set(events.Tags()["scalars"])  # fmt: skip
+            "train/explained_variance", "train/learning_rate", "time/fps", "time/iterations",
+            "rollout/fitness_term_mean", "rollout/ep_rew_mean", "rollout/ep_len_mean",
+            "rollout/episodes"} <= set(events.Tags()["scalars"])  # fmt: skip

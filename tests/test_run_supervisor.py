@@ -22,16 +22,16 @@ from nodes_fixtures import (
     free_port,
     jobs,
     pid_alive,
-    wait_for,
 )
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from derl.evolution import load_profile
 from derl.messages import RunStatus
-from derl.nodes.cli.run import TrainingRate
+from derl.nodes.cli.run import FREE_RUNNING, TrainingRate, fingerprint_line
 from derl.nodes.errors import REFUSED
 from derl.nodes.launch.commands import NodeCommand
 from derl.nodes.launch.supervisor import Supervisor
+from derl.nodes.testing.waiting import wait_until
 
 COORDINATOR = "local-coordinator-0"  # the node names of launch/local.yaml
 
@@ -51,17 +51,17 @@ def test_run_restarts_a_killed_trainer_and_a_killed_coordinator(tmp_path: Path) 
         run = processes.start("run", derl_argv("run", "--profile", "smoke", "--run-dir",
                                                str(run_dir), "--port", str(port)))  # fmt: skip
         # the trainer that got the first job (the other may not be ready by then)
-        first = wait_for(lambda: jobs(run_dir), 120, "the first job")[0].node
+        first = wait_until(lambda: jobs(run_dir), 120, "the first job")[0].node
         other = {"local-trainer-0": "local-trainer-1", "local-trainer-1": "local-trainer-0"}[first]
         os.killpg(_pids(processes.log("run"))[first][0], signal.SIGKILL)
-        wait_for(lambda: f"{first} exited with -9: restart 1/" in processes.log("run"), 10,
-                 "derl run noticing the killed trainer")  # fmt: skip
-        wait_for(lambda: len(births(run_dir)) >= 2, 120, "two births")
+        wait_until(lambda: f"{first} exited with -9: restart 1/" in processes.log("run"), 10,
+                   "derl run noticing the killed trainer")  # fmt: skip
+        wait_until(lambda: len(births(run_dir)) >= 2, 120, "two births")
         assert len(births(run_dir)) < 8, "the run ended before the coordinator could be killed"
         os.killpg(_pids(processes.log("run"))[COORDINATOR][0], signal.SIGKILL)
-        wait_for(lambda: f"{COORDINATOR} exited with -9: restart 1/" in processes.log("run"), 10,
-                 "derl run noticing the killed coordinator")  # fmt: skip
-        wait_for(lambda: run.poll() is not None, 240, "derl run to finish the run")
+        wait_until(lambda: f"{COORDINATOR} exited with -9: restart 1/" in processes.log("run"), 10,
+                   "derl run noticing the killed coordinator")  # fmt: skip
+        wait_until(lambda: run.poll() is not None, 240, "derl run to finish the run")
         log = processes.log("run")
         assert run.returncode == 0, log
         pids = _pids(log)
@@ -109,7 +109,7 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         argv = ["run", "--profile", "smoke", "--set", "total=6", "--set", "ppo.lr=1e-4", "--seed",
                 "3", "--run-dir", str(run_dir), "--tensorboard", str(board)]  # fmt: skip
         run = processes.start("run", derl_argv(*argv, "--port", str(port)))
-        wait_for(lambda: births(run_dir), 120, "a birth")
+        wait_until(lambda: births(run_dir), 120, "a birth")
         run.send_signal(signal.SIGINT)
         assert run.wait(timeout=30) == 130
         said = re.search(r"stopped; `(derl run .+)` resumes the run", processes.log("run"))
@@ -132,6 +132,13 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         assert events.Scalars("run/born")[-1].value == 6
     finally:
         processes.close()
+
+
+def test_a_free_running_run_says_what_it_gives_up_and_claims_no_reproducibility() -> None:
+    windowed, free = load_profile("smoke"), load_profile("smoke", [("in_flight", 0)])
+    assert fingerprint_line("ab12", windowed).endswith("on any number of trainers)")
+    assert fingerprint_line("ab12", free) == "fingerprint ab12 (a hash of the births)"
+    assert "do not give the same run again" in FREE_RUNNING
 
 
 def test_a_run_its_coordinator_refuses_stops_at_once_with_the_reason(tmp_path: Path) -> None:

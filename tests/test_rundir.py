@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import REPO, wait_for
 
 from derl.nodes.runtime.rundir import LOCK_FILE, RunDirLocked, lock_run_dir, write_atomic
+from derl.nodes.testing.waiting import wait_until
 
 
 def _python(code: str) -> subprocess.Popen:
@@ -23,7 +23,6 @@ def _python(code: str) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
     )
 
 
@@ -108,7 +107,7 @@ def test_writes_killed_at_any_moment_never_leave_a_part(tmp_path: Path) -> None:
                 k += 1
         """)
         assert writer.stdout is not None and writer.stdout.readline() == "writing\n"
-        wait_for(target.exists, 30, "the first write")
+        wait_until(target.exists, 30, "the first write")
         time.sleep(0.05 + 0.07 * attempt)
         writer.send_signal(signal.SIGKILL)
         writer.wait(timeout=10)

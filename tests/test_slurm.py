@@ -14,8 +14,9 @@ tiny profile over loopback (multicast off, derl's default):
   other) runs another run to its end;
 - a trainer's step cancelled mid-training is replaced by a new step; the run finishes, every
   body once;
-- `scontrol requeue` mid-run: the job starts again, resumes from the journal and finishes, every
-  body once, both starts' logs kept;
+- SIGUSR1 to the batch step mid-run (the script's --signal=B:USR1@120 before a time limit): the
+  job requeues itself (`scontrol requeue`), starts again, resumes from the journal and finishes,
+  every body once, both starts' logs kept;
 - a run stopped before its end (SIGTERM to the batch step and every step, as at a time limit)
   exits non-zero, and the job chained after it never runs.
 """
@@ -44,7 +45,6 @@ from nodes_fixtures import (
     assert_born_once,
     free_port,
     journaled,
-    wait_for,
     write_profile,
 )
 
@@ -61,6 +61,7 @@ from derl.nodes.launch.slurm import (
     tasks_per_node,
 )
 from derl.nodes.launch.supervisor import Supervisor
+from derl.nodes.testing.waiting import wait_until
 
 SBATCH = REPO / "launch" / "slurm" / "derl-run.sbatch"
 PACKAGES = ("slurmctld", "slurmd", "slurm-client", "munge")
@@ -207,8 +208,7 @@ class Cluster:
         self.conf = root / "slurm.conf"
         self.daemons: dict[str, subprocess.Popen] = {}
         path = f"{Path(sys.executable).parent}:{os.environ['PATH']}"
-        self.env = {**os.environ, "SLURM_CONF": str(self.conf), "PATH": path,
-                    "PYTHONPATH": str(REPO)}  # fmt: skip
+        self.env = {**os.environ, "SLURM_CONF": str(self.conf), "PATH": path}
 
     def start(self) -> None:
         munge = self.root / "munge"
@@ -219,16 +219,16 @@ class Cluster:
                      f"--key-file={key}", f"--log-file={munge / 'munged.log'}",
                      f"--pid-file={munge / 'munged.pid'}",
                      f"--seed-file={munge / 'seed'}")  # fmt: skip
-        wait_for(lambda: self.run("munge", "-S", str(sock), "-n", check=False).returncode == 0,
-                 30, "munged")  # fmt: skip
+        wait_until(lambda: self.run("munge", "-S", str(sock), "-n", check=False).returncode == 0,
+                   30, "munged")  # fmt: skip
         for folder in ("state", *(f"spool/{node}" for node in NODES)):
             (self.root / folder).mkdir(parents=True)
         self.conf.write_text(self._config(sock))
         self._daemon("slurmctld", "slurmctld", "-D", "-i", "-f", str(self.conf))
         for node in NODES:
             self._daemon(f"slurmd-{node}", "slurmd", "-D", "-N", node, "-f", str(self.conf))
-        wait_for(lambda: self.run("sinfo", "-h", "-o", "%t %D", check=False).stdout.strip()
-                 == f"idle {len(NODES)}", 60, "both nodes idle")  # fmt: skip
+        wait_until(lambda: self.run("sinfo", "-h", "-o", "%t %D", check=False).stdout.strip()
+                   == f"idle {len(NODES)}", 60, "both nodes idle")  # fmt: skip
 
     def _config(self, sock: Path) -> str:
         host, root = socket.gethostname().split(".")[0], self.root
@@ -279,7 +279,7 @@ class Cluster:
 
     def ended(self, job: str, timeout: float, restarts: int = 0) -> dict[str, str]:
         """`job`'s fields once it ended after `restarts` requeues."""
-        return wait_for(  # type: ignore[return-value]
+        return wait_until(  # type: ignore[return-value]
             lambda: (fields := self.job(job))["JobState"] in ENDED
             and int(fields["Restarts"]) >= restarts and fields,
             timeout, f"job {job} to end",
@@ -293,7 +293,7 @@ class Cluster:
     def clear(self) -> None:
         """Cancel every job and wait until they are gone."""
         self.run("scancel", f"--user={os.getuid()}")
-        wait_for(lambda: not self.run("squeue", "-h").stdout.strip(), 60, "the jobs to end")
+        wait_until(lambda: not self.run("squeue", "-h").stdout.strip(), 60, "the jobs to end")
 
     def stop(self) -> None:
         """Cancel every job, stop the daemons by PID, then whatever the jobs left."""
@@ -414,8 +414,8 @@ SLOWER = {"train_steps": 40960}  # trainings of ~2 s (on a quiet core): somethin
 def test_a_cancelled_trainer_step_is_replaced(slurm: Cluster, tmp_path: Path) -> None:
     job = _sbatch_run(slurm, tmp_path, "--nodes=2", "--ntasks=3", **SLOWER)
     run_dir = tmp_path / "run"
-    first = wait_for(lambda: journaled(run_dir, TrainJob), 120, "a job")[0]  # type: ignore[index]
-    step = wait_for(lambda: slurm.steps(job).get(first.node), 30, f"{first.node}'s step")
+    first = wait_until(lambda: journaled(run_dir, TrainJob), 120, "a job")[0]  # type: ignore[index]
+    step = wait_until(lambda: slurm.steps(job).get(first.node), 30, f"{first.node}'s step")
     slurm.run("scancel", step)
     record = slurm.ended(job, timeout=180)
     told = _told(slurm, tmp_path, job)
@@ -427,14 +427,18 @@ def test_a_cancelled_trainer_step_is_replaced(slurm: Cluster, tmp_path: Path) ->
 
 
 @pytest.mark.slow
-def test_a_requeued_job_resumes_the_run(slurm: Cluster, tmp_path: Path) -> None:
-    """The requeued job starts again (SLURM_RESTART_COUNT 1) on the same run directory: the run
-    resumes from its journal (a second segment), every body is born once (the first start's
-    trainings in flight are taken back after their lease), and both starts' logs are kept."""
+def test_a_job_near_its_time_limit_requeues_itself_and_resumes_the_run(
+    slurm: Cluster, tmp_path: Path
+) -> None:
+    """SIGUSR1 to the batch step (what the script's --signal=B:USR1@120 makes Slurm send before
+    the time limit): `derl slurm` stops its nodes and requeues the job, which starts again
+    (SLURM_RESTART_COUNT 1) on the same run directory: the run resumes from its journal (a second
+    segment), every body is born once (the first start's trainings in flight are taken back after
+    their lease), and both starts' logs are kept."""
     job = _sbatch_run(slurm, tmp_path, "--nodes=2", "--ntasks=3", lease_s=10.0, **SLOWER)
     run_dir = tmp_path / "run"
-    wait_for(lambda: journaled(run_dir, Birth), 120, "a birth")
-    slurm.run("scontrol", "requeue", job)
+    wait_until(lambda: journaled(run_dir, Birth), 120, "a birth")
+    slurm.run("scancel", "--batch", "--signal=USR1", job)
     record = slurm.ended(job, timeout=240, restarts=1)
     told = _told(slurm, tmp_path, job)
     assert (record["JobState"], record["ExitCode"], record["Restarts"]) == (
@@ -443,6 +447,7 @@ def test_a_requeued_job_resumes_the_run(slurm: Cluster, tmp_path: Path) -> None:
     assert len(segments(run_dir)) == 2, told
     out = (tmp_path / f"derl-run-{job}.out").read_text()
     assert f"--- job {job}, start 0" in out and f"--- job {job}, start 1" in out, told
+    assert f"time limit near: stopped and requeued job {job}" in out, told
     for start in (0, 1):
         logs = {p.stem for p in (run_dir / "logs" / f"slurm-{job}-{start}").glob("*.log")}
         assert len(logs) == 3 and all(name.startswith(f"j{job}a{start}") for name in logs)
@@ -454,14 +459,14 @@ def test_a_run_stopped_before_its_end_fails_its_job(slurm: Cluster, tmp_path: Pa
     unfinished, the job fails, and a job chained after it with afterok never runs."""
     job = _sbatch_run(slurm, tmp_path, "--nodes=2", "--ntasks=3", total=40, train_steps=40960)
     chained = slurm.submit(tmp_path, f"--dependency=afterok:{job}", "--wrap", "true")
-    wait_for(lambda: journaled(tmp_path / "run", TrainJob), 120, "a training")
+    wait_until(lambda: journaled(tmp_path / "run", TrainJob), 120, "a training")
     slurm.run("scancel", "--full", "--signal=TERM", job)
     record = slurm.ended(job, timeout=60)
     told = _told(slurm, tmp_path, job)
     assert (record["JobState"], record["ExitCode"]) == ("FAILED", "130:0"), told
     assert "resumes the run" in (tmp_path / f"derl-run-{job}.out").read_text(), told
-    never = wait_for(lambda: slurm.job(chained)["Reason"] == "DependencyNeverSatisfied", 30,
-                     "the chained job's dependency to fail")  # fmt: skip
+    never = wait_until(lambda: slurm.job(chained)["Reason"] == "DependencyNeverSatisfied", 30,
+                       "the chained job's dependency to fail")  # fmt: skip
     assert never and slurm.job(chained)["JobState"] == "PENDING"
 
 
@@ -479,7 +484,7 @@ def test_no_worker_starts_again_once_the_run_is_over(tmp_path: Path) -> None:
         runs = threading.Thread(target=supervisor.run, kwargs={"poll_s": 0.05})
         runs.start()
         worker = supervisor.slots[1]
-        wait_for(lambda: worker.restarts if restarted else worker.finished, 30, "the worker")  # noqa: B023
+        wait_until(lambda: worker.restarts if restarted else worker.finished, 30, "the worker")  # noqa: B023
         supervisor.stop.set()
         runs.join(30)
         assert (worker.restarts > 0, worker.finished) == (restarted, not restarted)

@@ -1,5 +1,5 @@
-"""The code's shape, checked: no import cycle among derl's modules (module-level or inside a
-function), nothing below the command line exits the process (it raises a
+"""The code's shape, checked: no import cycle among derl's modules (module-level, inside a
+function, or for type checking only), nothing below the command line exits the process (it raises a
 `derl.nodes.errors.DerlError`, which `derl.nodes.cli.main` alone turns into a line and an exit
 status), no production code relies on the example messages, and the documents describe the
 folders and files that exist."""
@@ -33,27 +33,16 @@ def _modules() -> dict[str, Path]:
     return found
 
 
-def _type_checking(node: ast.AST) -> bool:
-    """An `if TYPE_CHECKING:` block: its imports never run."""
-    test = getattr(node, "test", None)
-    return isinstance(node, ast.If) and "TYPE_CHECKING" in (
-        getattr(test, "id", None),
-        getattr(test, "attr", None),
-    )
-
-
 def _imports_of(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
-    """The modules of derl that module `name` imports when it runs (at module level or in a
-    function; `from A import b` imports A.b where it is a module, else A)."""
+    """The modules of derl that module `name` imports (at module level, in a function, or in an
+    `if TYPE_CHECKING:` block: a module that needs another's types depends on it as much;
+    `from A import b` imports A.b where it is a module, else A)."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     stack: list[ast.AST] = [ast.parse(path.read_text())]
     while stack:
         node = stack.pop()
         for child in ast.iter_child_nodes(node):
-            if _type_checking(child):
-                stack += child.orelse  # type: ignore[attr-defined]
-                continue
             stack.append(child)
             if isinstance(child, ast.Import):
                 found.update(alias.name for alias in child.names)

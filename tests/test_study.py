@@ -19,7 +19,6 @@ from nodes_fixtures import (
     derl_argv,
     free_port,
     journaled,
-    wait_for,
     write_hand_run,
     write_profile,
 )
@@ -29,6 +28,7 @@ from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
 from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
 from derl.nodes.coordinator.study_state import StudyState
+from derl.nodes.testing.waiting import wait_until
 from derl.rl import PPOConfig
 from derl.unimal import Genome, body_hash
 
@@ -213,7 +213,7 @@ def test_a_study_of_two_worlds_from_runs_to_figure_4(tmp_path: Path, procs: Proc
     for k in range(2):
         procs.start(f"evaluator-{k}", derl_argv("evaluator", "--run", run, "--connect", endpoint,
                                                 "--name", f"e{k}"))  # fmt: skip
-    wait_for(lambda: len(journaled(study, EvalResult)) >= 3, 120, "3 results")
+    wait_until(lambda: len(journaled(study, EvalResult)) >= 3, 120, "3 results")
     for name in ("coordinator", "evaluator-0", "evaluator-1"):
         procs.kill(name)
     done = {(r.agent, r.task, r.seed, r.steps) for r in journaled(study, EvalResult)}

@@ -14,14 +14,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from nodes_fixtures import Processes, derl_argv, free_port, wait_for
+from nodes_fixtures import Processes, derl_argv, free_port
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from derl.messages import Birth, Curve, FitnessReport, MessageBase, RunStatus
 from derl.messages.examples import examples
+from derl.metrics import TensorBoardRun
 from derl.nodes.journal.segments import JournalWriter
-from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.tools.tensorboard import TAGS, LiveRun, Scalars, summary_writer
+from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
+from derl.nodes.testing.waiting import wait_until
+from derl.nodes.tools.tensorboard import TAGS, LiveRun, Scalars
 
 FITNESS = (1.0, 2.0, 3.0, 4.0, 5.0, 2.5, 6.0)  # 4 initial bodies, then 3 children of b1
 RETURNS = ((0.0, 2.0, 5.0), (0.0, 4.0, 4.0), (0.0, 1.0, 1.0))  # by body, cycling
@@ -106,11 +108,25 @@ def bus() -> Iterator[tuple[Bus, str]]:
         yield Bus(session, f"w{uuid.uuid4().hex[:10]}"), endpoint
 
 
-def _watcher(procs: Processes, name: str, run: str, endpoint: str, logdir: Path) -> None:
-    argv = derl_argv("tensorboard", "--run", run, "--connect", endpoint, "--logdir", str(logdir))
+def _watcher(procs: Processes, name: str, bus: Bus, endpoint: str, logdir: Path) -> None:
+    """Watcher `name` of `bus`'s run, once it writes and its subscriptions reach `bus`."""
+    argv = derl_argv("tensorboard", "--run", bus.run, "--connect", endpoint, "--logdir",
+                     str(logdir))  # fmt: skip
     procs.start(name, argv)
-    wait_for(lambda: "writing run" in procs.log(name), 60, f"{name} to write")
-    time.sleep(1.0)  # its subscriptions reach our session
+    wait_until(lambda: "writing run" in procs.log(name), 60, f"{name} to write")
+    wait_until(lambda: _watched(bus), 30, f"{name}'s subscriptions")
+
+
+def _watched(bus: Bus) -> bool:
+    """Whether a watcher subscribes to every kind it takes (births, reports, status)."""
+    messages = _run(bus.run)[:2]
+    taps = [bus.session.declare_publisher(key)
+            for key in (*map(bus.keys.key_for, messages), bus.keys.status())]  # fmt: skip
+    try:
+        return all(matched(tap) for tap in taps)
+    finally:
+        for tap in taps:
+            tap.undeclare()
 
 
 def _publish(bus: Bus, messages: list[MessageBase]) -> None:
@@ -128,16 +144,19 @@ def test_the_live_watcher_writes_what_export_writes_and_goes_on_after_a_restart(
     publisher, endpoint = bus
     run, logdir = publisher.run, tmp_path / "tb"
     messages = _run(run)
-    _watcher(procs, "first", run, endpoint, logdir)
+    _watcher(procs, "first", publisher, endpoint, logdir)
     _publish(publisher, messages[: 2 * 5])
-    wait_for(lambda: len(_scalars(logdir / run).get("birth/fitness", [])) == 5, 30, "5 births")
+    wait_until(lambda: len(_scalars(logdir / run).get("birth/fitness", [])) == 5, 30, "5 births")
     procs.kill("first", signal.SIGTERM)
-    _watcher(procs, "second", run, endpoint, logdir)
+    wait_until(lambda: not _watched(publisher), 30, "the first watcher's subscriptions gone")
+    _watcher(procs, "second", publisher, endpoint, logdir)
     _publish(publisher, messages)
     status = RunStatus(run=run, born=len(FITNESS), target=len(FITNESS), best_fitness=6.0,
                        best_agent="b6", in_flight=0, workers_alive=2,
                        steps_per_s=1500.0)  # fmt: skip
-    time.sleep(1.5)  # two folds: the births are written before the run is done
+    # the births written before the run is done
+    wait_until(lambda: len(_scalars(logdir / run).get("birth/fitness", [])) == len(FITNESS), 30,
+               "every birth written")  # fmt: skip
     _publish(publisher, [status.model_copy(update={"done": True})])
     assert procs.finish(procs.started["second"], 30) == 0, procs.log("second")
     got = _scalars(logdir / run)
@@ -152,12 +171,12 @@ def test_a_live_watcher_keeps_of_a_curve_only_what_its_birth_needs(tmp_path: Pat
     """Once the criterion is known (at the first child's birth), a report heard keeps only its
     curve's first point at the criterion: a watcher of a paper-length run does not hold every
     1,220-point curve. The points written are the same."""
-    writer = summary_writer()(str(tmp_path))
-    live = LiveRun(Scalars(writer), ask_births=lambda: None)
+    board = TensorBoardRun(tmp_path)
+    live = LiveRun(Scalars(board), ask_births=lambda: None)
     heard = [(1.0, message) for message in _run("r")]
     for now, part in enumerate((heard[: 2 * (INITIAL + 1)], [], heard[2 * (INITIAL + 1) :], [])):
         live.fold(part, float(now))
-    writer.close()
+    board.close()
     curves = {child: len(r.curve.env_steps) for child, r in live.history.reports.items()}
     assert curves == {"b0": 3, "b1": 3, "b2": 3, "b3": 3, "b4": 3, "b5": 0, "b6": 1}
     got = _scalars(tmp_path)

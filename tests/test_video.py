@@ -168,7 +168,7 @@ def test_the_drawn_terrain_is_the_one_the_physics_uses(quadruped: Genome) -> Non
     recorder.frame()
     recorder.close()
     film, data = recorder.set.model, recorder.set.data
-    physics = env.task.terrains.models[0]
+    physics = env.task.arena.terrains.models[0]
     physics_data = mujoco.MjData(physics)
     mujoco.mj_forward(physics, physics_data)
     ground = physics.geom(HFIELD_NAME).id
@@ -186,7 +186,7 @@ def test_the_drawn_terrain_is_the_one_the_physics_uses(quadruped: Genome) -> Non
         detailed = drop(film, data, xy, patch)
         assert detailed == pytest.approx(drop(physics, physics_data, xy, ground), abs=1e-9)
         assert drop(film, data, xy, far) <= detailed - COARSE_DROP + 1e-9
-    spacing = COARSE_STEP * env.task.terrains.config.resolution
+    spacing = COARSE_STEP * env.task.arena.terrains.config.resolution
     for xy in np.round(rng.uniform([10, -40], [45, 40], (30, 2)) / spacing) * spacing:
         expected = drop(physics, physics_data, xy, ground) - COARSE_DROP
         assert drop(film, data, xy, far) == pytest.approx(expected, abs=1e-6)

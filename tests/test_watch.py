@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from nodes_fixtures import LocalRun, Processes, derl_argv, free_port, wait_for
+from nodes_fixtures import LocalRun, Processes, derl_argv, free_port
 
 from derl.messages import (
     Birth,
@@ -34,6 +34,7 @@ from derl.messages.examples import examples
 from derl.nodes.journal.segments import JournalWriter
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.runtime.processes import stop_all
+from derl.nodes.testing.waiting import wait_until
 from derl.nodes.tools.logs import read_log
 from derl.nodes.tools.monitor import RunView, sparkline
 from derl.nodes.tools.topic import key_expression, rate_line
@@ -127,13 +128,13 @@ def test_record_keeps_every_valid_message_and_counts_garbage(
         "record", derl_argv("record", str(out), "--connect", endpoint, "--duration", "60")
     )
     probe = bus.session.declare_publisher(bus.keys.status())
-    wait_for(lambda: probe.matching_status.matching, 30, "the recorder's subscription")
+    wait_until(lambda: probe.matching_status.matching, 30, "the recorder's subscription")
     sent = [m for i in range(3) for m in examples(bus.run, i)]
     for message in sent:
         bus.publish(message)
     bus.session.put(bus.keys.fitness("n", "x"), b"\xff\x00garbage")
     bus.session.put(bus.keys.population(), encode(sent[-1]))  # a RunStatus on the wrong key
-    wait_for(lambda: out.exists() and len(list(read_log(out))) == len(sent), 20, "the recording")
+    wait_until(lambda: out.exists() and len(list(read_log(out))) == len(sent), 20, "the recording")
     stop_all([recorder])
     assert recorder.returncode == 0, procs.log("record")
     assert [logged.message for logged in read_log(out)] == sent
@@ -151,7 +152,7 @@ def test_replay_keeps_order_and_scales_timing(
     )
     assert procs.finish(replay) == 0, procs.log("replay")
     expected = [logged.message for logged in read_log(run_log)]
-    wait_for(lambda: len(got) >= len(expected), 10, "every replayed message")
+    wait_until(lambda: len(got) >= len(expected), 10, "every replayed message")
     assert [m for _, m in got] == expected
     span = got[-1][0] - got[0][0]
     assert 0.5 * (STEPS - 1) * GAP_S / 10 < span < 1.5, span  # 2.0 s of log at 10x: 0.2 s
@@ -172,7 +173,7 @@ def test_replay_filters_kinds_skips_the_start_and_renames_the_run(
         and entry.log_time - logged[0].log_time >= 1e9
     ]
     assert len(expected) == 6  # fitness and status of the steps at 1.2, 1.6 and 2.0 s
-    wait_for(lambda: len(got) >= len(expected), 10, "the filtered replay")
+    wait_until(lambda: len(got) >= len(expected), 10, "the filtered replay")
     time.sleep(0.3)
     assert [m for _, m in got] == expected
 
@@ -184,7 +185,7 @@ def test_replay_loops_until_stopped(
     args = ["replay", str(run_log), "--rate", "20", "--topics", "status", "--loop",
             "--as-run", "looped", "--force", "--connect", endpoint]  # fmt: skip
     replay = procs.start("replay", derl_argv(*args))
-    wait_for(lambda: len(got) >= 3 * STEPS, 20, "three passes")
+    wait_until(lambda: len(got) >= 3 * STEPS, 20, "three passes")
     stop_all([replay])
     assert replay.returncode == 0 and "passes" in procs.log("replay")
     one_pass = list(range(2, STEPS + 2))  # the RunStatus of examples(run, i) has born = i + 2
@@ -207,7 +208,7 @@ def test_replay_says_when_nobody_heard_it(
     ), procs.log("alone")
     looping = procs.start("looping", derl_argv(*alone, "--rate", "20", "--loop"))
     told = r"nobody heard it: no subscriber matched the \d+ messages published in its first 5 s"
-    wait_for(lambda: re.search(told, procs.log("looping")), 30, "the notice of a long replay")
+    wait_until(lambda: re.search(told, procs.log("looping")), 30, "the notice of a long replay")
     stop_all([looping])
     assert looping.returncode == 0 and procs.log("looping").count("nobody heard it") == 1
     watcher = Bus(bus.session, "recorded")
@@ -217,7 +218,7 @@ def test_replay_says_when_nobody_heard_it(
         args = ["replay", str(run_log), "--rate", "0", "--topics", topics, "--connect", endpoint]
         assert procs.finish(procs.start(topics, derl_argv(*args))) == 0, procs.log(topics)
         assert ("nobody heard it" in procs.log(topics)) is told, procs.log(topics)
-    wait_for(lambda: len(statuses) == STEPS, 10, "the replayed statuses")
+    wait_until(lambda: len(statuses) == STEPS, 10, "the replayed statuses")
 
 
 def test_replay_refuses_a_run_with_live_nodes(
@@ -241,12 +242,14 @@ def test_watch_alive_takes_only_tokens_of_the_key_space(bus: Bus) -> None:
     token = bus.token("trainer", "t0")
     stray = bus.session.liveliness().declare_token(f"derl/{bus.run}/alive/trainer/b@d")
     bus.watch_alive(lambda role, node, up: seen.append((role, node, up)))
-    wait_for(lambda: seen, 10, "the token")
+    wait_until(lambda: seen, 10, "the token")
     token.undeclare()
-    wait_for(lambda: len(seen) >= 2, 10, "the token gone")
+    wait_until(lambda: len(seen) >= 2, 10, "the token gone")
     stray.undeclare()
-    time.sleep(0.5)
-    assert seen == [("trainer", "t0", True), ("trainer", "t0", False)]
+    later = bus.token("trainer", "t1")  # seen after the stray one's end would have been
+    wait_until(lambda: len(seen) >= 3, 10, "the later token")
+    later.undeclare()
+    assert seen == [("trainer", "t0", True), ("trainer", "t0", False), ("trainer", "t1", True)]
 
 
 # --- topic -----------------------------------------------------------------------------------
@@ -378,7 +381,7 @@ def test_example_monitor_prints_fitness(
     repeater.start(reports, 0.2, raw=((bus.keys.births("x"), b"\xffjunk"),))
     procs.start("example", [sys.executable, "examples/fitness_monitor.py", bus.run, endpoint])
     wanted = {f"{r.agent} fitness {r.fitness:.2f} ({r.node})" for r in reports}
-    wait_for(lambda: wanted <= set(procs.log("example").splitlines()), 30, "fitness lines")
+    wait_until(lambda: wanted <= set(procs.log("example").splitlines()), 30, "fitness lines")
     lines = procs.log("example").splitlines()
     assert sum(line in wanted for line in lines) == 3  # each child once
     assert any(line.startswith("skipped derl/") for line in lines)
@@ -412,14 +415,14 @@ def test_a_birth_never_published_is_asked_for_again(
         procs.start(watcher, argv)
         # its question at start is answered with nothing (or, before it knew of the queryable,
         # not at all)
-        wait_for(lambda: asked or time.monotonic() > started + 8, 10, "the question at start")
+        wait_until(lambda: asked or time.monotonic() > started + 8, 10, "the question at start")
         journaled.append(birth)  # journaled, and the coordinator killed before publishing it
         counts = status.model_copy(update={"born": 1, "failed": 0})
         for _ in range(8):  # the restarted coordinator's status, once a second
             bus.publish(counts)
             time.sleep(0.5)
         shown = f"{birth.agent} fitness {birth.fitness:.2f}" if watcher == "example" else "born 1/"
-        wait_for(lambda: shown in procs.log(watcher), 20, "the birth asked for again")
+        wait_until(lambda: shown in procs.log(watcher), 20, "the birth asked for again")
         if watcher == "monitor":
             assert procs.finish(procs.started["monitor"]) == 0, procs.log("monitor")
             assert "fitness over 1 births" in procs.log("monitor")

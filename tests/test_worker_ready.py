@@ -14,9 +14,9 @@ import pytest
 
 from derl.messages import KeySpace, RunStatus
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.worker import node
-from derl.nodes.worker.node import Worker, ready_wait
-from tests.nodes_fixtures import free_port, run_id, wait_for
+from derl.nodes.testing.waiting import ManualClock, wait_until
+from derl.nodes.worker.node import UNHEARD_S, Worker, ready_wait
+from tests.nodes_fixtures import free_port, run_id
 
 
 def test_a_worker_asks_for_work_as_soon_as_a_coordinator_would_hear_it() -> None:
@@ -30,7 +30,8 @@ def test_a_worker_asks_for_work_as_soon_as_a_coordinator_would_hear_it() -> None
         thread.start()
         subscriber = None
         try:
-            time.sleep(0.5)  # the worker is up; nobody subscribes to WorkerReady yet
+            # the worker is up, its WorkerReady ready to go; nobody subscribes to it yet
+            wait_until(lambda: getattr(worker, "asking", None), 10, "the worker's publisher")
             declared = time.monotonic()
             subscriber = coordinator_side.declare_subscriber(
                 KeySpace(run).all("ready"), lambda _: heard.put(time.monotonic())
@@ -53,13 +54,14 @@ def test_an_idle_worker_asks_less_and_less_often() -> None:
 
 
 def test_a_worker_that_hears_no_coordinator_says_so_once_and_when_it_hears_one(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     """A mistyped run id or endpoint must not look like a quiet run: an idle worker that hears no
-    status of its run says so once, and says when a coordinator is heard."""
-    monkeypatch.setattr(node, "UNHEARD_S", 1.5)
+    status of its run says so once, and says when a coordinator is heard. Its clock runs fast
+    (`UNHEARD_S` each time the test looks): it says so after its first wait for a job."""
     run, endpoint = run_id(), f"tcp/127.0.0.1:{free_port()}"
-    worker = Worker(run, "trainer-unheard-test", "trainer")
+    clock = ManualClock()
+    worker = Worker(run, "trainer-unheard-test", "trainer", clock=clock)
     with open_session(ZenohOptions(listen=(endpoint,))) as coordinator_side:
         thread = threading.Thread(
             target=worker.serve, args=(ZenohOptions(connect=(endpoint,)),), daemon=True
@@ -67,11 +69,14 @@ def test_a_worker_that_hears_no_coordinator_says_so_once_and_when_it_hears_one(
         with caplog.at_level(logging.INFO, logger="derl.worker"):
             thread.start()
             try:
-                wait_for(lambda: worker.unheard, 15, "the worker to say it hears no coordinator")
+                wait_until(lambda: clock.advance(UNHEARD_S) or worker.unheard, 15,
+                           "the worker to say it hears no coordinator")  # fmt: skip
                 status = RunStatus(run=run, born=0, target=8, best_fitness=None, best_agent=None,
                                    in_flight=0, workers_alive=1)  # fmt: skip
                 bus = Bus(coordinator_side, run)
-                wait_for(lambda: bus.publish(status) or not worker.unheard, 10, "the status heard")
+                wait_until(
+                    lambda: bus.publish(status) or not worker.unheard, 10, "the status heard"
+                )
             finally:
                 worker.stop.set()
                 thread.join(timeout=10)

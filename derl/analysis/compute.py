@@ -114,6 +114,12 @@ class RunSummary(Record):
     quarters: Quarters | None
     """The median fitness of the distinct bodies of the first and last quarter of births and its
     difference (lineages resampled)."""
+    fingerprint: str | None
+    """A hash of its births (`derl.evolution.fingerprint`), where it was read from a journal."""
+    audited: int
+    """Births from two trainings by two trainer identities that agreed (an audit)."""
+    quarantined: tuple[str, ...]
+    """Trainer identities caught lying by an audit (their unchecked births trained again)."""
 
 
 TopRule = Literal["retrained", "evolution"]
@@ -257,6 +263,16 @@ def analyse(runs: list[RunLog], config: AnalysisConfig) -> Analysis:
     names = [run.name for run in runs]
     if len(set(names)) != len(names):
         raise ValueError(f"runs must have distinct names: {names}")
+    first: dict[str, str] = {}
+    for run in runs:
+        if (
+            run.fingerprint is not None
+            and (same := first.setdefault(run.fingerprint, run.name)) != run.name
+        ):
+            raise ValueError(
+                f"{same} and {run.name} are the same run (fingerprint {run.fingerprint}: the same "
+                "births): pooled, its births would count twice; give it once"
+            )
     worlds = list(dict.fromkeys(run.world for run in runs))
     mine = {w: [run for run in runs if run.world == w] for w in worlds}
     bodies = {w: WorldBodies.of(mine[w]) for w in worlds}
@@ -352,6 +368,9 @@ def analyse_run(
         stability_simulated=sum(m.passively_stable is not None for m in morphology),
         surviving_lineages=sum(row.surviving for row in rows),
         quarters=quarters(run, tree, config.bootstrap),
+        fingerprint=run.fingerprint,
+        audited=run.audited,
+        quarantined=run.quarantined,
     )
     result = RunAnalysis(
         run=run,

@@ -39,6 +39,9 @@ SUMMARY_COLUMNS = {
     "criterion_censored": "never reached it (censored)",
     "no_positive_reward": "no positive reward (censored cost of work)",
     "stability_simulated": "stability simulated",
+    "fingerprint": "fingerprint",
+    "audited": "audited births",
+    "quarantined": "quarantined trainers",
 }
 
 
@@ -93,8 +96,8 @@ GAITS_TITLE = "The best bodies' gaits"
 def _cell(value: object) -> str:
     if value is None:
         return "-"
-    if isinstance(value, list):
-        return escape(", ".join(map(str, value)))
+    if isinstance(value, list | tuple):
+        return escape(", ".join(map(str, value))) or "none"
     return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
 
 

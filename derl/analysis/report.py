@@ -372,6 +372,11 @@ def _notes(analysis: Analysis) -> list[str]:
     notes = []
     for r in analysis.runs:
         s = r.summary
+        if s.quarantined:
+            notes.append(
+                f"{s.run}: QUARANTINED as liars by an audit: {', '.join(s.quarantined)} (their "
+                "births no audit checked were trained again; the births shown are the honest ones)"
+            )
         if s.stability_simulated < s.bodies:
             notes.append(
                 f"{s.run}: passive stability and coverage were simulated for "

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from derl.envs.registry import TASKS, TEST_TASKS, WORLDS
+from derl.envs.registry import TASK_REGISTRY, TEST_TASKS, WORLDS
 from derl.evolution.config import JobSettings, load_settings
+from derl.plugins import canonical
 
 
 class StudyConfig(JobSettings):
@@ -31,7 +32,15 @@ class StudyConfig(JobSettings):
     )
     keep: int = Field(100, ge=1, description="best bodies per world by mean retrained fitness")
     top: int = Field(10, ge=1, description="of those, the best tested on the test tasks")
-    test_tasks: tuple[str, ...] = Field(TEST_TASKS, min_length=1, description="the test tasks")
+    test_tasks: tuple[str, ...] = Field(
+        TEST_TASKS, min_length=1, description="the test tasks (built-in, or a plugin's)"
+    )
+
+    @field_validator("test_tasks")
+    @classmethod
+    def _canonical_tasks(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(canonical(task) for task in value)
+
     test_seeds: int = Field(5, ge=1, description="trainings of each tested body per task")
     budgets: tuple[int, ...] = Field(
         (5_000_000, 1_000_000), min_length=1, description="env steps of a test (figs. 4b, 4c)"
@@ -39,9 +48,8 @@ class StudyConfig(JobSettings):
 
     @model_validator(mode="after")
     def _consistent(self) -> StudyConfig:
-        unknown = set(self.test_tasks) - set(TASKS)
-        if unknown:
-            raise ValueError(f"unknown test tasks {sorted(unknown)}; choose from {sorted(TASKS)}")
+        for task in self.test_tasks:
+            TASK_REGISTRY.get(task)  # a PluginError (a ValueError) says why not
         if self.top > self.keep:
             raise ValueError(f"top ({self.top}) > keep ({self.keep}): the tested are kept ones")
         if len(set(self.budgets)) != len(self.budgets):

@@ -1,7 +1,7 @@
 """Environments: terrain, the evolution worlds and test tasks, batched simulation of UNIMALs."""
 
 from derl.envs.batched import EnvConfig, StepResult, UnimalEnv
-from derl.envs.gym_env import UnimalGymEnv, register_all
+from derl.envs.gym_env import UnimalGymEnv
 from derl.envs.registry import TASKS, make_task
 from derl.unimal import Genome
 
@@ -12,8 +12,6 @@ def make_env(
     """`num_envs` copies of a body in a task, ready to `reset` and `step`."""
     return UnimalEnv(genome, make_task(task, **task_options), EnvConfig(num_envs=num_envs), seed)
 
-
-register_all()
 
 __all__ = [
     "TASKS",

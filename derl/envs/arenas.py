@@ -14,7 +14,6 @@ from scipy import ndimage
 
 from derl.envs.flat_ground import FlatGround, add_plane
 from derl.envs.heightmap import HeightmapGrid
-from derl.envs.rewards import CONTROL_DT
 from derl.envs.task import Arena
 from derl.envs.terrain import Segment, Terrain, TerrainConfig
 from derl.envs.terrain_stack import TerrainStack, add_hfield
@@ -87,20 +86,24 @@ class Heightfield(Arena):
         draw: Callable[[np.random.Generator], Terrain] | None = None,
         lazy: bool = False,
     ) -> None:
-        self.config, self.grid, self.draw = config, grid, draw
+        self.config, self.grid, self.draw, self.lazy = config, grid, draw, lazy
         self.half = (config.size_x / 2, config.size_y / 2)
-        # a heightmap reads this far from the head; a body touches this far within a step
-        reach = max(0.0 if grid is None else grid.reach, BODY_REACH + MAX_SPEED * CONTROL_DT)
-        self.ahead = reach if lazy else None
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_hfield(spec, self.config, self.grid)
         if self.draw is None:
             add_plane(spec)
 
+    terrains: TerrainStack  # once bound
+
     def bind(self, env: EnvView) -> None:
+        # a heightmap reads this far from the head; a body touches this far within a step
+        reach = max(
+            0.0 if self.grid is None else self.grid.reach,
+            BODY_REACH + MAX_SPEED * env.control_dt,
+        )
         self.terrains = TerrainStack(
-            self.config, env.model, env.num_envs, self.grid, self.draw, self.ahead
+            self.config, env.model, env.num_envs, self.grid, self.draw, reach if self.lazy else None
         )
         env.set_models(self.terrains.models)
         self.flats = FlatGround(env, self.terrains) if self.draw is None else None

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from derl.envs.task import Arrays, Task
 from derl.envs.view import MAX_SPEED, FreeJoint
 from derl.unimal import Genome, agent_spec
-from derl.unimal.mjcf import FLOOR_OFFSET, stand_height
+from derl.unimal.mjcf import FLOOR_OFFSET, TIMESTEP, stand_height
 from derl.unimal.space import HEAD_RADIUS
 
 ARENA_MARGIN = 1.0  # m: a copy ends this close to the arena's edge
@@ -47,7 +47,9 @@ moves `mjSLEEP_AUTO_ALLOWED`)."""
 
 
 class EnvConfig(BaseModel):
-    """How the copies are simulated; defaults are the paper's."""
+    """How the copies are simulated; defaults are the paper's. `control_dt`, the physics
+    timestep (`derl.unimal.mjcf.TIMESTEP`) x `frame_skip`, is the one control step every part
+    reads (through `EnvView.control_dt`)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -65,6 +67,15 @@ class EnvConfig(BaseModel):
     faster). Off by default: the released code simulated the box throughout, and an effect of
     sleeping on fitness at the paper's budget is not ruled out (docs/fidelity.md, "Objects at
     rest"); an opt-in speed switch."""
+
+    @property
+    def control_dt(self) -> float:
+        """s per control step (the paper's 20 ms: 4 x 5 ms)."""
+        return TIMESTEP * self.frame_skip
+
+    def fitness_bound(self, task: Task) -> float:
+        """The largest |fitness| `task` allows in episodes simulated so (`Task.fitness_bound`)."""
+        return task.fitness_bound(self.control_dt, self.episode_steps)
 
 
 @dataclass(frozen=True)
@@ -114,12 +125,19 @@ class UnimalEnv:
         self.arena_inside = np.array(task.arena.half) - ARENA_MARGIN  # head beyond: off the arena
         self.steps = np.zeros(self.num_envs, dtype=np.int64)
         self.unstable_count = 0
+        self.constraint_rows = 0
+        """MuJoCo's constraint rows (contacts, limits) at the end of each control step, summed over
+        the copies and the steps: a count of the solver's work (the cluster timing's cost)."""
         self.physics_s = 0.0
         """Seconds spent in MuJoCo (the steps, and the forward passes of copies reset)."""
         self._obs_spaces = {"proprioception": self._proprioception(self.all).shape[1]}
         self._obs_spaces.update(task.obs_spaces())
 
     # --- the BatchedEnv interface -------------------------------------------------------------
+
+    @property
+    def control_dt(self) -> float:
+        return self.config.control_dt
 
     @property
     def num_envs(self) -> int:
@@ -154,6 +172,7 @@ class UnimalEnv:
         except mujoco.batch.SimulationError as error:
             failed = error.ids
         self.physics_s += time.perf_counter() - start
+        self.constraint_rows += int(np.add.reduce(self._nefc))
         unstable = self._unstable(warnings_before, failed)
         unstable_count = int(np.count_nonzero(unstable))
         self.unstable_count += unstable_count
@@ -253,6 +272,20 @@ class UnimalEnv:
                 for s in agent_sensors
             ]
         )
+        # what each proprioception column and each action is, by the body's part names (the
+        # genome's limb ids): how an inherited controller finds its parent's (`derl.rl.inherit`)
+        joints = [model.joint(j).name for j in hinges]
+        self.proprioception_labels = (
+            [f"qpos {name}" for name in joints]
+            + [f"qvel root {k}" for k in range(6)]
+            + [f"qvel {name}" for name in joints]
+            + [
+                f"sensor {s.name} {k}"
+                for s in agent_sensors
+                for k in range(2 if s.name.endswith("_end_pos") else s.dim[0])
+            ]
+        )
+        self.action_labels = [model.actuator(a).name for a in range(model.nu)]
         sites = ["head_imu"] + [
             f"{model.body(b).name}_{kind}"
             for b in sorted(agent_bodies - {self.head})
@@ -276,6 +309,7 @@ class UnimalEnv:
         self.sensordata = batch.bind("sensordata")
         self.xmat = batch.bind("xmat")
         self.site_xpos = batch.bind("site_xpos")
+        self._nefc = batch.bind("nefc")
         self.warnings = batch.warning  # (N, warning kinds, [last info, count])
         self._warning_counts = self.warnings[:, :, 1]
         # qpos and qvel: adjacent in the state rows, after the time (MuJoCo's state order)

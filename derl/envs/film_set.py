@@ -54,7 +54,7 @@ class FilmSet:
 
     def __init__(self, env: UnimalEnv) -> None:
         self.env = env
-        self.terrains: TerrainStack | None = getattr(env.task.arena, "terrains", None)
+        self.terrains: TerrainStack | None = env.task.arena.terrains
         self.objects = [part for part in env.task.props if isinstance(part, CarriedObject)]
         self.goals = [part for part in env.task.props if isinstance(part, GoalPoint)]
         self.model = self._compile()

@@ -1,4 +1,7 @@
-"""Tasks by name: the three evolution worlds (`WORLDS`) and the eight test tasks (`TEST_TASKS`)."""
+"""Tasks by name: the three evolution worlds (`WORLDS`), the eight test tasks (`TEST_TASKS`), and
+the tasks of plugins (`TASK_REGISTRY`, entry point group ``derl.tasks``, or
+``package.module:name``): a task is a factory returning a `Task` made of derl's parts and the
+plugin's own."""
 
 from __future__ import annotations
 
@@ -7,6 +10,7 @@ from typing import Any
 
 from derl.envs import eval_tasks, worlds
 from derl.envs.task import Task
+from derl.plugins import PluginError, Registry
 
 TASKS: dict[str, Callable[..., Task]] = {
     "ft": worlds.ft,
@@ -39,10 +43,29 @@ TEST_TASKS = (
 """The paper's eight test tasks (appendix C)."""
 
 
+def _factory(loaded: object) -> Callable[..., Task]:
+    if not callable(loaded):
+        raise TypeError(f"{loaded!r} is not callable")
+    return loaded
+
+
+TASK_REGISTRY: Registry[Callable[..., Task]] = Registry("task", "derl.tasks", TASKS, _factory)
+"""Every task's factory by name: the built-ins (`TASKS`) and the plugins."""
+
+
 def make_task(name: str, **options: Any) -> Task:
-    """A task by name, with optional factory options (e.g. ``terrain=TerrainConfig(...)``)."""
+    """A task by name (a built-in's, an installed plugin's, or ``package.module:name``), with
+    optional factory options (e.g. ``terrain=TerrainConfig(...)``); `PluginError` (a
+    `ValueError`) saying why there is none."""
+    factory = TASK_REGISTRY.get(name)
+    if name in TASKS:
+        return factory(**options)
     try:
-        factory = TASKS[name]
-    except KeyError:
-        raise ValueError(f"unknown task {name!r}; choose from {', '.join(TASKS)}") from None
-    return factory(**options)
+        task = factory(**options)
+    except Exception as error:  # a plugin's factory may raise anything
+        raise PluginError(
+            f"task {name!r}: its factory raised {type(error).__name__}: {error}"
+        ) from None
+    if not isinstance(task, Task):
+        raise PluginError(f"task {name!r}: its factory returned {task!r:.80}, not a Task")
+    return task

@@ -4,7 +4,8 @@ The reward of a step is the sum of its task's terms; each term is reported as a 
 under its name. A term is a pure function of the environment and of the state of the props it
 reads (`derl.envs.objects`: they advance it after each step, before any term), so terms keep
 nothing and their order does not matter. Distances are of the head centre in the ground plane
-unless said otherwise.
+unless said otherwise. Each term states how large its episode sum can be (`RewardTerm.
+episode_bound`), from its own weights: the bound on a fitness is derived from them.
 """
 
 from __future__ import annotations
@@ -14,13 +15,11 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from derl.envs.task import RewardTerm
+from derl.envs.task import EpisodeLimits, RewardTerm
 from derl.envs.view import EnvView
 
 if TYPE_CHECKING:
     from derl.envs.objects import CarriedObject, FloorCells, GoalPoint
-
-CONTROL_DT = 0.02  # s per control step: 4 x 5 ms
 
 
 class RewardWeights(BaseModel):
@@ -78,11 +77,16 @@ class Forward(RewardTerm):
         self.cos_slope = cos_slope
 
     def __call__(self, env: EnvView) -> np.ndarray:
-        velocity = (env.head_pos[:, 0] - env.prev_head[:, 0]) / CONTROL_DT
+        velocity = (env.head_pos[:, 0] - env.prev_head[:, 0]) / env.control_dt
         forward = self.weight * velocity
         if self.cos_slope != 1.0:
             forward /= self.cos_slope
         return forward
+
+    def episode_bound(self, limits: EpisodeLimits) -> float:
+        """The velocities sum to the distance gained along x in the episode over the control
+        step: at most the arena's diagonal over it."""
+        return abs(self.weight) * limits.diagonal / limits.control_dt / self.cos_slope
 
 
 class ReachGoal(RewardTerm):
@@ -95,6 +99,10 @@ class ReachGoal(RewardTerm):
 
     def __call__(self, env: EnvView) -> np.ndarray:
         return self.weight * self.goal.gain + self.bonus * self.goal.arrived
+
+    def episode_bound(self, limits: EpisodeLimits) -> float:
+        """The gains sum to at most the arena's diagonal; the bonus at most once a step."""
+        return abs(self.weight) * limits.diagonal + abs(self.bonus) * limits.steps
 
 
 class ReachObject(RewardTerm):
@@ -109,6 +117,10 @@ class ReachObject(RewardTerm):
 
     def __call__(self, env: EnvView) -> np.ndarray:
         return self.weight * self.obj.reach_gain + self.bonus * self.obj.first_reach
+
+    def episode_bound(self, limits: EpisodeLimits) -> float:
+        """The gains sum to at most the arena's diagonal; the bonus once an episode."""
+        return abs(self.weight) * limits.diagonal + abs(self.bonus)
 
 
 class PushObject(RewardTerm):
@@ -125,6 +137,10 @@ class PushObject(RewardTerm):
         obj = self.obj
         return np.where(obj.reached, self.weight * obj.push_gain + self.bonus * obj.delivered, 0.0)
 
+    def episode_bound(self, limits: EpisodeLimits) -> float:
+        """The gains sum to at most the arena's diagonal; the bonus at most once a step."""
+        return abs(self.weight) * limits.diagonal + abs(self.bonus) * limits.steps
+
 
 class Explore(RewardTerm):
     """+1 for each square of ``cells`` the head is in for the first time in the episode, the
@@ -139,6 +155,9 @@ class Explore(RewardTerm):
     def __call__(self, env: EnvView) -> np.ndarray:
         return self.cells.entered.astype(np.float64)
 
+    def step_bound(self, limits: EpisodeLimits) -> float:
+        return 1.0
+
 
 class Escape(RewardTerm):
     """The step's gain in distance from the arena's centre (the released escape task's
@@ -149,6 +168,10 @@ class Escape(RewardTerm):
     def __call__(self, env: EnvView) -> np.ndarray:
         radius = np.linalg.norm(env.head_pos[:, :2], axis=1)
         return radius - np.linalg.norm(env.prev_head[:, :2], axis=1)
+
+    def episode_bound(self, limits: EpisodeLimits) -> float:
+        """The gains sum to at most the arena's diagonal."""
+        return limits.diagonal
 
 
 class RimBonus(RewardTerm):
@@ -164,3 +187,6 @@ class RimBonus(RewardTerm):
     def __call__(self, env: EnvView) -> np.ndarray:
         radius = np.linalg.norm(env.head_pos[:, :2], axis=1)
         return self.bonus * (radius >= self.rim)
+
+    def step_bound(self, limits: EpisodeLimits) -> float:
+        return abs(self.bonus)

@@ -10,20 +10,18 @@ the body's own observations, the fall test, time limits and resets.
 
 from __future__ import annotations
 
+import math
 import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import reduce
-from typing import TYPE_CHECKING, ClassVar, cast
+from typing import ClassVar
 
 import mujoco
 import numpy as np
 
+from derl.envs.terrain_stack import TerrainStack
 from derl.envs.view import EnvView
-
-if TYPE_CHECKING:
-    from derl.envs.arenas import Heightfield
-    from derl.envs.terrain_stack import TerrainStack
 
 Arrays = dict[str, np.ndarray]
 HOOKS = ("build", "bind", "start", "reset", "posed", "placed", "update")
@@ -58,11 +56,19 @@ class Part:
 class Arena(Part):
     """The ground. ``half``: half extents (x, y); a copy whose head leaves them (less a margin)
     ends. Objects rest on it rotated by ``tilt`` (a quaternion), their centre raised by their
-    half height / ``cos_slope``."""
+    half height / ``cos_slope``. ``terrains``: the copies' heightfields, where the arena has
+    them (set once the copies exist; None for a plane)."""
 
     half: tuple[float, float]
     tilt: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     cos_slope: float = 1.0
+    terrains: TerrainStack | None = None
+
+    @property
+    def diagonal(self) -> float:
+        """m: the longest straight line inside the arena, the furthest anything in it can get
+        from where it was."""
+        return 2 * math.hypot(*self.half)
 
     def ground(self, xy: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """(len(xy),) ground height under point ``xy[k]`` of copy ``ids[k]`` (default: copy k)."""
@@ -81,16 +87,39 @@ class Arena(Part):
         return self.ground(xy, ids)
 
 
+@dataclass(frozen=True)
+class EpisodeLimits:
+    """What bounds an episode: its control step (s), its length in control steps, and the arena's
+    `Arena.diagonal` (m)."""
+
+    control_dt: float
+    steps: int
+    diagonal: float
+
+
 class RewardTerm(Part):
     """One weighted term of the reward (the reward is their sum), reported under `name`: a pure
     function of the environment and of the props' state (advanced in their `update`), keeping
-    none of its own, so that the terms' order does not matter."""
+    none of its own, so that the terms' order does not matter.
+
+    A term states how large it can be (`step_bound`, or a tighter `episode_bound`): a fitness is
+    a mean of episode sums of terms, so what a report may claim is derived from them (`Task.
+    fitness_bound`). A term that states neither is unbounded, and so is a fitness that sums it."""
 
     name: ClassVar[str]
 
     def __call__(self, env: EnvView) -> np.ndarray:
         """(N,) the term for the last step."""
         raise NotImplementedError
+
+    def step_bound(self, limits: EpisodeLimits) -> float:
+        """The largest |term| in one control step (inf: unbounded)."""
+        return math.inf
+
+    def episode_bound(self, limits: EpisodeLimits) -> float:
+        """The largest |sum of the term over one episode|: `limits.steps` x `step_bound`, unless
+        the term states a tighter one (a distance gained sums to at most the arena's diagonal)."""
+        return limits.steps * self.step_bound(limits)
 
 
 class Observation(Part):
@@ -153,10 +182,13 @@ class Task:
             for hook in HOOKS
         }
 
-    @property
-    def terrains(self) -> TerrainStack:
-        """The copies' terrains, where the arena has a heightfield (else AttributeError)."""
-        return cast("Heightfield", self.arena).terrains
+    def fitness_bound(self, control_dt: float, episode_steps: int) -> float:
+        """The largest |fitness| of this task: the sum of the episode bounds of the terms its
+        fitness component sums (a mean of episode sums cannot exceed it; inf where a term is
+        unbounded)."""
+        limits = EpisodeLimits(control_dt, episode_steps, self.arena.diagonal)
+        summed = self.metrics.get(self.fitness_component, (self.fitness_component,))
+        return sum(term.episode_bound(limits) for term in self.rewards if term.name in summed)
 
     def obs_spaces(self) -> dict[str, int]:
         """Observation types the task adds, with their sizes."""

@@ -54,6 +54,11 @@ class EnvView(Protocol):
         ...
 
     @property
+    def control_dt(self) -> float:
+        """s per control step: the model's timestep x the environment's frame skip."""
+        ...
+
+    @property
     def model(self) -> mujoco.MjModel:
         """The compiled model of the body in its task (shared by the copies unless set)."""
         ...

@@ -2,7 +2,8 @@
 
 from derl.evolution.config import PROFILES, EvolutionConfig, load_profile
 from derl.evolution.fingerprint import child_order, fingerprint
-from derl.evolution.population import Child, Evolution, Member, breed
+from derl.evolution.member import Member
+from derl.evolution.population import Child, Evolution, breed
 
 __all__ = [
     "PROFILES",

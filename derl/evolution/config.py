@@ -11,27 +11,31 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    JsonValue,
     ValidationError,
     ValidationInfo,
+    field_validator,
     model_validator,
 )
 
 from derl.envs.batched import EnvConfig
-from derl.envs.registry import TASKS, TEST_TASKS, make_task
-from derl.envs.rewards import CONTROL_DT
+from derl.envs.registry import TASK_REGISTRY, TEST_TASKS, make_task
+from derl.evolution.selection import SELECTION_REGISTRY, make_selection
+from derl.evolution.timing import TrainingTime
 from derl.lifetime import ppo_config
+from derl.plugins import Plugin, Registry, canonical
 from derl.rl import PPOConfig, PPOHyperparameters
 from derl.rl.config import SAVED
+from derl.unimal.mutations import OPERATOR_REGISTRY
 from derl.validation import problems
 
-BONUS = 10.0  # the largest per-step bonus of a reward
 SEED_LIMIT = 2**64  # seeds travel as unsigned 64-bit integers
 MAX_LEASE_S = 86_400.0
 
@@ -87,9 +91,28 @@ class EvolutionConfig(JobSettings):
     copies and fitness settings come from `train_steps`, `training_seed`, `num_envs` and the task
     (`training_ppo`, `evaluation_ppo`)."""
 
-    world: Literal["ft", "vt", "mvt"] = Field("ft", description="the world evolution trains in")
+    world: str = Field(
+        "ft",
+        description="the world evolution trains in: ft, vt, mvt, a task of an installed plugin, "
+        "or package.module:name (docs/extending.md)",
+    )
     population: int = Field(576, ge=1, description="P: the aging window (most recent births)")
     tournament: int = Field(4, ge=1, description="T: contestants drawn with replacement")
+    selection: str = Field(
+        "tournament",
+        description="how a tournament picks its parent: tournament (the paper's: the fittest of "
+        "T), pareto (among T, one not beaten on both fitness and cost of work), a scheme of an "
+        "installed plugin, or package.module:name",
+    )
+    selection_options: dict[str, JsonValue] = Field(
+        default_factory=dict, description="keyword options of the selection scheme's factory"
+    )
+    mutations: dict[str, float] | None = Field(
+        None,
+        description="the mutation operators and their weights (a child's operator is drawn in "
+        "proportion among those that apply; a plugin's by name or package.module:name); None: "
+        "the paper's uniform choice among the seven built-ins",
+    )
     total: int = Field(4000, ge=1, description="N: bodies trained in all, initial ones included")
     in_flight: int = Field(
         288,
@@ -99,6 +122,19 @@ class EvolutionConfig(JobSettings):
         "number of trainers (keep W at 2-4x the trainers); 0: free-running, the P most recently "
         "born (not reproducible)",
     )
+    timing: Literal["window", "cluster"] = Field(
+        "window",
+        description="how the population a child is bred from follows the trainings' times: "
+        "window: child n from the first n - W children, whatever their times (timing-free); "
+        "cluster: the released code's W workers simulated in virtual time, each breeding a child "
+        "when its training ends from the P bodies that finished last, so bodies that train fast "
+        "join sooner (durations from `training_time`); both are the same on any number of "
+        'trainers (docs/fidelity.md, "Timing")',
+    )
+    training_time: TrainingTime = Field(
+        default_factory=TrainingTime,
+        description="the cluster timing's virtual duration of a training, from its counts",
+    )
     audit: float = Field(
         0.02,
         ge=0,
@@ -107,6 +143,27 @@ class EvolutionConfig(JobSettings):
         "results must agree bit for bit (a third training decides a disagreement and the "
         "identity that lied is quarantined); 0: none. Trainers must be one machine type with "
         "one set of library versions (training is deterministic only there)",
+    )
+    audit_first: int = Field(
+        1,
+        ge=0,
+        description="where audit > 0: every report of a trainer identity is audited until this "
+        "many of them agreed with another identity's (again after a disagreement it was part "
+        "of); then a share (audit_first / (n + 1))² of its reports, n its reports taken since "
+        '(docs/running.md, "Audits")',
+    )
+    audit_top: float = Field(
+        0.03,
+        ge=0,
+        le=1,
+        description="where audit > 0: a child whose reported fitness ranks among this share of "
+        "the best of the population is audited before it is born (a likely parent)",
+    )
+    inherit: Literal["none", "parent"] = Field(
+        "none",
+        description="where a child's controller starts: none, fresh weights (the paper: every "
+        "child trained from scratch); parent, its parent's trained weights where the two bodies' "
+        "parts match, fresh ones where they do not (Lamarckian; docs/extending.md)",
     )
     train_steps: int = Field(
         5_000_000,
@@ -139,28 +196,61 @@ class EvolutionConfig(JobSettings):
         return self.job_ppo(task, self.eval_steps, seed)
 
     def fitness_bound(self) -> float:
-        """The largest |fitness| the world allows: the fitness is a mean of episode sums of its
-        selection term, which cannot exceed covering the arena's diagonal in an episode (forward
-        progress: 1/dt per metre; reach and push: 100 per metre each) plus every step's bonus."""
-        task = make_task(self.world)
-        diagonal = 2 * math.hypot(*task.arena.half)
-        per_metre = 1 / CONTROL_DT if task.fitness_component == "forward" else 2 * 100.0
-        return per_metre * diagonal + BONUS * (EnvConfig().episode_steps + 1)
+        """The largest |fitness| the world allows, derived from its reward terms' own bounds
+        (`derl.envs.task.Task.fitness_bound`): a report beyond it is impossible."""
+        return EnvConfig().fitness_bound(make_task(self.world))
 
     @model_validator(mode="before")
     @classmethod
     def _as_saved_before(cls, data: object, info: ValidationInfo) -> object:
         """A run saved before `in_flight` existed (2026-12-04) was free-running, and one saved
-        before `audit` (2026-12-05) checked nothing: it resumes so."""
+        before `audit` (2026-12-05) checked nothing, one saved before `audit_first` and
+        `audit_top` (2026-12-07) audited by its share alone: it resumes so."""
         if info.context == SAVED and isinstance(data, dict):
-            return {"in_flight": 0, "audit": 0.0, **data}
+            return {"in_flight": 0, "audit": 0.0, "audit_first": 0, "audit_top": 0.0, **data}
         return data
+
+    @field_validator("world", "selection")
+    @classmethod
+    def _canonical_name(cls, value: str) -> str:
+        """A spec's ``module:name`` kept as ``module.name`` (a safe name on the bus)."""
+        return canonical(value)
+
+    @field_validator("eval_tasks")
+    @classmethod
+    def _canonical_tasks(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(canonical(task) for task in value)
+
+    @field_validator("mutations")
+    @classmethod
+    def _canonical_operators(cls, value: dict[str, float] | None) -> dict[str, float] | None:
+        if value is None:
+            return None
+        if any(weight < 0 or not math.isfinite(weight) for weight in value.values()):
+            raise ValueError(f"mutation weights must be finite and >= 0: {value}")
+        if not any(value.values()):
+            raise ValueError("mutations: at least one operator needs a positive weight")
+        return {canonical(op): weight for op, weight in value.items()}
+
+    def plugins(self) -> tuple[Plugin, ...]:
+        """The identities of the plugins this profile names (world, test tasks, selection,
+        operators), in that order: what every job carries and the fingerprint covers."""
+        named: list[tuple[Registry[Any], str]] = [
+            (TASK_REGISTRY, self.world),
+            *((TASK_REGISTRY, task) for task in self.eval_tasks),
+            (SELECTION_REGISTRY, self.selection),
+            *((OPERATOR_REGISTRY, op) for op in self.mutations or {}),
+        ]
+        found = (registry.identity(name) for registry, name in named)
+        return tuple(dict.fromkeys(plugin for plugin in found if plugin is not None))
 
     @model_validator(mode="after")
     def _consistent(self) -> EvolutionConfig:
-        unknown = set(self.eval_tasks) - set(TASKS)
-        if unknown:
-            raise ValueError(f"unknown eval tasks {sorted(unknown)}; choose from {sorted(TASKS)}")
+        for task in (self.world, *self.eval_tasks):
+            TASK_REGISTRY.get(task)  # a PluginError (a ValueError) says why not
+        make_selection(self.selection, self.selection_options)
+        for op in self.mutations or {}:
+            OPERATOR_REGISTRY.get(op)
         if self.total < self.population:
             raise ValueError(f"total ({self.total}) < population ({self.population})")
         if self.tournament > self.population:
@@ -173,6 +263,8 @@ class EvolutionConfig(JobSettings):
                 f"in_flight ({self.in_flight}) >= population ({self.population}): child n is bred "
                 "from the first n - W children, so W must be less than P"
             )
+        if self.timing == "cluster" and not self.in_flight:
+            raise ValueError("timing cluster needs its W workers: in_flight >= 1")
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
         self.training_ppo()  # the budget holds whole rollouts, the minibatch fits, ...
@@ -208,8 +300,14 @@ PROFILES: dict[str, EvolutionConfig] = {
         eval_tasks=TEST_TASKS,
         eval_steps=100_000,
     ),
-    "paper": EvolutionConfig(name="paper", eval_top=10, eval_tasks=TEST_TASKS, eval_seeds=5),
+    "paper": EvolutionConfig(
+        name="paper", timing="cluster", eval_top=10, eval_tasks=TEST_TASKS, eval_seeds=5
+    ),
 }
+
+
+class NoProfile(ValueError):
+    """A profile named that is neither built in nor a file."""
 
 
 def load_profile(
@@ -235,9 +333,7 @@ def load_settings(
     else:
         path = Path(name_or_path)
         if not path.is_file():
-            raise ValueError(
-                f"no profile {name_or_path!r}: use {', '.join(builtin)} or a YAML file"
-            )
+            raise NoProfile(f"no profile {name_or_path!r}: use {', '.join(builtin)} or a YAML file")
         data = yaml.safe_load(path.read_text())
         if data is None:  # an empty file would silently be a run with every default
             raise ValueError(

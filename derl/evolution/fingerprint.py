@@ -4,7 +4,9 @@ A run is a function of its profile and seed (`derl.evolution.population`): whate
 trainers, their speed or what crashed, the same children are born of the same parents with the
 same bodies and the same fitness to the bit. The fingerprint hashes exactly that, each birth as
 (child, parent, generation, the fitness's bits, `body_hash` of the body), in child order
-(`child_order`: the order children are bred, not the order their trainings finished).
+(`child_order`: the order children are bred, not the order their trainings finished), and the
+identity of every plugin the run used (name, version, source hash): the same births from other
+code are another run.
 """
 
 from __future__ import annotations
@@ -24,9 +26,13 @@ def child_order(name: str) -> tuple[bool, int]:
     return name.startswith("c"), int(name[1:])
 
 
-def fingerprint(births: Iterable[BirthFacts]) -> str:
-    """16 hex digits of SHA-256 over the births in child order (equal runs, equal prints)."""
+def fingerprint(births: Iterable[BirthFacts], plugins: Iterable[str] = ()) -> str:
+    """16 hex digits of SHA-256 over the births in child order (equal runs, equal prints), after
+    the identities of the run's plugins (`derl.plugins.Plugin`, as JSON; a run without any hashes
+    its births alone)."""
     digest = hashlib.sha256()
+    for plugin in plugins:
+        digest.update(f"plugin {plugin}\n".encode())
     for child, parent, generation, fitness, genome in sorted(
         births, key=lambda b: child_order(b[0])
     ):

@@ -9,9 +9,13 @@ born of the first n - W children (`pool`), once every one of them is born or giv
 whatever order their trainings finished in. So the births depend on the seed alone, not on how
 many trainers ran, how fast, or what crashed and resumed. W = 0 is free-running (the released
 code's rule, not reproducible): the P most recently born, in the order they were born, as soon as
-one is. Tournament k draws from a hash of (seed, k) (`tournament_draws`), so a decision depends
-only on the state it was made in: replaying recorded decisions and births rebuilds the same state,
-and the next decision is the one the crashed run would have made.
+one is. The cluster timing (`timing: cluster`, `derl.evolution.timing`) keeps the released
+code's dynamics instead and stays a function of the seed: W virtual workers, each breeding a
+child when its training ends in virtual time (durations counted from what the training did),
+from the P bodies that finished last by then. Tournament k draws from a hash of (seed, k)
+(`tournament_draws`), so a decision depends only on the state it was made in: replaying recorded
+decisions and births rebuilds the same state, and the next decision is the one the crashed run
+would have made.
 
 A tournament decides the parent and a mutation seed; `breed(parent body, seed)` makes the child
 (a mutation and its full validity check: deterministic, so the same seed gives the same body,
@@ -20,7 +24,8 @@ train alike). Whoever holds this state breeds the child (`body`) before it is tr
 body is decided here, recorded once decided (`decided`: a journal that carries it gives it back),
 and a trainer trains the body it is given. Training is deterministic, so a child whose body equals
 one already born (`repeat`, by `body_hash`) is born as a repeat with that body's result instead of
-being trained again.
+being trained again; where children inherit their parent's weights (`inherit: parent`), only one
+whose parent's training was the same too (`body_key`).
 """
 
 from __future__ import annotations
@@ -28,11 +33,15 @@ from __future__ import annotations
 import bisect
 import hashlib
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from derl.evolution.config import EvolutionConfig
+from derl.evolution.member import Member
+from derl.evolution.selection import Draws, make_selection, select
+from derl.evolution.timing import ClusterClock
 from derl.unimal import (
     Genome,
     Mutation,
@@ -67,17 +76,6 @@ def tournament_child(iteration: int) -> str:
 
 
 @dataclass(frozen=True)
-class Member:
-    """A born agent."""
-
-    agent: str
-    fitness: float
-    parent: str | None
-    birth: int
-    repeat_of: str | None = None  # the earlier agent with this body, whose result it took
-
-
-@dataclass(frozen=True)
 class Child:
     """A body to train: an initial one (its genome, no parent) or a tournament's decision, the
     child of `parent` to breed with `mutation_seed` (`Evolution.body`)."""
@@ -91,16 +89,22 @@ class Child:
     iteration: int = -1
 
 
-def breed(parent: Genome, seed: int, released_delete: bool = True) -> tuple[Genome, Mutation]:
+def breed(
+    parent: Genome,
+    seed: int,
+    released_delete: bool = True,
+    weights: Mapping[str, float] | None = None,
+) -> tuple[Genome, Mutation]:
     """The child of a tournament: one valid mutation of `parent`, the same for the same seed
     (each operator tries up to 50 times, and up to `MAX_DRAWS` operators are drawn), in its
-    canonical form (the limb ids in the mutation's detail are the parent's); `released_delete`:
-    as `derl.unimal.mutate`'s."""
+    canonical form (the limb ids in the mutation's detail are the parent's); `released_delete`
+    and `weights` (the operators' shares, None: the paper's uniform choice): as
+    `derl.unimal.mutate`'s."""
     rng = np.random.default_rng(seed)
     reason = ""
     for _ in range(MAX_DRAWS):
         try:
-            child, mutation = mutate(parent, rng, released_delete=released_delete)
+            child, mutation = mutate(parent, rng, released_delete=released_delete, weights=weights)
             return canonical_genome(child), mutation
         except MutationFailed as failure:
             reason = str(failure)
@@ -113,6 +117,7 @@ class Evolution:
     def __init__(self, config: EvolutionConfig, initial: list[Genome] | None = None) -> None:
         """`initial`: the P initial bodies, if already drawn (else drawn from the seed)."""
         self.config = config
+        self.selection = make_selection(config.selection, config.selection_options)
         if initial is None:
             initial = sample_population(config.population, np.random.default_rng([config.seed, 0]))
         if len(initial) != config.population:
@@ -131,8 +136,8 @@ class Evolution:
         self.born: list[Member] = []
         self.fitness: dict[str, float] = {}
         self.given_up: set[str] = set()  # children never born (not bred, or trainings failed)
-        self.bodies: dict[str, str] = {}  # body_hash -> the first agent born with that body
-        self.hashes: dict[str, str] = {}  # child -> body_hash of its body (computed once)
+        self.bodies: dict[str, str] = {}  # body_key -> the first agent born with it
+        self.hashes: dict[str, str] = {}  # child -> its body_key (computed once)
         self.iterations = 0
         self._best: Member | None = None
         self.index: dict[str, int] = {c.name: k for k, c in enumerate(self.initial)}
@@ -140,11 +145,18 @@ class Evolution:
         self.by_index: dict[int, Member] = {}  # a born child's number -> it
         self.settled_indices: set[int] = set()  # numbers of children born or given up
         self.prefix = 0  # the first `prefix` children are all born or given up
+        self.clock: ClusterClock | None = None  # the cluster timing's (`derl.evolution.timing`)
+        if config.timing == "cluster":
+            self.steps = config.training_ppo().total_steps  # every training's env steps
+            least = config.training_time.least(self.steps)
+            self.clock = ClusterClock(config.in_flight, len(self.initial), config.population, least)
 
     @property
     def population(self) -> list[Member]:
         """The P latest born agents: in child order (in the order they were born when
-        free-running)."""
+        free-running, of their virtual finishes in the cluster timing)."""
+        if self.clock is not None:
+            return [self.by_index[k] for _, k in self.clock.finished[-self.config.population :]]
         if not self.config.in_flight:
             return self.born[-self.config.population :]
         latest = self.born_indices[-self.config.population :]
@@ -154,8 +166,13 @@ class Evolution:
         """The population the next tournament draws from, None while it is not known yet: the P
         latest born of the first n - W children, n the next child's number, once each of them is
         born or given up (should none of them be born: of the first children up to the first
-        born one). Free-running (W = 0): the P most recently born, once one is."""
+        born one). Free-running (W = 0): the P most recently born, once one is. The cluster
+        timing: the P that finished last in virtual time when the next child is bred
+        (`ClusterClock.breeding`)."""
         config = self.config
+        if self.clock is not None:
+            breeding = self.clock.breeding(self.iterations)
+            return None if breeding is None else [self.by_index[k] for k in breeding[1]]
         if not config.in_flight:
             return self.born[-config.population :] or None
         if not self.born_indices or self.born_indices[0] >= self.prefix:
@@ -183,22 +200,24 @@ class Evolution:
         return self._best
 
     def tournament(self) -> Child | None:
-        """Decide the next child from its `pool` (None while that is not known yet); call
-        `record` with it to make it part of the state."""
+        """Decide the next child from its `pool` (None while that is not known yet) by the run's
+        selection scheme (`derl.evolution.selection`; `PluginError` if a plugin's chooses outside
+        the pool); call `record` with it to make it part of the state."""
         population = self.pool()
         if population is None:
             return None
+        config = self.config
         positions, mutation_seed = tournament_draws(
-            self.config.seed, self.iterations, self.config.tournament, len(population)
+            config.seed, self.iterations, config.tournament, len(population)
         )
-        drawn = [population[i] for i in positions]
-        parent = max(drawn, key=lambda m: m.fitness)
+        draws = Draws(tuple(positions), config.seed, self.iterations)
+        chosen = select(config.selection, self.selection, population, draws)
         return Child(
             name=tournament_child(self.iterations),
             genome=None,
-            parent=parent.agent,
-            contestants=tuple(m.agent for m in drawn),
-            fitness=tuple(m.fitness for m in drawn),
+            parent=chosen.parent.agent,
+            contestants=tuple(m.agent for m in chosen.contestants),
+            fitness=tuple(m.fitness for m in chosen.contestants),
             mutation_seed=mutation_seed,
             iteration=self.iterations,
         )
@@ -219,9 +238,9 @@ class Evolution:
         if child not in self.genomes:
             seed, parent = self.seeds[child], self.parents[child]
             assert seed is not None and parent is not None, child
-            self.decided(
-                child, *breed(self.genomes[parent], seed, self.config.released_delete_limb)
-            )
+            config = self.config
+            bred = breed(self.genomes[parent], seed, config.released_delete_limb, config.mutations)
+            self.decided(child, *bred)
         return self.genomes[child], self.mutations[child]
 
     def decided(self, child: str, genome: Genome, mutation: Mutation | None) -> None:
@@ -231,10 +250,16 @@ class Evolution:
             self.mutations[child] = mutation
 
     def body_key(self, child: str) -> str:
-        """The `body_hash` of `child`'s body (decided before)."""
+        """What `child`'s training is a function of (its body decided before): the `body_hash`
+        of its body, and where the run inherits (`inherit: parent`) its parent's key too (it
+        starts from the parent's trained weights)."""
         key = self.hashes.get(child)
         if key is None:
-            key = self.hashes[child] = body_hash(self.genomes[child])
+            key = body_hash(self.genomes[child])
+            parent = self.parents[child]
+            if self.config.inherit == "parent" and parent is not None:
+                key = hashlib.sha256(f"{key} {self.body_key(parent)}".encode()).hexdigest()
+            self.hashes[child] = key
         return key
 
     def give_up(self, child: str) -> None:
@@ -243,6 +268,8 @@ class Evolution:
         if child in self.parents and child not in self.fitness:
             self.given_up.add(child)
             self._settled(self.index[child])
+            if self.clock is not None:  # its worker was busy for the least time
+                self.clock.done(self.index[child], self.clock.least, born=False)
 
     def skip(self, iteration: int) -> None:
         """Tournament `iteration` is not in the state (lost with a damaged segment): its name
@@ -255,6 +282,8 @@ class Evolution:
         for iteration in range(self.iterations):
             if tournament_child(iteration) not in self.parents:
                 self._settled(len(self.initial) + iteration)
+                if self.clock is not None:
+                    self.clock.done(len(self.initial) + iteration, self.clock.least, born=False)
 
     def _settled(self, index: int) -> None:
         """The child numbered `index` is born or given up."""
@@ -262,15 +291,15 @@ class Evolution:
         while self.prefix in self.settled_indices:
             self.prefix += 1
 
-    def correct(self, agent: str, fitness: float) -> None:
-        """`agent` (born) and its repeats have `fitness`, not what they were born with (it was
-        trained again: the first result was a lie)."""
+    def correct(self, agent: str, fitness: float, cost_of_work: float = float("nan")) -> None:
+        """`agent` (born) and its repeats have `fitness` and `cost_of_work`, not what they were
+        born with (it was trained again: the first result was a lie)."""
         if agent not in self.fitness:
             return
         for k, member in enumerate(self.born):
             if agent in (member.agent, member.repeat_of):
                 self.born[k] = self.by_index[self.index[member.agent]] = replace(
-                    member, fitness=fitness
+                    member, fitness=fitness, cost_of_work=cost_of_work
                 )
                 self.fitness[member.agent] = fitness
         self._best = max(self.born, key=lambda m: (m.fitness, -self.index[m.agent]))
@@ -285,20 +314,32 @@ class Evolution:
         return None if earlier == child else earlier
 
     def birth(
-        self, agent: str, fitness: float, genome: Genome, repeat_of: str | None = None
+        self,
+        agent: str,
+        fitness: float,
+        genome: Genome,
+        repeat_of: str | None = None,
+        work: tuple[int, int] = (0, 0),
+        cost_of_work: float = float("nan"),
     ) -> Member | None:
         """`agent` is born with body `genome` and `fitness` (`repeat_of`: taken from that earlier
-        agent with the same body); None if it was born already or is unknown."""
+        agent with the same body); `work`: its training's episodes and constraint rows (the
+        cluster timing's duration); None if it was born already or is unknown."""
         if agent in self.fitness or agent not in self.parents:
             return None
         self.genomes.setdefault(agent, genome)
         self.bodies.setdefault(self.body_key(agent), agent)
-        member = Member(agent, fitness, self.parents[agent], len(self.born), repeat_of)
+        member = Member(
+            agent, fitness, self.parents[agent], len(self.born), repeat_of, cost_of_work
+        )
         self.born.append(member)
         index = self.index[agent]
         bisect.insort(self.born_indices, index)
         self.by_index[index] = member
         self._settled(index)
+        if self.clock is not None:
+            duration = self.config.training_time.duration(self.steps, *work)
+            self.clock.done(index, duration, born=True)
         if self._best is None or (fitness, -index) > (
             self._best.fitness,
             -self.index[self._best.agent],

@@ -59,6 +59,8 @@ class EpisodeTracker:
         self.length = np.zeros(num_envs, np.int64)
         self.sums: dict[str, np.ndarray] = {}
         self.recent: deque[float] = deque(maxlen=recent)
+        self.recent_ret: deque[float] = deque(maxlen=recent)  # their raw-reward sums
+        self.recent_length: deque[int] = deque(maxlen=recent)  # their lengths
         self._finish: list[np.ndarray] = []
         self._ret: list[np.ndarray] = []
         self._length: list[np.ndarray] = []
@@ -98,6 +100,8 @@ class EpisodeTracker:
             self._components[key].append(running[idx])
             running[idx] = 0.0
         self.recent.extend(self._components[self.component][-1])
+        self.recent_ret.extend(self.ret[idx].tolist())
+        self.recent_length.extend(self.length[idx].tolist())
         self.count += idx.size
         self.ret[idx] = 0.0
         self.length[idx] = 0
@@ -115,6 +119,13 @@ class EpisodeTracker:
     def recent_mean(self) -> float:
         """Mean fitness-component sum over the last `recent` finished episodes (some finished)."""
         return float(np.mean(self.recent))
+
+    def recent_episodes(self) -> tuple[float | None, float | None]:
+        """Mean raw-reward sum and mean length (control steps) of the last `recent` finished
+        episodes (Stable-Baselines3's ep_rew_mean and ep_len_mean); None before one finished."""
+        if not self.recent_ret:
+            return None, None
+        return float(np.mean(self.recent_ret)), float(np.mean(self.recent_length))
 
     def log(self) -> EpisodeLog:
         def cat(parts: list[np.ndarray], dtype: type) -> np.ndarray:
@@ -151,6 +162,12 @@ class EpisodeTracker:
         self.sums = {key: np.array(value, np.float64) for key, value in state["sums"].items()}
         self.recent.clear()
         self.recent.extend(state["recent"])
+        returns, lengths = np.asarray(state["returns"]), np.asarray(state["lengths"])
+        first = len(returns) - len(self.recent)  # the episodes `recent` holds, last finished
+        self.recent_ret.clear()
+        self.recent_ret.extend(returns[first:].astype(np.float64).tolist())
+        self.recent_length.clear()
+        self.recent_length.extend(lengths[first:].astype(np.int64).tolist())
         self._finish = [np.array(state["finish"], np.int64)]
         self._ret = [np.array(state["returns"], np.float64)]
         self._length = [np.array(state["lengths"], np.int64)]

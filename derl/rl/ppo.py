@@ -41,6 +41,9 @@ from derl.rl.loss import PPOCoefficients
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer, RewardScaler
 
+Initial = Callable[[ActorCritic, ObsNormalizer], None]
+"""What a training starts from instead of the fresh network and normaliser: a change of them."""
+
 
 @dataclass(frozen=True)
 class Diagnostics:
@@ -77,6 +80,13 @@ class Progress:
     steps_per_second: float
     """Env steps per second of this process's part of the training so far."""
     diagnostics: Diagnostics | None = None
+    episodes: int = 0
+    """Episodes finished in this iteration."""
+    episode_return: float | None = None
+    """Mean raw-reward sum of the last `recent_episodes` finished episodes (None before one
+    finished; Stable-Baselines3's ep_rew_mean)."""
+    episode_length: float | None = None
+    """Their mean length in control steps (ep_len_mean)."""
 
 
 @dataclass
@@ -85,11 +95,13 @@ class Saver:
     and when `stop` is set, at the end of the first iteration from then on where the
     environment can be restored exactly (`derl.rl.snapshot.capturable`: not while a body about
     to fall asleep touches another). `save` gets the result so far and the state's bytes;
-    after a save that `stop` asked for, `train` returns that result."""
+    after a save that `stop` asked for, `train` returns that result. With `last`, the state at
+    the end is saved too (what an extension of the training goes on from), where it can be."""
 
     save: Callable[[TrainResult, bytes], None]
     every: int = 0
     stop: threading.Event = field(default_factory=threading.Event)
+    last: bool = False
 
 
 @dataclass(frozen=True)
@@ -195,7 +207,9 @@ class _Rollout:
 class _Trainer:
     """State of one training run; `train` drives it."""
 
-    def __init__(self, env: BatchedEnv, config: PPOConfig) -> None:
+    def __init__(self, env: BatchedEnv, config: PPOConfig, initial: Initial | None = None) -> None:
+        """`initial` changes the fresh network and observation normaliser before training
+        starts (`derl.rl.inherit`)."""
         if env.num_envs != config.num_envs:
             raise ValueError(f"env has {env.num_envs} copies, config.num_envs={config.num_envs}")
         torch.set_num_threads(config.torch_threads)
@@ -203,6 +217,9 @@ class _Trainer:
         self.env = env
         self.config = config
         self.net = ActorCritic(env.obs_spaces, env.action_dim)
+        self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip)
+        if initial is not None:
+            initial(self.net, self.obs_norm)
         self.fused = FusedActorCritic(self.net, config.lr, config.adam_eps)
         self.coef = PPOCoefficients(
             clip=config.clip,
@@ -213,7 +230,6 @@ class _Trainer:
             kl_stop=config.kl_stop,
         )
         self.rng = np.random.default_rng(config.seed)  # action noise and minibatch order
-        self.obs_norm = ObsNormalizer(env.obs_spaces, config.obs_clip)
         self.reward_scaler = RewardScaler(env.num_envs, config.gamma, config.reward_clip)
         self.episodes = EpisodeTracker(
             env.num_envs, config.fitness_component, config.recent_episodes
@@ -397,9 +413,17 @@ class _Trainer:
 
     def load(self, state: dict[str, Any]) -> None:
         """Go on from `state` (`state`'s), instead of `reset`; `ValueError` where it is of
-        another configuration."""
-        if state["config"] != self.config.model_dump_json():
+        another configuration. Only the budget may differ (`total_steps`, and the fitness window
+        that scales with it), not below the iterations done: the training is extended, its
+        learning rate decaying linearly from where the new budget puts it to 0 at its end."""
+        budget = {"total_steps", "fitness_window_steps"}
+        saved = PPOConfig.model_validate_json(state["config"])
+        if saved.model_dump(exclude=budget) != self.config.model_dump(exclude=budget):
             raise ValueError("the training state is of another configuration")
+        if state["iteration"] > self.config.iterations:
+            raise ValueError(
+                f"the training state is past this budget: {state['env_steps']:,} env steps done"
+            )
         self.iteration, self.env_steps = state["iteration"], state["env_steps"]
         self.fused.theta.copy_(state["theta"])
         adam = self.fused.adam
@@ -461,14 +485,17 @@ def train(
     *,
     saver: Saver | None = None,
     resume: bytes | None = None,
+    initial: Initial | None = None,
 ) -> TrainResult:
     """Train a fresh actor-critic on `env` with PPO; same env, config and seed give the same run.
+    `initial` changes the fresh network and observation normaliser first (an inherited
+    controller: `derl.rl.inherit.Inheritance`; Adam and the reward scaler start fresh).
     With `saver`, its state is saved as it says (and it may stop the training); with `resume`
     (a state `saver` was given), the training goes on from there, `env` being built as the one
     that saved it was (any seed): it ends with the bits an unstopped one ends with."""
     start = time.perf_counter()
     physics_before = getattr(env, "physics_s", 0.0)
-    trainer = _Trainer(env, config)
+    trainer = _Trainer(env, config, initial)
     if resume is None:
         trainer.reset()
     else:
@@ -485,10 +512,12 @@ def train(
     # numpy's BLAS (the sampling's products) on as many threads as torch's
     with threadpool_limits(config.torch_threads, user_api="blas"):
         while trainer.iteration < config.iterations:
+            finished = trainer.episodes.count
             trainer.collect()
             trainer.update(trainer.iteration)
             trainer.iteration += 1
             recent = trainer.episodes.end_iteration(trainer.env_steps)
+            episode_return, episode_length = trainer.episodes.recent_episodes()
             elapsed = time.perf_counter() - start
             progress = Progress(
                 iteration=trainer.iteration,
@@ -497,6 +526,9 @@ def train(
                 recent_return=recent,
                 steps_per_second=(trainer.env_steps - steps_before) / elapsed,
                 diagnostics=trainer.diagnostics,
+                episodes=trainer.episodes.count - finished,
+                episode_return=episode_return,
+                episode_length=episode_length,
             )
             trainer.progress.append(progress)
             if callback is not None:
@@ -513,4 +545,8 @@ def train(
                 last_saved = trainer.iteration
                 if saver.stop.is_set():
                     return done
-    return result()
+    done = result()
+    if saver is not None and saver.last and snapshot.capturable(env):
+        physics_s = done.time_split.physics_s or 0.0
+        saver.save(done, state_to_bytes(trainer.state(done.wall_time_s, physics_s)))
+    return done

@@ -11,13 +11,14 @@ gives every child its own resting height instead."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import TypeVar, cast
 
 import numpy as np
 from pydantic import ValidationError
 
+from derl.plugins import PluginError, Registry
 from derl.unimal.genome import Genome, Joint, Limb
 from derl.unimal.mjcf import stand_height
 from derl.unimal.space import (
@@ -197,8 +198,27 @@ OPERATORS: dict[str, Operator] = {
 }
 
 
-def applicable(genome: Genome) -> list[str]:
-    """The operators that can act on this genome."""
+def _operator(loaded: object) -> Operator:
+    if not callable(loaded):
+        raise TypeError(f"{loaded!r} is not callable")
+    return cast(Operator, loaded)
+
+
+OPERATOR_REGISTRY: Registry[Operator] = Registry("operator", "derl.operators", OPERATORS, _operator)
+"""Every mutation operator by name: the seven built-ins and the plugins. A plugin operator is a
+function ``(genome, rng) -> (child, detail)`` like the built-ins; an ``applies`` attribute, a
+function ``genome -> bool``, says which bodies it acts on (else every body)."""
+
+
+def applicable(genome: Genome, weights: Mapping[str, float] | None = None) -> list[str]:
+    """The operators that can act on this genome: of the built-ins (None), or of those with a
+    positive weight in `weights` (the built-ins in their order first, then the plugins in the
+    order given)."""
+    if weights is not None:
+        builtin = set(applicable(genome))
+        order = list(dict.fromkeys([*OPERATORS, *weights]))
+        named = sorted(weights, key=order.index)
+        return [op for op in named if weights[op] > 0 and _applies(op, genome, builtin)]
     if not genome.limbs:
         return ["grow_limb"]
     ops = [op for op in OPERATORS if op not in ("grow_limb", "delete_limb")]
@@ -209,6 +229,31 @@ def applicable(genome: Genome) -> list[str]:
     return sorted(ops, key=list(OPERATORS).index)
 
 
+def _applies(op: str, genome: Genome, builtin: set[str]) -> bool:
+    if op in OPERATORS:
+        return op in builtin
+    test = getattr(OPERATOR_REGISTRY.get(op), "applies", None)
+    if test is None:
+        return True
+    try:
+        return bool(test(genome))
+    except Exception as error:  # a plugin may raise anything
+        raise PluginError(f"operator {op!r}: its applies() raised {_error(error)}") from None
+
+
+def _draw(rng: np.random.Generator, ops: list[str], weights: Mapping[str, float] | None) -> str:
+    """An operator among `ops` with probability in proportion to its weight (uniformly, by the
+    paper's draw, when the weights are equal)."""
+    if weights is None or len({weights[op] for op in ops}) <= 1:
+        return _pick(rng, ops)
+    shares = np.array([weights[op] for op in ops], dtype=np.float64)
+    return ops[int(rng.choice(len(ops), p=shares / shares.sum()))]
+
+
+def _error(error: BaseException) -> str:
+    return f"{type(error).__name__}: {error}"
+
+
 def mutate(
     genome: Genome,
     rng: np.random.Generator,
@@ -216,20 +261,31 @@ def mutate(
     max_attempts: int = MAX_ATTEMPTS,
     check: Callable[[Genome], None] = check_body,
     released_delete: bool = True,
+    weights: Mapping[str, float] | None = None,
 ) -> tuple[Genome, Mutation]:
-    """A valid child of `genome` made by one operator (drawn uniformly if not given); `check`
-    raises `InvalidBody` for a body that cannot exist. ``released_delete``: the child's stand
-    height as the released code leaves it (a `delete_limb` child keeps its parent's; see the
-    module's docstring); False: every child stands at its own resting height."""
-    ops = applicable(genome)
+    """A valid child of `genome` made by one operator (drawn if not given: uniformly among the
+    built-ins that apply, the paper's choice, or by `weights` among the operators they name,
+    plugins included); `check` raises `InvalidBody` for a body that cannot exist.
+    ``released_delete``: the child's stand height as the released code leaves it (a
+    `delete_limb` child keeps its parent's; see the module's docstring); False: every child
+    stands at its own resting height. A plugin operator that raises, or returns anything but a
+    (genome, detail) pair, is a `PluginError` naming it; one whose bodies fail the validity check
+    is retried like a built-in and then a `MutationFailed` naming it."""
+    ops = applicable(genome, weights)
+    if not ops:
+        raise MutationFailed("every weighted operator", 0, "none applies to this body")
     if op is None:
-        op = _pick(rng, ops)
+        op = _draw(rng, ops, weights)
     elif op not in ops:
         raise MutationFailed(op, 0, f"{op} does not apply to a body with {genome.num_limbs} limbs")
+    operator = OPERATOR_REGISTRY.get(op)
     reason = ""
     for _ in range(max_attempts):
         try:
-            child, detail = OPERATORS[op](genome, rng)
+            if op in OPERATORS:
+                child, detail = operator(genome, rng)
+            else:
+                child, detail = _plugin_child(op, operator, genome, rng)
             check(child)
         except ValidationError as error:  # structurally impossible (e.g. more than 10 limbs)
             reason = error.errors()[0]["msg"]
@@ -241,3 +297,25 @@ def mutate(
             child = child.model_copy(update={"stand_height": None})
         return child, Mutation(op, detail)
     raise MutationFailed(op, max_attempts, reason)
+
+
+def _plugin_child(
+    op: str, operator: Operator, genome: Genome, rng: np.random.Generator
+) -> tuple[Genome, str]:
+    """A plugin operator's child, checked: a body it could not make is its `ValidationError` or
+    `InvalidBody` (an attempt that failed); anything else it raises or returns is a
+    `PluginError` naming it."""
+    try:
+        made: object = operator(genome, rng)
+    except (ValidationError, InvalidBody):
+        raise
+    except Exception as error:  # a plugin may raise anything
+        raise PluginError(f"operator {op!r} raised {_error(error)}") from None
+    if (
+        not isinstance(made, tuple)
+        or len(made) != 2
+        or not isinstance(made[0], Genome)
+        or not isinstance(made[1], str)
+    ):
+        raise PluginError(f"operator {op!r} returned {made!r:.80}, not a (Genome, str) pair")
+    return made[0], made[1]

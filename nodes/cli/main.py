@@ -5,24 +5,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from collections.abc import Iterable
 from typing import Any, TypeVar, overload
 
 import derl
-from derl.nodes.cli import (
-    certs,
-    launch,
-    nodes,
-    report,
-    run,
-    schema,
-    slurm,
-    study,
-    train,
-    unimal,
-    watch,
-)
 from derl.nodes.errors import DerlError
 from derl.nodes.runtime import ratelimit
 
@@ -61,6 +49,20 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from derl.nodes.cli import (  # here: a Ctrl-C while they load is `main`'s
+        certs,
+        launch,
+        nodes,
+        report,
+        run,
+        schema,
+        slurm,
+        study,
+        train,
+        unimal,
+        watch,
+    )
+
     parser = Parser(
         prog="derl",
         description="Deep Evolutionary Reinforcement Learning: evolve and train UNIMAL bodies.",
@@ -81,13 +83,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _interrupted(number: int, _frame: object) -> None:
+    """A Ctrl-C before the command began (its modules load for seconds): one line, no
+    traceback, exit status 130."""
+    print(f"derl: {signal.Signals(number).name} before the command began: nothing done",
+          file=sys.stderr)  # fmt: skip
+    raise SystemExit(130)
+
+
 def main(argv: list[str] | None = None) -> int:
+    before = signal.signal(signal.SIGINT, _interrupted)
+    try:
+        parser = build_parser()
+    finally:
+        signal.signal(signal.SIGINT, before)
     logging.basicConfig(  # (nothing if a handler is there already: a test's)
         level=logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
         handlers=[ratelimit.install(logging.StreamHandler(sys.stderr))],
     )
-    args = build_parser().parse_args(argv)
+    logging.getLogger("torch").setLevel(logging.WARNING)  # not its INFO lines at exit
+    args = parser.parse_args(argv)
     try:
         return args.handler(args)
     except DerlError as error:

@@ -17,8 +17,8 @@ import yaml
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from derl.evolution.config import setting_keys
-from derl.nodes.errors import IN_USE, DerlError
+from derl.evolution.config import NoProfile, setting_keys
+from derl.nodes.errors import FAILED, IN_USE, USAGE, DerlError
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.validation import problems
 
@@ -32,6 +32,19 @@ PROBE_S = 0.5  # how long to try a TCP connection to tell whether something list
 def fail(message: str, code: int = 1) -> NoReturn:
     """End the command: `derl: message` on stderr (one line) and exit status `code` (`main`)."""
     raise DerlError(message, code)
+
+
+def task_name(text: str) -> str:
+    """An argparse type: a task's name (a built-in's, an installed plugin's, or
+    ``package.module:name``), as a profile keeps it."""
+    from derl.envs.registry import TASK_REGISTRY
+    from derl.plugins import PluginError, canonical
+
+    try:
+        TASK_REGISTRY.get(text)
+    except PluginError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return canonical(text)
 
 
 def at_least_one(text: str) -> int:
@@ -202,7 +215,9 @@ def fail_on_bus(error: zenoh.ZError) -> NoReturn:
 def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="smoke", help="smoke | demo | paper | FILE.yaml")
     add_set_argument(parser)
-    parser.add_argument("--env", choices=["ft", "vt", "mvt"], help="world (overrides the profile)")
+    parser.add_argument(
+        "--env", help="world: ft, vt, mvt or a plugin's task (overrides the profile)"
+    )
     parser.add_argument(
         "--seed",
         type=int,
@@ -269,21 +284,19 @@ def _described(args: argparse.Namespace, kind: str) -> str:
     return f"{kind} {args.profile}" + (f" with {changes}" if changes else "")
 
 
-def _changes(args: argparse.Namespace) -> list[tuple[str, object]]:
-    return [(change.key, change.value) for change in args.set]
-
-
 def profile_from(args: argparse.Namespace):  # -> EvolutionConfig
     """The run's profile from --profile/--set/--env/--seed, or exit with the reason it is not
-    valid."""
+    valid; the plugins it names are tried first (`derl.extensions.check_profile_plugins`), so a
+    plugin that cannot work stops the command before any node starts."""
     from derl.evolution import EvolutionConfig, load_profile
+    from derl.extensions import check_profile_plugins
 
-    return _profile_or_exit(
-        _described(args, "profile"),
-        EvolutionConfig,
-        lambda: load_profile(args.profile, _changes(args), world=args.env, seed=args.seed),
-        args.set,
-    )
+    def load(changes: list[tuple[str, object]]) -> EvolutionConfig:
+        config = load_profile(args.profile, changes, world=args.env, seed=args.seed)
+        check_profile_plugins(config)
+        return config
+
+    return _profile_or_exit(_described(args, "profile"), EvolutionConfig, load, args.set)
 
 
 def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
@@ -293,29 +306,47 @@ def study_profile_from(args: argparse.Namespace):  # -> StudyConfig
     return _profile_or_exit(
         _described(args, "study profile"),
         StudyConfig,
-        lambda: load_study_profile(args.profile, _changes(args)),
+        lambda changes: load_study_profile(args.profile, changes),
         args.set,
     )
 
 
 def _profile_or_exit(
-    what: str, model: type[BaseModel], load: Callable[[], BaseModel], changes: list[Setting]
+    what: str,
+    model: type[BaseModel],
+    load: Callable[[list[tuple[str, object]]], BaseModel],
+    changes: list[Setting],
 ):
-    """`load()`, or exit with one line saying why `what` is not a valid `model`: a usage error
-    (exit status 2) where a setting of `changes` (--set) is at fault."""
+    """`load(changes)`, or exit with one line saying why `what` is not a valid `model`: a usage
+    error (exit status 2) where the profile named does not exist or `changes` (--set) are at
+    fault: a setting of theirs is wrong, or the profile is valid without them (a rule between
+    settings, e.g. in_flight < population, that a change breaks)."""
+    pairs = [(change.key, change.value) for change in changes]
     try:
-        return load()
+        return load(pairs)
     except ValidationError as error:
         keys = [change.key for change in changes]
         at = [".".join(map(str, e["loc"])) for e in error.errors()]
         ours = any(loc == key or loc.startswith(f"{key}.") for loc in at for key in keys)
-        fail_invalid(what, error, model, top=(PROFILE_KEY,), code=2 if ours else 1)
+        fail_invalid(what, error, model, top=(PROFILE_KEY,),
+                     code=USAGE if ours or (changes and _valid(load)) else FAILED)  # fmt: skip
+    except NoProfile as error:
+        fail(f"{what}: {error}", USAGE)
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         fail(f"{what}: not valid YAML{where}: {getattr(error, 'problem', error)}")
     except (ValueError, OSError) as error:
         fail(f"{what}: {error}")
+
+
+def _valid(load: Callable[[list[tuple[str, object]]], BaseModel]) -> bool:
+    """Whether `load` gives a valid profile with no changes."""
+    try:
+        load([])
+    except (ValidationError, ValueError, OSError, yaml.YAMLError):
+        return False
+    return True
 
 
 def fail_invalid(
@@ -380,4 +411,22 @@ def output_directory(path: Path, what: str = "--out") -> Path:
         fail(f"cannot make {what} {path}: {error.strerror}")
     if not os.access(path, os.W_OK | os.X_OK):
         fail(f"cannot write in {what} {path}: permission denied")
+    return path
+
+
+def output_file(path: Path, what: str) -> Path:
+    """`path` as a file to write (its folder created if missing), or exit, before any work, saying
+    why it cannot be one (`what`: how the message names it); tried, as the permissions do not say
+    it for root, nor on /proc or a read-only file system."""
+    if path.is_dir():
+        fail(f"{what} {path} is a directory, not a file")
+    output_directory(path.parent, what)
+    existed = path.exists()
+    try:
+        with path.open("ab"):
+            pass
+    except OSError as error:
+        fail(f"cannot write {what} {path}: {(error.strerror or str(error)).lower()}")
+    if not existed:
+        path.unlink()
     return path

@@ -139,10 +139,6 @@ def _report(args: argparse.Namespace) -> int:
             audits = f", {run.audited} audited" if run.audited else ""
             console.print(f"{run.name}: fingerprint {run.fingerprint} ({len(run.bodies)} "
                           f"births{audits})", highlight=False)  # fmt: skip
-        if run.quarantined:
-            liars = ", ".join(run.quarantined)
-            console.print(f"{run.name}: QUARANTINED as liars: {liars} (their unchecked births "
-                          "were trained again)", highlight=False)  # fmt: skip
     console.print(
         f"wrote {files.page} ({len(files.figures)} figures, {len(files.gaits)} gaits, "
         f"{len(files.tables)} tables) in "

@@ -16,12 +16,15 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import re
 import shlex
 import signal
 import socket
 import statistics
+import threading
 import unicodedata
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,7 +44,7 @@ from derl.nodes.cli.options import (
     set_suffix,
 )
 from derl.nodes.cli.progress import Shown, output_console
-from derl.nodes.errors import IN_USE
+from derl.nodes.errors import IN_USE, USAGE
 from derl.nodes.journal.history import load_history
 from derl.nodes.launch.commands import NodeCommand, build_commands
 from derl.nodes.launch.local import local_launch
@@ -55,6 +58,11 @@ if TYPE_CHECKING:
 console = output_console()  # no wrapping, and progress lines, in a log file
 
 MAX_RESTARTS = 10  # of a node beside the graph's (the TensorBoard watcher)
+FREE_RUNNING = (
+    "in_flight 0: free-running (the released code's rule): a child is bred from the bodies born "
+    "most recently, so the births depend on the order trainings finish in, and the same profile "
+    "and seed do not give the same run again"
+)  # said once, as a run of in_flight 0 starts
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -71,13 +79,24 @@ def register(commands: argparse._SubParsersAction) -> None:
     run.add_argument(
         "--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>][-<KEY=VALUE>...]"
     )
+    add_extend_argument(run)
     add_port_argument(run, "the coordinator's port on 127.0.0.1")
     run.set_defaults(handler=_run)
 
 
+def add_extend_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--extend",
+        action="store_true",
+        help="with --set total=N and --run-dir: raise the total of the run begun there to N "
+        "bodies (it goes on with the same births a run of N would have had); any other --set "
+        "that differs from the run's saved settings is refused",
+    )
+
+
 def _run(args: argparse.Namespace) -> int:
     config = profile_from(args)
-    run_dir = run_directory_of(args, config)
+    run_dir, config = run_directory_of(args, config)
     port = listenable(args.port)
     run = local_run_id(run_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -95,15 +114,72 @@ def _run(args: argparse.Namespace) -> int:
     return run_nodes(nodes, run, endpoint, config, run_dir, run_dir / "logs", f"`{again}`")
 
 
-def run_directory_of(args: argparse.Namespace, config: EvolutionConfig) -> Path:
-    """The run directory of `--run-dir` or the default one of the profile (created), or exit
-    saying that another coordinator holds it."""
+def run_directory_of(
+    args: argparse.Namespace, config: EvolutionConfig
+) -> tuple[Path, EvolutionConfig]:
+    """The run directory of `--run-dir` or the default one of the profile (created), and the
+    settings the run goes on with there (`resumed_config`); or exit saying that another
+    coordinator holds it, or that it is a `derl train` folder."""
+    from derl.agent_folder import AgentFolder
+
     replicate = "" if args.seed is None else f"-s{args.seed}"
     default = f"{config.name}-{config.world}{replicate}{set_suffix(args.set)}"
+    if args.extend and args.run_dir is None:
+        fail("--extend: name the run to extend with --run-dir", USAGE)
+    if args.run_dir is not None and AgentFolder(args.run_dir).holds_training():
+        fail(f"--run-dir {args.run_dir} holds a `derl train` output, not a run: choose another "
+             "folder", USAGE)  # fmt: skip
     run_dir = run_directory(args.run_dir or Path("runs") / default)
     with lock_run_dir(run_dir):  # only to say now, not after restarts, that it is taken
-        pass
-    return run_dir
+        return run_dir, resumed_config(args, run_dir, config)
+
+
+def resumed_config(
+    args: argparse.Namespace, run_dir: Path, config: EvolutionConfig
+) -> EvolutionConfig:
+    """The settings of the run in `run_dir`: `config` for a new run; for one begun there, its
+    saved settings (the coordinator keeps them), or exit (status 2) where a --set asks for
+    another value of a setting than the saved one, unless it is `--extend`'s total, larger:
+    saved now, the coordinator goes on to it."""
+    from derl.nodes.coordinator.run_files import save_config, saved_config
+
+    saved = saved_config(run_dir)
+    if saved is None or (saved.name, saved.world, saved.seed) != (
+        config.name, config.world, config.seed
+    ):  # fmt: skip
+        return config  # a new run, or one the coordinator refuses, saying why
+    was, now = saved.model_dump(mode="json"), config.model_dump(mode="json")
+    more = config.total > saved.total
+    for change in args.set:
+        old, new = _at(was, change.key), _at(now, change.key)
+        if old == new or (change.key == "total" and args.extend and more):
+            continue
+        hint = " (--extend raises it)" if change.key == "total" and more else ""
+        fail(f"--set {change.key}={json.dumps(new)}: the run in {run_dir} has {change.key} "
+             f"{json.dumps(old)}{hint}; a run keeps its settings: use a new --run-dir to run "
+             "with others", USAGE)  # fmt: skip
+    if args.extend and more:
+        console.print(f"extending the run in {run_dir} from {saved.total} to {config.total} "
+                      "bodies", highlight=False)  # fmt: skip
+        saved = saved.model_copy(update={"total": config.total})
+        save_config(run_dir, saved)
+        was = saved.model_dump(mode="json")
+    elif args.extend:
+        fail("--extend: give the run's new total with --set total=N, more than its "
+             f"{saved.total}", USAGE)  # fmt: skip
+    changed = [key for key in now if was.get(key) != now[key]]
+    if changed:
+        console.print(f"resuming with the run's saved settings ({', '.join(changed)} differ "
+                      "from the profile's today)", highlight=False)  # fmt: skip
+    return saved
+
+
+def _at(settings: dict[str, Any], key: str) -> object:
+    """The value at a dotted `key` of nested `settings` (None where there is none)."""
+    value: object = settings
+    for part in key.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    return value
 
 
 def coordinator_settings(args: argparse.Namespace, run_dir: Path) -> dict[str, object]:
@@ -121,13 +197,23 @@ def run_nodes(
     log_dir: Path,
     resume: str,
     zenoh_config: Path | None = None,
+    requeue: Callable[[], str] | None = None,
 ) -> int:
     """Supervise the nodes of run `run` (its coordinator on `endpoint`) until it is over,
     showing its progress; stopped on SIGTERM or SIGINT, then saying that `resume` resumes it;
+    with `requeue`, also on SIGUSR1 (a time limit near), then calling it (it says what it did);
     once done, its best body and fingerprint. The exit status: 0 only when the run finished."""
     supervisor = Supervisor(nodes, log_dir)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: supervisor.stop.set())
+    time_up = threading.Event()
+
+    def near_time_limit(*_: object) -> None:
+        time_up.set()
+        supervisor.stop.set()
+
+    if requeue is not None:
+        signal.signal(signal.SIGUSR1, near_time_limit)
     trainers = sum(node.role == "trainer" for node in nodes)
     console.print(
         f"run [bold]{run}[/] ({config.name}, {config.world}): {config.total} bodies, "
@@ -136,7 +222,12 @@ def run_nodes(
         f"logs in {supervisor.log_dir}",
         highlight=False,
     )
+    if not config.in_flight:
+        console.print(FREE_RUNNING, highlight=False)
     code, status = supervise(supervisor, run, endpoint, config.total, zenoh_config)
+    if code != 0 and requeue is not None and time_up.is_set():
+        console.print(requeue(), highlight=False, soft_wrap=True)
+        return code
     if code != 0:
         console.print(f"stopped; {resume} resumes the run", highlight=False, soft_wrap=True)
         return code
@@ -148,10 +239,15 @@ def run_nodes(
     if status is not None and status.steps_per_s:
         rate = f", {status.steps_per_s:,.0f} env steps/s on average"
     console.print(f"done: {born} bodies, best {best}{rate}; results in {run_dir}")
-    fingerprint = load_history(run_dir).fingerprint()
-    console.print(f"fingerprint {fingerprint} (a hash of the births: the same profile and seed "
-                  "give the same on any number of trainers)", highlight=False)  # fmt: skip
+    console.print(fingerprint_line(load_history(run_dir).fingerprint(), config), highlight=False)
     return 0
+
+
+def fingerprint_line(fingerprint: str, config: EvolutionConfig) -> str:
+    """What `derl run` says of a finished run's fingerprint: that the same profile and seed give
+    it again, unless the run was free-running (`FREE_RUNNING`)."""
+    claim = ": the same profile and seed give the same on any number of trainers"
+    return f"fingerprint {fingerprint} (a hash of the births{claim if config.in_flight else ''})"
 
 
 def watch_command(endpoint: str, run: str, zenoh_config: Path | None = None) -> str:

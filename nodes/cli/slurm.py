@@ -6,7 +6,8 @@ progress, the fingerprint once done), with the coordinator here in the batch ste
 worker as a step of the job. The exit status is the run's: 0 only when the run finished, so
 `sbatch --dependency=afterok:JOB` chains what needs a finished run. A requeue or a preemption
 starts it again on the same run directory: the run resumes from its journal, each start with its
-own node ids and logs (RUN_DIR/logs/slurm-<job>-<restart count>/).
+own node ids and logs (RUN_DIR/logs/slurm-<job>-<restart count>/). Near the time limit (SIGUSR1)
+it stops its nodes and requeues its own job (`_requeue`).
 """
 
 from __future__ import annotations
@@ -14,10 +15,12 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 from derl.nodes.cli.options import add_profile_arguments, fail, port_number, profile_from
 from derl.nodes.cli.run import (
+    add_extend_argument,
     coordinator_settings,
     listenable,
     local_run_id,
@@ -36,15 +39,18 @@ from derl.nodes.launch.slurm import (
     slurm_launch,
 )
 
+REQUEUE_S = 30  # for `scontrol requeue`
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     slurm = commands.add_parser(
         "slurm",
         help="run evolution as the steps of this Slurm job (launch/slurm/derl-run.sbatch)",
         description="Inside a Slurm job (`sbatch launch/slurm/derl-run.sbatch ARGS`): the "
-        "coordinator here, the evaluator and a trainer per other task as `srun --exact` steps, "
-        "each restarted when it dies or its step is cancelled. Exit status 0 only when the run "
-        "finished.",
+        "coordinator here, the evaluator in the second task and a trainer in each other one, as "
+        "`srun --exact` steps, each restarted when it dies or its step is cancelled; on SIGUSR1 "
+        "(the script's --signal=B:USR1@120, before the time limit) it stops them and requeues "
+        "the job. Exit status 0 only when the run finished.",
     )
     add_profile_arguments(slurm)
     slurm.add_argument(
@@ -53,6 +59,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="on a file system every node of the job reads (default: runs/<profile>-<world>"
         "[-s<seed>][-<KEY=VALUE>...])",
     )
+    add_extend_argument(slurm)
     slurm.add_argument(
         "--port",
         type=port_number,
@@ -76,7 +83,7 @@ def _slurm(args: argparse.Namespace) -> int:
         addresses = node_addresses(list(dict.fromkeys(slot.node for slot in job.slots())))
     except ValueError as error:
         fail(str(error))
-    run_dir = run_directory_of(args, config)
+    run_dir, config = run_directory_of(args, config)
     run = local_run_id(run_dir)
     certs = run_dir / "certs" if args.certs else None
     port = listenable(args.port, addresses[job.first_node])
@@ -97,7 +104,23 @@ def _slurm(args: argparse.Namespace) -> int:
     resume = f"`scontrol requeue {job.id}` (or the same sbatch)"
     monitor = certs / MONITOR / NODE_CONFIG if certs else None
     assert isinstance(graph.topology, PeerMesh)  # `slurm_launch`'s graph: `local_launch`'s
-    return run_nodes(nodes, run, graph.topology.seed, config, run_dir, log_dir, resume, monitor)
+    return run_nodes(nodes, run, graph.topology.seed, config, run_dir, log_dir, resume, monitor,
+                     requeue=lambda: _requeue(job.id, resume))  # fmt: skip
+
+
+def _requeue(job: str, resume: str) -> str:
+    """Put job `job` back in the queue (its time limit is near: SIGUSR1, the script's
+    `--signal=B:USR1@120`), its nodes stopped: the next start resumes the run; what was done."""
+    try:
+        done = subprocess.run(["scontrol", "requeue", job], capture_output=True, text=True,
+                              timeout=REQUEUE_S)  # fmt: skip
+        why = " ".join((done.stderr or done.stdout).split()) or f"exit status {done.returncode}"
+    except (OSError, subprocess.TimeoutExpired) as error:
+        done, why = None, str(error)
+    if done is None or done.returncode:
+        return (f"time limit near: stopped; `scontrol requeue {job}` failed ({why}); {resume} "
+                "resumes the run")  # fmt: skip
+    return f"time limit near: stopped and requeued job {job}: its next start resumes the run"
 
 
 def _issue(graph: LaunchFile, out: Path, ca_dir: Path) -> None:

@@ -28,6 +28,7 @@ from derl.nodes.cli.options import (
     study_profile_from,
 )
 from derl.nodes.cli.run import listenable, local_run_id, supervise, watch_command
+from derl.nodes.errors import USAGE
 from derl.nodes.launch.commands import build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
@@ -64,7 +65,7 @@ def _study(args: argparse.Namespace) -> int:
             fail(f"{args.study_dir} is not a study yet: give the run directories to study")
         for path in args.runs:
             if not path.exists():
-                fail(f"no run directory or log at {path}")
+                fail(f"no run directory or log at {path}", USAGE)
     study_dir = run_directory(args.study_dir)
     with lock_run_dir(study_dir):
         setup = prepare_study(study_dir, args.runs, config)

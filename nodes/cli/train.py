@@ -1,34 +1,37 @@
 """`derl train` and `derl rollout`: learn a controller for one body, and replay what was learnt.
 
-`derl train` saves what it needs to resume every `--checkpoint-every` iterations and when it is
-stopped (Ctrl-C, SIGTERM: Slurm's preemption): the policy (`checkpoint.pt`), the curve, the
-result so far and the training's whole state (`training-state.pt`, `derl.rl.ppo`), then says in
-one line how to go on; `derl train --resume DIR` goes on from there and ends with the bits of a
-training never stopped. Each iteration's PPO diagnostics go to `curve.csv` and, with
-`--tensorboard`, to TensorBoard.
+Parsing and printing only: the training's work (its folder, saves, resume, extension, signals,
+each iteration's record to the curve and TensorBoard) is `derl.training`'s, the folder's layout
+`derl.agent_folder`'s, the replay `derl.replay`'s.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import json
-import math
-import signal
-import threading
 from pathlib import Path
-from typing import Any, ClassVar, TypedDict
+from typing import TYPE_CHECKING, Any, TypedDict
 
 from rich.progress import TextColumn
 
-from derl.nodes.cli.options import at_least_one, fail, output_directory
+from derl.nodes.cli.options import (
+    Setting,
+    at_least_one,
+    fail,
+    fail_invalid,
+    output_directory,
+    setting,
+    task_name,
+)
 from derl.nodes.cli.progress import Shown, output_console
-from derl.replay import CHECKPOINT, EPISODE_STEPS, GENOME, RESULT
+from derl.nodes.errors import USAGE
+from derl.replay import EPISODE_STEPS
 from derl.validation import problems
+
+if TYPE_CHECKING:
+    from derl.metrics import Record
 
 console = output_console()
 
-CURVE_CSV, CURVE_PNG, STATE = "curve.csv", "curve.png", "training-state.pt"
 FLAGS = {"total_steps": "--steps", "num_envs": "--envs", "seed": "--seed"}  # PPOConfig's
 
 
@@ -44,36 +47,53 @@ CHECKPOINT_EVERY = 100
 """Iterations between two saves of a training's state (4,096 env steps each by default)."""
 STOPPED = 130
 """The exit status of a training stopped by a signal (as `derl run`'s)."""
-DIAGNOSTICS = (
-    "policy_loss",
-    "value_loss",
-    "entropy",
-    "approx_kl",
-    "clip_fraction",
-    "explained_variance",
-    "learning_rate",
-)
-"""The columns of `curve.csv` after the return (`derl.rl.ppo.Diagnostics`), then steps/s."""
 
 
 def register(commands: argparse._SubParsersAction) -> None:
-    from derl.envs import TASKS
-
     train = commands.add_parser(
         "train",
         help="train a controller for one body with PPO",
-        description="Train a controller from scratch (--genome, --out), or go on with a stopped "
-        "training (--resume DIR, with the settings it was started with).",
+        description="Train a controller from scratch (--genome, --out), go on with a stopped "
+        "training (--resume DIR, with the settings it was started with), or extend a finished "
+        "one (--resume DIR --steps N, a larger budget).",
     )
     train.add_argument("--genome", type=Path, help="genome JSON file")
-    train.add_argument("--task", choices=sorted(TASKS), help="(default ft)")
-    train.add_argument("--steps", type=int, help="env steps (default 1,000,000; paper: 5M)")
+    train.add_argument(
+        "--task",
+        type=task_name,
+        help="ft, vt, mvt, a test task, or an installed plugin's task (default ft)",
+    )
+    train.add_argument(
+        "--steps",
+        type=int,
+        help="env steps (default 1,000,000; paper: 5M); with --resume, the larger budget an "
+        "extension trains to",
+    )
     train.add_argument("--seed", type=int, help="training seed (default the paper's, 1409)")
     train.add_argument("--envs", type=at_least_one, help="env copies (default 32, the paper's)")
     train.add_argument("--threads", type=at_least_one, default=1, help="simulation threads")
     train.add_argument("--out", type=Path, help="output directory")
     train.add_argument(
-        "--resume", type=Path, metavar="DIR", help="go on with the stopped training in DIR"
+        "--settings",
+        type=Path,
+        metavar="FILE.yaml",
+        help="PPO hyperparameters of a new training, as a profile's: a YAML file with a ppo "
+        "mapping (docs/configuration.md)",
+    )
+    train.add_argument(
+        "--set",
+        action="append",
+        type=setting,
+        default=[],
+        metavar="ppo.KEY=VALUE",
+        help="change a PPO hyperparameter of a new training, e.g. --set ppo.lr=1e-4 "
+        "(repeatable; after --settings)",
+    )
+    train.add_argument(
+        "--resume",
+        type=Path,
+        metavar="DIR",
+        help="go on with the stopped training in DIR, or extend a finished one (--steps)",
     )
     train.add_argument(
         "--checkpoint-every",
@@ -81,14 +101,15 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=CHECKPOINT_EVERY,
         metavar="N",
         help=f"save what resuming needs every N iterations (default {CHECKPOINT_EVERY}; 0: "
-        "only when stopped)",
+        "only when stopped and at the end)",
     )
     train.add_argument(
         "--tensorboard",
         type=Path,
         metavar="LOGDIR",
         help="also write each iteration's return and PPO diagnostics to TensorBoard in "
-        "LOGDIR/<out folder name> (pip install 'derl[tensorboard]')",
+        "LOGDIR/<out folder name> (pip install 'derl[tensorboard]'); a resume writes where "
+        "its training wrote, unless given another",
     )
     train.set_defaults(handler=_train)
 
@@ -98,7 +119,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         description="Replay the trained body of DIR: the output folder of `derl train`, or a "
         "run's best/NN-agent folder (the body is replayed in the task it was trained in).",
     )
-    rollout.add_argument("dir", type=Path, help="folder with genome.json and checkpoint.pt")
+    rollout.add_argument("dir", type=Path, help="a trained agent's folder")
     rollout.add_argument("--episodes", type=at_least_one, default=3)
     rollout.add_argument("--seed", type=int, default=0)
     rollout.add_argument(
@@ -134,100 +155,54 @@ def _frame_size(text: str) -> tuple[int, int]:
     return int(width), int(height)
 
 
-class _Job:
-    """What one `derl train` trains and where it writes: a new training's, from its flags, or
-    a stopped one's, from its folder."""
-
-    def __init__(self, args: argparse.Namespace) -> None:
-        from derl.nodes.cli.unimal import load_genome
-
-        if args.checkpoint_every < 0:
-            fail(f"--checkpoint-every: must be 0 or more, not {args.checkpoint_every}", 2)
-        self.resume: bytes | None = None
-        if args.resume is None:
-            missing = [flag for flag in ("genome", "out") if getattr(args, flag) is None]
-            if missing:
-                fail(f"--{' and --'.join(missing)} required (or --resume DIR)", 2)
-            self.out: Path = args.out
-            self.task = args.task or DEFAULTS["task"]
-            self.config = _config(self.task, args)
-            _writable(self.out)
-            self.genome = load_genome(args.genome)
-            return
-        flags = (*DEFAULTS, "genome", "out")
-        given = [f"--{flag}" for flag in flags if getattr(args, flag) is not None]
-        if given:
-            fail(f"--resume takes the training's settings from its folder: drop {given[0]}", 2)
-        self.out = args.resume
-        self.task, self.config, self.genome, self.resume = _stopped(self.out)
-
-
-def _config(task: str, args: argparse.Namespace):  # -> PPOConfig
-    """The PPO settings of a new training's flags, or exit saying which one is wrong."""
-    from pydantic import ValidationError
-
-    from derl.lifetime import ppo_config
-    from derl.rl.config import PPOHyperparameters
-
-    steps = DEFAULTS["steps"] if args.steps is None else args.steps
-    envs = args.envs or DEFAULTS["envs"]
-    rollout = envs * PPOHyperparameters().rollout_steps
-    if steps < rollout:  # PPO updates after whole rollouts, as the released code does
-        fail(f"--steps: {steps:,} is less than one rollout, {rollout:,} env steps ({envs} "
-             f"copies x {rollout // envs} steps)", 2)  # fmt: skip
-    seed = DEFAULTS["seed"] if args.seed is None else args.seed
-    try:
-        return ppo_config(task, steps, seed, num_envs=envs)
-    except ValidationError as error:
-        fail(f"cannot train with these settings: {problems(error, FLAGS)}", 2)
-
-
-def _writable(out: Path) -> None:
-    """Exit, before any work, unless `out` can be (or is) the folder of a new training."""
-    if (out / STATE).exists():
-        fail(f"{out} holds a stopped training: go on with `derl train --resume {out}`, or "
-             "choose another --out")  # fmt: skip
-    output_directory(out)
-
-
-def _stopped(folder: Path) -> tuple[str, Any, Any, bytes]:  # task, PPOConfig, Genome, state
-    """The task, settings, body and state of the stopped training in `folder`, or exit saying
-    why there is none."""
-    from derl.rl.config import PPOConfig
-    from derl.unimal import Genome
-
-    if not (folder / STATE).is_file():
-        finished = (folder / RESULT).is_file()
-        why = "its training finished" if finished else "no stopped training there"
-        fail(f"--resume {folder}: no {STATE} ({why})")
-    try:
-        saved = json.loads((folder / RESULT).read_text())
-        config = PPOConfig.model_validate(saved["config"])
-        genome = Genome.model_validate_json((folder / GENOME).read_text())
-        return saved["task"], config, genome, (folder / STATE).read_bytes()
-    except (OSError, ValueError, KeyError) as error:  # ValidationError is a ValueError
-        fail(f"--resume {folder}: cannot read the training it holds: {error}")
-
-
 def _train(args: argparse.Namespace) -> int:
-    from derl.lifetime import learn
+    from derl.training import (
+        Finished,
+        NoBoard,
+        NothingToResume,
+        Stop,
+        Taken,
+        TrainingError,
+        open_board,
+        run,
+    )
 
-    job = _Job(args)
-    board = _Board(args.tensorboard, job.out) if args.tensorboard else None
-    config, out = job.config, job.out
+    stop = Stop(lambda line: console.print(line, highlight=False))
+    stop.install()  # before the slow imports: a Ctrl-C there is no traceback
+    if args.checkpoint_every < 0:
+        fail(f"--checkpoint-every: must be 0 or more, not {args.checkpoint_every}", USAGE)
+    out = args.out
+    try:
+        plan = _plan(args)
+    except Taken as error:
+        how = {"a finished training": f"extend it with `derl train --resume {out} --steps N`",
+               "a stopped training": f"go on with `derl train --resume {out}`"}  # fmt: skip
+        fail(f"{error}: {how[error.held] + ', or ' if error.held in how else ''}choose "
+             "another --out", USAGE)  # fmt: skip
+    except Finished as error:
+        fail(f"--resume {args.resume}: {error}: extend it with a larger --steps")
+    except NothingToResume as error:
+        fail(f"--resume {args.resume}: {error}")
+    if stop.event.is_set():
+        fail("stopped before the training began: nothing written", STOPPED)
+    config, out = plan.config, plan.folder.path
+    fresh = not out.exists()
+    output_directory(out)
+    try:
+        board = open_board(plan)
+    except NoBoard as error:
+        if fresh:
+            out.rmdir()
+        fail(f"--tensorboard {plan.settings.tensorboard}: {error}", USAGE)
     trained = config.iterations * config.batch_size
-    if job.resume is None:
-        if trained != config.total_steps:
-            console.print(
-                f"training {trained:,} env steps: --steps {config.total_steps} rounded down to "
-                f"whole rollouts ({config.iterations} of {config.batch_size:,} = "
-                f"{config.num_envs} copies x {config.rollout_steps} steps)",
-                highlight=False,
-                soft_wrap=True,
-            )
-        (out / GENOME).write_text(job.genome.model_dump_json(indent=2) + "\n")
-    stop = threading.Event()
-    _on_signals(stop)
+    if plan.state is None and trained != config.total_steps:
+        console.print(
+            f"training {trained:,} env steps: --steps {config.total_steps} rounded down to "
+            f"whole rollouts ({config.iterations} of {config.batch_size:,} = "
+            f"{config.num_envs} copies x {config.rollout_steps} steps)",
+            highlight=False,
+            soft_wrap=True,
+        )
     columns = (
         TextColumn("{task.completed:,.0f}/{task.total:,.0f} steps"),
         TextColumn("return {task.fields[ret]}"),
@@ -239,42 +214,31 @@ def _train(args: argparse.Namespace) -> int:
         return (f"{state['description']}: {state['completed']:,}/{state['total']:,} env steps "
                 f"({share:.0f}%), return {state['ret']}, {state['sps']:,.0f} steps/s")  # fmt: skip
 
-    with Shown(console, job.task, trained, columns, line, ret="-", sps=0) as shown:
+    with Shown(console, plan.settings.task, trained, columns, line, ret="-", sps=0) as shown:
 
-        def show(progress) -> None:  # derl.rl.Progress
-            ret = "-" if progress.recent_return is None else f"{progress.recent_return:.1f}"
-            shown.update(completed=progress.env_steps, ret=ret, sps=progress.steps_per_second)
-            if board is not None:
-                board.add(progress)
-
-        def save(summary, result, state: bytes) -> None:  # LifetimeResult, TrainResult
-            _write(out, config, summary, result)
-            _replace(out / STATE, state)
+        def show(values: Record) -> None:
+            ret = values["mean_return"]
+            shown.update(completed=values["env_steps"], sps=values["steps_per_s"],
+                         ret="-" if ret is None else f"{ret:.1f}")  # fmt: skip
 
         try:
-            summary, result = learn(
-                job.genome, job.task, config, show, nthread=args.threads,
-                save=save, every=args.checkpoint_every, stop=stop, resume=job.resume,
-            )  # fmt: skip
+            done = run(plan, show, stop, board, args.checkpoint_every, args.threads)
         except KeyboardInterrupt:
             fail(f"stopped at once: `derl train --resume {out}` goes on from the last state "
-                 "saved, if any", STOPPED)  # fmt: skip
-        except ValueError as error:  # a state of another derl or configuration
-            if job.resume is None:
-                raise
+                 "saved (from the beginning if none was)", STOPPED)  # fmt: skip
+        except TrainingError as error:
             fail(f"--resume {out}: {error}")
         finally:
             if board is not None:
                 board.close()
-    if result.iterations < config.iterations:
+    summary, result = done.summary, done.result
+    if not done.finished:
         console.print(
             f"stopped after iteration {result.iterations} of {config.iterations} "
             f"({result.env_steps:,} env steps): checkpoint, curve and result in {out}; "
             f"`derl train --resume {out}` goes on"
         )
         return STOPPED
-    _write(out, config, summary, result)
-    (out / STATE).unlink(missing_ok=True)  # finished: nothing to resume
     console.print(
         f"fitness {summary.fitness:.1f} ({summary.fitness_episodes} episodes), "
         f"cost of work {summary.cost_of_work:.3g}, {summary.steps_per_second:,.0f} steps/s, "
@@ -283,100 +247,86 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _on_signals(stop: threading.Event) -> None:
-    """SIGINT and SIGTERM set `stop` (the training saves and stops at the end of an iteration);
-    a second one stops at once (`KeyboardInterrupt`)."""
+def _plan(args: argparse.Namespace):  # -> derl.training.Plan
+    """What this `derl train` trains: a new training's flags, or a stopped or finished one's
+    folder (with a larger --steps: extended)."""
+    from derl.training import begin, resume
 
-    def handle(number: int, _frame: object) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
-        stop.set()
-        name = signal.Signals(number).name
-        console.print(f"{name}: saving at the end of this iteration, then stopping "
-                      "(again: stop at once)", highlight=False)  # fmt: skip
+    if args.resume is None:
+        missing = [flag for flag in ("genome", "out") if getattr(args, flag) is None]
+        if missing:
+            fail(f"--{' and --'.join(missing)} required (or --resume DIR)", USAGE)
+        from derl.nodes.cli.unimal import load_genome
 
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, handle)
-
-
-def _replace(path: Path, data: bytes) -> None:
-    """Write `path` whole or not at all (a training killed while saving keeps the last)."""
-    part = path.with_name(path.name + ".part")
-    part.write_bytes(data)
-    part.replace(path)
-
-
-def _write(out: Path, config, summary, result) -> None:  # PPOConfig, LifetimeResult, TrainResult
-    """The policy, the result so far and the curve."""
-    _replace(out / CHECKPOINT, result.checkpoint.to_bytes())
-    done = {"iterations": result.iterations, "finished": result.iterations == config.iterations}
-    record = {"config": config.model_dump(), **summary.model_dump(), **done}
-    _replace(out / RESULT, (json.dumps(record, indent=2) + "\n").encode())
-    _write_curve(out, result.progress, summary.task)
+        task = args.task or DEFAULTS["task"]
+        config = _config(task, args)
+        if args.out.exists() and not args.out.is_dir():
+            fail(f"--out {args.out} is a file, not a directory")
+        return begin(load_genome(args.genome), task, config, args.out, args.tensorboard)
+    flags = ("task", "seed", "envs", "genome", "out", "settings")
+    given = [f"--{flag}" for flag in flags if getattr(args, flag) is not None]
+    given += ["--set"] * bool(args.set)
+    if given:
+        fail(f"--resume takes the training's settings from its folder: drop {given[0]} (--steps "
+             "extends it)", USAGE)  # fmt: skip
+    if not args.resume.is_dir():
+        fail(f"--resume {args.resume}: no such directory", USAGE)
+    return resume(args.resume, args.steps, args.tensorboard)
 
 
-def _write_curve(out: Path, progress: list, task: str) -> None:  # derl.rl.Progress
-    """`curve.csv`, a row per iteration (its return blank before two episodes finished), and
-    `curve.png`, the return over env steps."""
-    import matplotlib
+def _config(task: str, args: argparse.Namespace):  # -> PPOConfig
+    """The PPO settings of a new training's flags and --set changes, or exit saying which one is
+    wrong."""
+    from pydantic import ValidationError
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from derl.lifetime import ppo_config
+    from derl.rl.config import PPOHyperparameters
 
-    with (out / CURVE_CSV).open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["iteration", "env_steps", "mean_return", *DIAGNOSTICS, "steps_per_s"])
-        for point in progress:
-            ret = "" if point.recent_return is None else point.recent_return
-            diagnostics = [getattr(point.diagnostics, name) for name in DIAGNOSTICS]
-            writer.writerow(
-                [point.iteration, point.env_steps, ret, *diagnostics, point.steps_per_second]
-            )
-    shown = [(p.env_steps, p.recent_return) for p in progress if p.recent_return is not None]
-    figure, axis = plt.subplots(figsize=(6, 3.5))
-    if shown:
-        axis.plot(*zip(*shown, strict=True))
-    axis.set(xlabel="environment steps", ylabel="mean episode return (fitness term)", title=task)
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    figure.savefig(out / CURVE_PNG, dpi=120)
-    plt.close(figure)
+    changes = _changes(args.settings, args.set)
+    steps = DEFAULTS["steps"] if args.steps is None else args.steps
+    envs = args.envs or DEFAULTS["envs"]
+    rollout_steps = changes.get("rollout_steps", PPOHyperparameters().rollout_steps)
+    rollout = envs * rollout_steps if isinstance(rollout_steps, int) else 0
+    if steps < rollout:  # PPO updates after whole rollouts, as the released code does
+        fail(f"--steps: {steps:,} is less than one rollout, {rollout:,} env steps ({envs} "
+             f"copies x {rollout // envs} steps)", USAGE)  # fmt: skip
+    seed = DEFAULTS["seed"] if args.seed is None else args.seed
+    try:
+        return ppo_config(task, steps, seed, num_envs=envs, **changes)
+    except ValidationError as error:
+        fail(f"cannot train with these settings: {problems(error, FLAGS)}", USAGE)
 
 
-class _Board:
-    """Each iteration's return and diagnostics as TensorBoard scalars in LOGDIR/<out folder
-    name>, at its env steps (tags named as Stable-Baselines3 names its: rollout/, train/,
-    time/); a resumed training goes on after the last step written there."""
+def _changes(path: Path | None, settings: list[Setting]) -> dict[str, Any]:
+    """The PPO hyperparameters --settings FILE.yaml and --set ppo.KEY=VALUE change, or exit
+    saying which one is wrong."""
+    import yaml
+    from pydantic import ValidationError
 
-    TAGS: ClassVar[dict[str, str]] = {
-        "rollout/fitness_term_mean": "recent_return",
-        "time/steps_per_s": "steps_per_second",
-    }
+    from derl.evolution.config import set_dotted
+    from derl.training import TrainingChanges
 
-    def __init__(self, logdir: Path, out: Path) -> None:
-        from derl.nodes.tools.tensorboard import NoTensorBoard, Scalars, last_steps, summary_writer
-
+    data: Any = {}
+    if path is not None:
         try:
-            writer = summary_writer()
-        except NoTensorBoard as error:
-            fail(f"--tensorboard: {error}")
-        folder = logdir / out.resolve().name
-        self.scalars = Scalars(writer(str(folder)), last_steps(folder))
-
-    def add(self, progress) -> None:  # derl.rl.Progress
-        import time
-
-        now = time.time()
-        values = {tag: getattr(progress, name) for tag, name in self.TAGS.items()}
-        if progress.diagnostics is not None:
-            values.update({f"train/{name}": getattr(progress.diagnostics, name)
-                           for name in DIAGNOSTICS})  # fmt: skip
-        for tag, value in values.items():
-            if value is not None and math.isfinite(value):
-                self.scalars.scalar(tag, value, progress.env_steps, now)
-
-    def close(self) -> None:
-        self.scalars.writer.close()
+            data = yaml.safe_load(path.read_text()) or {}
+        except FileNotFoundError:
+            fail(f"--settings {path}: no such file", USAGE)
+        except (OSError, yaml.YAMLError) as error:
+            fail(f"--settings {path}: cannot read it: {' '.join(str(error).split())}")
+        if not isinstance(data, dict):
+            fail(f"--settings {path}: give a mapping, e.g. `ppo: {{lr: 1.0e-4}}`")
+    what = " and ".join([f"--settings {path}"] * (path is not None) +
+                        [f"--set {change.text}" for change in settings])  # fmt: skip
+    try:
+        for change in settings:
+            set_dotted(data, change.key, change.value)
+        chosen = TrainingChanges.model_validate(data)
+    except ValueError as error:  # ValidationError is one
+        if isinstance(error, ValidationError):
+            fail_invalid(what, error, TrainingChanges, code=USAGE)
+        fail(f"{what}: {error}", USAGE)
+    return chosen.ppo.model_dump(exclude_unset=True)
 
 
 def _rollout(args: argparse.Namespace) -> int:

@@ -10,7 +10,8 @@ from rich.console import Console
 from rich.progress import track
 from rich.table import Table
 
-from derl.nodes.cli.options import fail
+from derl.nodes.cli.options import at_least_one, fail, output_directory, output_file
+from derl.nodes.errors import USAGE
 
 console = Console()
 
@@ -20,7 +21,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     sub = unimal.add_subparsers(dest="unimal_command", required=True, metavar="ACTION")
 
     sample = sub.add_parser("sample", help="write N valid random bodies (genome JSON + MJCF)")
-    sample.add_argument("--n", type=int, default=16, help="number of bodies (default 16)")
+    sample.add_argument("--n", type=at_least_one, default=16, help="number of bodies (default 16)")
     sample.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sample.add_argument("--out", type=Path, required=True, help="output directory")
     sample.set_defaults(handler=_sample)
@@ -56,6 +57,8 @@ def load_genome(path: Path):  # -> Genome
         return Genome.model_validate_json(path.read_text())
     except ValidationError as error:
         fail(f"{path} is not a valid genome: {problems(error)}")
+    except FileNotFoundError:
+        fail(f"{path}: no such file", USAGE)
     except OSError as error:
         fail(f"cannot read {path}: {error.strerror}")
 
@@ -66,9 +69,7 @@ def _sample(args: argparse.Namespace) -> int:
     from derl.unimal import to_mjcf
     from derl.unimal.sampling import iter_population
 
-    if args.n < 1:
-        fail("--n must be at least 1")
-    args.out.mkdir(parents=True, exist_ok=True)
+    output_directory(args.out)
     population = iter_population(np.random.default_rng(args.seed))
     table = Table("file", "limbs", "DoF", title=f"{args.n} bodies in {args.out}")
     for index in track(range(args.n), description="sampling bodies", console=console):
@@ -96,10 +97,11 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from derl.replay import TASK_FILES
+    from derl.agent_folder import TASK_FILES
     from derl.unimal.render import render_body, render_grid, save_png
 
     width, height = args.size
+    output_file(args.out, "--out")
     if args.path.is_dir():  # a trained body's folder also holds its task and settings: not bodies
         files = sorted(f for f in args.path.rglob("*.json") if f.name not in TASK_FILES)
         if not files:

@@ -33,9 +33,12 @@ from derl.nodes.cli.options import (
     at_least_one,
     fail,
     how_joined,
+    output_directory,
+    output_file,
     publish_options,
     watch_options,
 )
+from derl.nodes.errors import USAGE
 from derl.nodes.runtime.bus import ZenohOptions
 
 if TYPE_CHECKING:
@@ -216,7 +219,7 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
 
     @functools.wraps(handler)
     def run(args: argparse.Namespace) -> int:
-        from derl.nodes.tools.logs import LogError
+        from derl.nodes.tools.logs import LogError, NoLog
         from derl.nodes.tools.recorder import ReplayRefused
         from derl.nodes.tools.tensorboard import NoTensorBoard
         from derl.nodes.tools.topic import NothingHeard, RunNotFound
@@ -231,7 +234,7 @@ def _clearly(handler: Callable[[argparse.Namespace], int]) -> Callable[..., int]
         except (LogError, RunNotFound, ReplayRefused, InvalidKey, FileExistsError,
                 NoTensorBoard) as error:  # fmt: skip
             print(f"derl {args.command}: {error}", file=sys.stderr)
-            return 1
+            return USAGE if isinstance(error, NoLog) else 1
         except BrokenPipeError:  # the reader of our output went away (`| head`)
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             return 1
@@ -416,6 +419,10 @@ def _export(args: argparse.Namespace) -> int:
 
     if args.out is None and args.tensorboard is None:
         raise LogError("say what to write: --json OUT.mcap, --tensorboard LOGDIR, or both")
+    if args.out is not None:
+        output_file(args.out, "--json")
+    if args.tensorboard is not None:
+        output_directory(args.tensorboard, "--tensorboard")
     if args.out is not None:
         written = export_json(args.log, args.out)
         print(f"exported {written} messages to {args.out} (json + jsonschema)")

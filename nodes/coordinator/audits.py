@@ -1,4 +1,4 @@
-"""Audits: a share of the children trained twice, by two trainer identities, to catch a liar.
+"""Audits: children trained twice, by two trainer identities, to catch a liar before its lies count.
 
 Training is deterministic (the same body, world, seed and settings give the same bits on one
 machine type), so two honest trainings of a child give the same result: fitness, cost of work,
@@ -9,6 +9,15 @@ trainings by distinct identities (`<id>.r<n>` is restart n of `<id>`), in the or
 trial, which agrees with one of them (the other identity lied) or with neither (the trainers do
 not train alike: different machines or library versions, and nobody can be blamed). This is how
 volunteer computing (BOINC) keeps untrusted hosts honest.
+
+Which children are audited is decided at a child's first report (`Rules.audits`), from the run's
+seed and the journal's facts alone, so a restarted coordinator decides the same: the profile's
+share of every child (`audit`), every report of an identity until `audit_first` of its results
+agreed with another identity's (BOINC's adaptive replication: a new host's results are always
+checked; a disagreement it was part of makes it new again), then a share of its reports that falls
+with its record (`Record.share`), and a child whose reported fitness would rank among the best
+`audit_top` of the population (a likely parent: the fitness that shapes the run). A liar that
+lies on every report is so caught at its first, before any of its reports is born from.
 """
 
 from __future__ import annotations
@@ -16,8 +25,10 @@ from __future__ import annotations
 import hashlib
 import re
 import struct
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from derl.evolution import EvolutionConfig, Member
 from derl.messages import FitnessReport
 
 
@@ -25,6 +36,65 @@ def audited(seed: int, child: str, share: float) -> bool:
     """Whether `child` of the run seeded `seed` is trained twice (a share `share` of them)."""
     digest = hashlib.sha256(f"derl audit {seed} {child}".encode()).digest()
     return int.from_bytes(digest[:8], "little") < share * 2**64
+
+
+@dataclass
+class Record:
+    """A trainer identity's record: its results that agreed with another identity's, and its
+    reports taken, since the last disagreement it was part of."""
+
+    agreed: int = 0
+    reports: int = 0
+
+    def share(self, first: int) -> float:
+        """The share of its reports audited: all until `first` agreed, then (first / (n + 1))²,
+        n its reports taken."""
+        if self.agreed < first:
+            return 1.0
+        return (first / (self.reports + 1)) ** 2
+
+
+@dataclass(frozen=True)
+class Rules:
+    """Which children a run audits (see the module): its profile's `audit`, `audit_first` and
+    `audit_top` (all off where `audit` is 0)."""
+
+    seed: int
+    share: float
+    first: int
+    top: float
+
+    @classmethod
+    def of(cls, config: EvolutionConfig) -> Rules:
+        return cls(config.seed, config.audit, config.audit_first, config.audit_top)
+
+    def drawn(self, child: str) -> bool:
+        """Whether `child` is among the profile's share of audited children."""
+        return audited(self.seed, child, self.share)
+
+    def audits(
+        self,
+        child: str,
+        node: str,
+        fitness: float,
+        record: Record,
+        population: Callable[[], Sequence[Member]],
+    ) -> bool:
+        """Whether the first report of `child`, by `node` with `fitness`, makes it audited: it is
+        drawn, or the record of `node`'s identity (`Record.share`) or the fitness's rank in the
+        `population()` asks for it."""
+        if self.share <= 0:
+            return False
+        if self.drawn(child):
+            return True
+        draw = f"{child} {identity(node)}"
+        if record.agreed < self.first or audited(self.seed, draw, record.share(self.first)):
+            return True
+        if self.top <= 0:
+            return False
+        members = population()
+        better = sum(member.fitness > fitness for member in members)
+        return better < self.top * len(members)
 
 
 def identity(node: str) -> str:
@@ -39,11 +109,13 @@ def incarnation(node: str) -> tuple[str, int]:
 
 
 def result_bits(report: FitnessReport) -> bytes:
-    """What two honest trainings of a child share: the result's bits and the checkpoint's
-    SHA-256 (`report.checkpoint` holds the digest once journaled: `journaled`)."""
+    """What two honest trainings of a child share: the result's bits (with its episodes and
+    constraint rows: the cluster timing's duration) and the checkpoint's SHA-256
+    (`report.checkpoint` holds the digest once journaled: `journaled`)."""
     numbers = struct.pack(
-        "<4dq", report.fitness, report.cost_of_work, report.energy, report.mass, report.env_steps
-    )
+        "<4d3q", report.fitness, report.cost_of_work, report.energy, report.mass,
+        report.env_steps, report.episodes, report.constraint_rows,
+    )  # fmt: skip
     return numbers + report.checkpoint
 
 

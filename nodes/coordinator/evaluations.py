@@ -15,12 +15,16 @@ import math
 from derl.messages import EvalJob, EvalResult
 from derl.nodes.coordinator.jobs import Job, JobBook
 from derl.nodes.coordinator.ledger import Ledger
+from derl.plugins import Plugin
 
 log = logging.getLogger("derl.coordinator")
 
 
-def evaluation_job(state: JobBook, run: str, node: str, lease_s: float) -> EvalJob | None:
-    """The next waiting evaluation as a job for `node`, if there is one."""
+def evaluation_job(
+    state: JobBook, run: str, node: str, lease_s: float, plugins: tuple[Plugin, ...] = ()
+) -> EvalJob | None:
+    """The next waiting evaluation as a job for `node`, if there is one (naming `plugins`, the
+    run's)."""
     key = state.next_evaluation()
     if key is None:
         return None
@@ -35,6 +39,7 @@ def evaluation_job(state: JobBook, run: str, node: str, lease_s: float) -> EvalJ
         task=task,
         ppo=ppo,
         lease_s=lease_s,
+        plugins=plugins,
     )
 
 

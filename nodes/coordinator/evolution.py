@@ -14,17 +14,19 @@ held back until that one is born (`EvolutionState.hold`), then born as its repea
 The first valid report for a child is its birth, whoever trained it (another job for it is
 cancelled): valid when the job was issued to the sender for that child, the body is the job's,
 the fitness is within what the world allows and the env steps within the job's budget; its
-checkpoint is written, and the Ack goes out once it is on disk. A report that can never be taken
-is rejected. A child whose training failed `max_attempts` times is given up (ChildFailed). Once
-evolution is over the best bodies are evaluated (`evaluations`), and the run's results are
-written (`run_files`).
+checkpoint is written, and the Birth and the Ack go out once it is on disk. A report that can
+never be taken is rejected. A child whose training failed `max_attempts` times is given up
+(ChildFailed). Once evolution is over the best bodies are evaluated (`evaluations`), and the
+run's results are written (`run_files`).
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
+from typing import TypeVar
 
 from pydantic import ValidationError
 
@@ -38,7 +40,8 @@ from derl.messages import (
     FitnessReport,
     JobFailed,
     JobLost,
-    Member,
+    ParentWeights,
+    PopulationEntry,
     PopulationSnapshot,
     Quarantine,
     Retrained,
@@ -57,10 +60,12 @@ from derl.nodes.coordinator.run_files import (
     write_results,
 )
 from derl.nodes.errors import Refused
+from derl.plugins import PluginError
 from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
 
 log = logging.getLogger("derl.coordinator")
+T = TypeVar("T")
 
 
 class EvolutionPolicy:
@@ -76,6 +81,8 @@ class EvolutionPolicy:
         # the same for every job of the run: built once (each builds the world's task)
         self.training_ppo = self.config.training_ppo()
         self.fitness_bound = self.config.fitness_bound()
+        self.plugins = self.config.plugins()
+        self.trial_files: dict[str, Future[None]] = {}  # audited child -> its file's last write
 
     @property
     def born(self) -> int:
@@ -92,16 +99,14 @@ class EvolutionPolicy:
             self.state.training(child)
         for birth in self.state.births:
             if birth.repeat_of is not None and not ledger.checkpoints.path(birth.agent).exists():
-                ledger.checkpoints.link(birth.agent, birth.repeat_of).add_done_callback(
-                    _log_failed_link
-                )
+                ledger.link(birth.agent, birth.repeat_of)
 
     # --- jobs --------------------------------------------------------------------------------
 
     def next_job(self, node: str, role: str, trainers: int) -> TrainJob | EvalJob | None:
         if role == "trainer":
             return self._training(node, trainers)
-        return evaluation_job(self.state, self.run, node, self.config.lease_s)
+        return evaluation_job(self.state, self.run, node, self.config.lease_s, self.plugins)
 
     def _training(self, node: str, trainers: int) -> TrainJob | None:
         """The next child to train for `node`; children whose body is born already are born as
@@ -120,7 +125,7 @@ class EvolutionPolicy:
         while True:
             child = state.next_child_for(node, trainers)
             if child is None and state.wants_tournament():
-                decided = evolution.tournament()
+                decided = self._plugged(evolution.tournament)
                 if decided is None:
                     return None  # its population is not known yet: the trainer waits
                 self.ledger.commit(tournament_message(self.run, decided))
@@ -131,6 +136,7 @@ class EvolutionPolicy:
                 break
         state.training(child)
         genome, mutation = evolution.body(child)
+        parent = evolution.parents[child]
         job = TrainJob(
             run=self.run,
             job=state.next_job_id(child),
@@ -139,13 +145,30 @@ class EvolutionPolicy:
             genome=genome,
             task=self.config.world,
             ppo=self.training_ppo,
-            parent=evolution.parents[child],
+            parent=parent,
             mutation=None if mutation is None else mutation.op,
             mutation_detail="" if mutation is None else mutation.detail,
             lease_s=self.config.lease_s,
+            inherit=None if parent is None or not state.inherits else self._weights(parent),
+            plugins=self.plugins,
         )
         log.debug("%s -> %s (%s)", child, node, job.job)
         return job
+
+    def _plugged(self, decide: Callable[[], T]) -> T:
+        """`decide()`, where a plugin of the run (a selection scheme, an operator) that fails
+        stops the coordinator with the plugin's reason (`Refused`: a restart cannot help)."""
+        try:
+            return decide()
+        except PluginError as error:
+            raise Refused(f"run {self.run!r} cannot go on: {error}") from None
+
+    def _weights(self, parent: str) -> ParentWeights:
+        """`parent`'s trained controller, as a child that inherits it is told (its file:
+        `checkpoints/<parent>.pt`, which the trainer asks for on `checkpoint/<parent>`)."""
+        return ParentWeights(
+            genome=self.state.evolution.genomes[parent], sha256=self.state.sha256[parent]
+        )
 
     def _born_unchecked(self, node: str) -> None:
         """`node` is the only trainer: an audited child it trained, that no other identity can
@@ -158,14 +181,14 @@ class EvolutionPolicy:
                 log.info("%s born unchecked: no other trainer is alive to audit it", child)
                 order = self.state.orders[counted[0].job]
                 assert isinstance(order, TrainJob)
-                self._birth(counted[0], order)
+                self._birth(counted[0], order, self.trial_files.get(child))
 
     def _bred(self, child: str) -> bool:
         """Whether `child` has its body (bred now if it is a tournament's new child); a child no
         valid body can be bred from (every drawn operator failed: deterministic, so no retry
         would change it) is given up."""
         try:
-            self.state.evolution.body(child)
+            self._plugged(lambda: self.state.evolution.body(child))
         except MutationFailed as failure:
             log.error("%s given up: no valid child of %s can be bred (%s)", child,
                       self.state.evolution.parents[child], failure)  # fmt: skip
@@ -203,8 +226,7 @@ class EvolutionPolicy:
                 "repeat_of": earlier,
             }
         )
-        self.ledger.checkpoints.link(child, earlier).add_done_callback(_log_failed_link)
-        self.ledger.commit(birth)
+        self.ledger.commit(birth, after=self.ledger.link(child, earlier))
         log.debug("born %s as a repeat of %s", child, earlier)
         return True
 
@@ -236,18 +258,22 @@ class EvolutionPolicy:
             saved = ledger.save(child, report.checkpoint)
             ledger.commit(journaled(report), publish=False)
             if child in state.retraining:
-                self._retrained(report)
+                self._retrained(report, saved)
             elif not state.is_audited(child):
-                self._birth(report, order)
+                self._birth(report, order, saved)
             elif decided := verdict(state.trials[child]):
-                self._decided(decided, order)
+                self._decided(decided, order, saved)
+            else:  # a trial: the birth waits for its file too (`_born_unchecked`)
+                self.trial_files[child] = saved
             ledger.ack(report, child, after=saved)
             if child in state.born:
                 self._end_other_job(child, report.job)
 
-    def _birth(self, report: FitnessReport, order: TrainJob) -> None:
-        """`child` is born from `report` (its trials', if audited)."""
+    def _birth(self, report: FitnessReport, order: TrainJob, file: Future[None] | None) -> None:
+        """`child` is born from `report` (its trials', if audited); the Birth is published once
+        `file` (the child's checkpoint file being written, if it is) is on the disk."""
         state = self.state
+        self.trial_files.pop(report.agent, None)
         birth = Birth(
             run=self.run,
             agent=report.agent,
@@ -263,8 +289,10 @@ class EvolutionPolicy:
             mutation=order.mutation,
             mutation_detail=order.mutation_detail,
             genome=order.genome,
+            episodes=report.episodes,
+            constraint_rows=report.constraint_rows,
         )
-        self.ledger.commit(birth)
+        self.ledger.commit(birth, after=file)
         log.debug("born %s fitness %.2f", report.agent, report.fitness)
 
     def _end_other_job(self, child: str, done: str) -> None:
@@ -275,7 +303,7 @@ class EvolutionPolicy:
             self.ledger.commit(Cancel(run=self.run, job=other, node=node,
                                       reason=f"{child} was answered by {done}"))  # fmt: skip
 
-    def _decided(self, decided: Verdict, order: TrainJob) -> None:
+    def _decided(self, decided: Verdict, order: TrainJob, file: Future[None]) -> None:
         """An audit's trials decided: the birth, and the liar's quarantine (`audits`)."""
         state, child = self.state, order.agent
         jobs = tuple(r.job for r in trials(state.trials[child]))
@@ -283,7 +311,7 @@ class EvolutionPolicy:
             log.warning("%s: its trainings %s disagree, none alike: the trainers do not train "
                         "alike (other machines or library versions?); born from %s, nobody "
                         "quarantined", child, ", ".join(jobs), decided.born_from.job)  # fmt: skip
-        self._birth(decided.born_from, order)
+        self._birth(decided.born_from, order, file)
         if decided.liar is None:
             return
         liar = decided.liar
@@ -299,17 +327,16 @@ class EvolutionPolicy:
                 self.ledger.commit(JobLost(run=self.run, job=job.id, node=job.node,
                                            reason=f"{liar} is quarantined"))  # fmt: skip
 
-    def _retrained(self, report: FitnessReport) -> None:
-        """A child born from a liar's report, trained again: its result is this one's."""
+    def _retrained(self, report: FitnessReport, file: Future[None]) -> None:
+        """A child born from a liar's report, trained again: its result is this one's (published
+        once its new checkpoint `file` is on the disk)."""
         was = self.state.born[report.agent].fitness
         same = ("agent", "job", "node", "fitness", "cost_of_work", "energy", "mass")
         result = {k: getattr(report, k) for k in same}
-        self.ledger.commit(Retrained(run=self.run, was=was, **result))
+        self.ledger.commit(Retrained(run=self.run, was=was, **result), after=file)
         for birth in self.state.births:  # its repeats' files: links to the new one
             if birth.repeat_of == report.agent:
-                self.ledger.checkpoints.link(birth.agent, report.agent).add_done_callback(
-                    _log_failed_link
-                )
+                self.ledger.link(birth.agent, report.agent)
         log.info("%s trained again: fitness %.2f (it was born with %.2f)", report.agent,
                  report.fitness, was)  # fmt: skip
 
@@ -364,7 +391,7 @@ class EvolutionPolicy:
 
     def snapshot(self) -> PopulationSnapshot:
         members = tuple(
-            Member(agent=m.agent, fitness=m.fitness, parent=m.parent, birth=m.birth)
+            PopulationEntry(agent=m.agent, fitness=m.fitness, parent=m.parent, birth=m.birth)
             for m in self.state.evolution.population
         )
         return PopulationSnapshot(run=self.run, birth_counter=self.born, members=members)
@@ -387,11 +414,6 @@ class EvolutionPolicy:
                  self.state.fingerprint(), self.run_dir)  # fmt: skip
 
 
-def _log_failed_link(done: Future[None]) -> None:
-    if done.exception() is not None:
-        log.error("a repeat's checkpoint could not be linked: %s", done.exception())
-
-
 def check_jobs(run: str, config: EvolutionConfig) -> None:
     """`Refused` with the reason if a job of this configuration would not be a valid message,
     so every value a job carries is checked before anything starts (with a bare head for its
@@ -399,11 +421,12 @@ def check_jobs(run: str, config: EvolutionConfig) -> None:
     head = Genome(head_density=DENSITIES[0], limb_density=DENSITIES[0])
     try:
         ids = {"run": run, "job": "check", "node": "check", "genome": head}
+        plugins = config.plugins()
         TrainJob(**ids, agent="check", task=config.world, ppo=config.training_ppo(),
-                 lease_s=config.lease_s)  # fmt: skip
+                 lease_s=config.lease_s, plugins=plugins)  # fmt: skip
         for task in config.eval_tasks:
             for seed in range(config.eval_seeds):
                 EvalJob(**ids, agent="check", task=task, ppo=config.evaluation_ppo(task, seed),
-                        lease_s=config.lease_s)  # fmt: skip
+                        lease_s=config.lease_s, plugins=plugins)  # fmt: skip
     except (ValueError, ValidationError) as error:
         raise Refused(f"run {run!r} cannot start: {error}") from None

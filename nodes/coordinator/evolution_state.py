@@ -7,7 +7,8 @@ JobFailed takes a job back (its child waits for the next trainer), a Cancel ends
 child was born from another, a ChildFailed gives a child up; a Birth with `repeat_of` is a child
 never trained (its body is an earlier one's). Once evolution is over the best bodies are
 evaluated (the book's evaluation stage). An audited child's FitnessReport is one of its trials
-(`audits`: it waits for another identity's until they agree); a Quarantine puts the liar's
+(`audits`: it waits for another identity's until they agree; the child's first report decides
+whether it is audited, from the identities' records its births keep); a Quarantine puts the liar's
 unchecked births first in the queue, and their Retrained replaces the result they were born
 with. A TrainJob also records its child's body (the coordinator bred it: a fact, so a resumed
 coordinator trains the same body).
@@ -41,7 +42,7 @@ from derl.messages import (
     TrainJob,
 )
 from derl.messages.dispatch import handles
-from derl.nodes.coordinator.audits import audited, identity, trials
+from derl.nodes.coordinator.audits import Record, Rules, identity, result_bits, trials
 from derl.nodes.coordinator.jobs import Job, JobBook
 from derl.nodes.journal.history import EvalKey
 from derl.rl import PPOConfig
@@ -83,6 +84,14 @@ class EvolutionState(JobBook):
         self.trials: dict[str, list[FitnessReport]] = {}
         self.retraining: dict[str, None] = {}
         self.checked: set[str] = set()  # children born from trials that agreed
+        self.rules = Rules.of(config)
+        self.auditing: set[str] = set()  # unborn children its rules audit (at their first report)
+        self.records: dict[str, Record] = {}  # identity -> its record
+        # where children inherit (`inherit: parent`): the SHA-256 of each report's checkpoint
+        # (job -> digest, until its child is born) and of each born agent's file (agent -> it)
+        self.inherits = config.inherit == "parent"
+        self.report_sha256: dict[str, bytes] = {}
+        self.sha256: dict[str, bytes] = {}
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> EvolutionState:
@@ -141,12 +150,26 @@ class EvolutionState(JobBook):
 
     @handles(FitnessReport)
     def on_fitness_report(self, msg: FitnessReport) -> None:
-        """An audited child's report is one of its trials: its job is done and, until the trials
+        """A child's first report decides whether it is audited (`Rules.audits`, from its
+        identity's record, which every report adds to). An audited child's report is one of its
+        trials: its job is done and, until the trials
         decide (its Birth follows in the same group when they do), the child waits for a
         training by another identity. Nothing else is kept: the coordinator needs no learning
         curve (the journal holds them for `derl report`), and keeping each report's was most of
-        its memory's growth per birth."""
-        if not self.is_audited(msg.agent) or msg.agent in self.evolution.fitness:
+        its memory's growth per birth; where children inherit, the checkpoint's SHA-256 (a
+        journaled report's `checkpoint`) until the child is born."""
+        if self.inherits:
+            self.report_sha256[msg.job] = msg.checkpoint
+        if msg.agent in self.evolution.fitness:
+            return  # a retraining
+        record = self.records.setdefault(identity(msg.node), Record())
+        first = msg.agent not in self.trials
+        if first and self.rules.audits(
+            msg.agent, msg.node, msg.fitness, record, lambda: self.evolution.population
+        ):
+            self.auditing.add(msg.agent)
+        record.reports += 1
+        if not self.is_audited(msg.agent):
             return
         self.trials.setdefault(msg.agent, []).append(msg)
         self._remove(msg.job)
@@ -156,10 +179,15 @@ class EvolutionState(JobBook):
     @handles(Birth)
     def on_birth(self, msg: Birth) -> None:
         super().on_birth(msg)
-        if len(trials(self.trials.pop(msg.agent, []))) > 1:
-            self.checked.add(msg.agent)
+        self._judged(msg, trials(self.trials.pop(msg.agent, [])))
+        self.auditing.discard(msg.agent)
         self._forget_orders(msg.agent)
-        self.evolution.birth(msg.agent, msg.fitness, msg.genome, msg.repeat_of)
+        if self.inherits:
+            self._born_sha256(msg.agent, msg.job, msg.repeat_of)
+        work = (msg.episodes, msg.constraint_rows)
+        self.evolution.birth(
+            msg.agent, msg.fitness, msg.genome, msg.repeat_of, work, msg.cost_of_work
+        )
         self._remove(msg.job)
         if msg.agent in self.waiting:  # born from a late report while it waited
             self.waiting.remove(msg.agent)
@@ -181,23 +209,55 @@ class EvolutionState(JobBook):
     def on_retrained(self, msg: Retrained) -> None:
         super().on_retrained(msg)
         self.retraining.pop(msg.agent, None)
-        self.evolution.correct(msg.agent, msg.fitness)
+        self.evolution.correct(msg.agent, msg.fitness, msg.cost_of_work)
+        if self.inherits:  # its file and its repeats' links are the new training's
+            self._born_sha256(msg.agent, msg.job, None)
+            for birth in self.births:
+                if birth.repeat_of == msg.agent:
+                    self._born_sha256(birth.agent, birth.job, msg.agent)
         self._forget_orders(msg.agent)
         self._remove(msg.job)
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
-        self.failed_on.setdefault(msg.agent, set()).add(msg.node)
+        if not msg.unfit:
+            self.failed_on.setdefault(msg.agent, set()).add(msg.node)
         super().on_job_failed(msg)
 
     @handles(ChildFailed)
     def on_child_failed(self, msg: ChildFailed) -> None:
         super().on_child_failed(msg)
+        self.auditing.discard(msg.agent)
         self._forget_orders(msg.agent)
         self.evolution.give_up(msg.agent)
         if msg.agent in self.waiting:
             self.waiting.remove(msg.agent)
         self._release(msg.agent)
+
+    def _judged(self, birth: Birth, counted: list[FitnessReport]) -> None:
+        """An audited child is born from its trials `counted`: each identity whose result agreed
+        with the one it is born from adds to its record; where none agreed (the trainers do not
+        train alike), each of them starts a new record (all its reports audited again)."""
+        if len(counted) < 2:
+            return
+        self.checked.add(birth.agent)
+        born = next(r for r in counted if r.job == birth.job)
+        agreed = [r for r in counted if r is not born and result_bits(r) == result_bits(born)]
+        for report in counted:
+            record = self.records.setdefault(identity(report.node), Record())
+            if not agreed:
+                record.agreed = record.reports = 0
+            elif report is born or report in agreed:
+                record.agreed += 1
+
+    def _born_sha256(self, agent: str, job: str, repeat_of: str | None) -> None:
+        """`agent`'s checkpoint file is the one of `job`'s report, or `repeat_of`'s file."""
+        if repeat_of is None:
+            digest = self.report_sha256.pop(job, None)
+        else:
+            digest = self.sha256.get(repeat_of)
+        if digest is not None:
+            self.sha256[agent] = digest
 
     def _take_back(self, job_id: str) -> Job | None:
         """A job ends without its result: its child (not born, or to train again) waits first in
@@ -247,9 +307,6 @@ class EvolutionState(JobBook):
         """A waiting child may be one that an idle trainer may not take and another may."""
         return role == "trainer" and bool(self.waiting)
 
-    def training_in_flight(self) -> int:
-        return len(self.by_child)
-
     def next_child_for(self, node: str, trainers_alive: int) -> str | None:
         """The first waiting child for `node`: one whose training failed on another node, or on
         this one only if no other trainer is alive to try it; an audited one that another
@@ -263,8 +320,9 @@ class EvolutionState(JobBook):
         return None
 
     def is_audited(self, child: str) -> bool:
-        """Whether `child` is born only once two identities' trainings agree (`audits`)."""
-        return audited(self.config.seed, child, self.config.audit)
+        """Whether `child` is born only once two identities' trainings agree (`audits`: drawn
+        from the seed, or asked for by its first report)."""
+        return child in self.auditing or self.rules.drawn(child)
 
     def tried_by(self, child: str) -> set[str]:
         """The identities whose training of `child` counts in its audit (or, for a child to

@@ -91,7 +91,7 @@ class JobBook(RunHistory, ABC):
     def on_job_failed(self, msg: JobFailed) -> None:
         super().on_job_failed(msg)
         job = self.jobs.get(msg.job)
-        if job is not None and job.evaluation is not None:
+        if job is not None and job.evaluation is not None and not msg.unfit:
             key = (job.agent, *job.evaluation)
             self.eval_failures[key] = self.eval_failures.get(key, 0) + 1
             if self.eval_failures[key] >= self.max_attempts:

@@ -10,12 +10,15 @@ on the disk (an Ack also waits for its report's checkpoint file); the node loop 
 released. Acknowledging, rejecting and counting rejections are here too: each is a committed
 message.
 
-A journal or a checkpoint file that cannot be written (a full disk, an I/O error) makes the
-ledger `stalled`: nothing more is released (an Ack whose file failed is dropped), the loop
-commits nothing and tries `recover` every second, which writes what was not on the disk (the
-journal's messages into a new segment, the checkpoints kept in memory into their files) and
-releases what was held; the trainers' re-sent reports are then acknowledged. What failed, and
-that it works again, is said once a minute (`DiskFaults`).
+A checkpoint file is written by `save` (or `link`, a repeat's), whose future completes once the
+file is on the disk: a Birth and an Ack are released only then, so a monitor that loads a born
+agent's checkpoint finds it. A journal or a checkpoint file that cannot be written (a full disk,
+an I/O error) makes the ledger `stalled`: nothing more is released (what waits for a file that
+failed is held, the file's future still pending), the loop commits nothing and tries `recover`
+every second, which writes what was not on the disk (the journal's messages into a new segment,
+the checkpoints kept in memory into their files) and releases what was held; the trainers'
+re-sent reports are then acknowledged. What failed, and that it works again, is said once a
+minute (`DiskFaults`).
 
 A refusal (a Reject, a Rejection) is journaled for the first `JOURNALED_REFUSALS` a minute of its
 sender's identity; the rest are counted (`RunStatus.rejected`) and a Reject is still published,
@@ -27,6 +30,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
 
@@ -60,10 +64,17 @@ REFUSALS_S = 60.0  # rest are counted and answered, not journaled: a flood canno
 
 
 class Ledger:
-    """`state` rebuilt from `run_dir`'s journal, and the way every later change is made."""
+    """`state` rebuilt from `run_dir`'s journal, and the way every later change is made; `clock`
+    times the refusals' windows and the disk faults' reminders."""
 
-    def __init__(self, run: str, run_dir: Path, state: JobBook) -> None:
-        self.run, self.state = run, state
+    def __init__(
+        self,
+        run: str,
+        run_dir: Path,
+        state: JobBook,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.run, self.state, self.clock = run, state, clock
         self.replayed = 0
         if segments(run_dir):
             try:
@@ -79,10 +90,13 @@ class Ledger:
         self.journal = Journal(run_dir)
         self.checkpoints = CheckpointFiles(run_dir)
         self.replies: list[Reply] = []  # the group's: published once it is on disk
-        self.faults = DiskFaults()
+        self.faults = DiskFaults(clock=clock)
         self.outbox = Outbox(self.journal.sync)
         self._lock = threading.Lock()  # `unwritten`, changed by the checkpoint writer's thread
-        self.unwritten: dict[str, bytes] = {}  # child -> its checkpoint, whose file failed
+        # agent -> its checkpoint (or the agent whose file it shares), whose file failed, and the
+        # futures that wait for it (completed once `recover` writes it)
+        self.unwritten: dict[str, tuple[bytes | str, list[Future[None]]]] = {}
+        self._writing = 0  # checkpoint writes under way
         self._recovered: list[str] = []  # what `recover` wrote again since writing failed
         self.rejected = 0  # messages refused, counted for `RunStatus`
         self.unjournaled = 0  # refusals over an identity's share, counted only
@@ -113,32 +127,72 @@ class Ledger:
                                    "not on the disk written into it)")  # fmt: skip
         self.outbox.resume()
         with self._lock:
-            unwritten = dict(self.unwritten)
-        for child, checkpoint in unwritten.items():
+            unwritten = {agent: what for agent, (what, _) in self.unwritten.items()}
+        for agent, what in unwritten.items():
             try:
-                self.save(child, checkpoint).result(timeout=CHECKPOINT_WAIT_S)
-            except Exception:  # said by `_saved`
+                self._write_file(agent, what).result(timeout=CHECKPOINT_WAIT_S)
+            except Exception as error:
+                self.faults.failed(self.checkpoints.path(agent), error, STALLED)
                 return False
-            self._recovered.append(f"{self.checkpoints.path(child).name} written")
+            self._written(agent)
+            self._recovered.append(f"{self.checkpoints.path(agent).name} written")
         self.faults.works(", ".join(self._recovered))
         self._recovered = []
         return True
 
-    def save(self, child: str, checkpoint: bytes) -> Future[None]:
-        """Write `child`'s checkpoint file (`CheckpointFiles.save`); if that fails, the ledger is
-        stalled, and keeps the bytes to write them again (`recover`)."""
-        saved = self.checkpoints.save(child, checkpoint)
-        saved.add_done_callback(lambda done: self._saved(child, checkpoint, done))
-        return saved
+    def save(self, agent: str, checkpoint: bytes) -> Future[None]:
+        """Write `agent`'s checkpoint file (`CheckpointFiles.save`); the future completes once it
+        is on the disk. If writing fails, the ledger is stalled and keeps the bytes: the future
+        completes when `recover` writes them (it never fails: what waits for it is held)."""
+        return self._durable(agent, checkpoint)
 
-    def _saved(self, child: str, checkpoint: bytes, done: Future[None]) -> None:
-        error = done.exception()
+    def link(self, agent: str, source: str) -> Future[None]:
+        """Make `source`'s file `agent`'s too (a repeat's: `CheckpointFiles.link`), as `save`."""
+        return self._durable(agent, source)
+
+    def drain(self) -> None:
+        """Wait until every reply handed to the outbox is released, or the ledger is stalled
+        with no checkpoint write under way (what waits for the disk is held until `recover`)."""
+        self.outbox.drain(until=lambda: self.stalled and not self._writing)
+
+    def _write_file(self, agent: str, what: bytes | str) -> Future[None]:
+        if isinstance(what, bytes):
+            return self.checkpoints.save(agent, what)
+        return self.checkpoints.link(agent, what)
+
+    def _durable(self, agent: str, what: bytes | str) -> Future[None]:
+        durable: Future[None] = Future()
         with self._lock:
-            if error is None:
-                self.unwritten.pop(child, None)
-                return
-            self.unwritten[child] = checkpoint
-        self.faults.failed(self.checkpoints.path(child), error, STALLED)
+            self._writing += 1
+        self._write_file(agent, what).add_done_callback(
+            lambda done: self._attempted(agent, what, durable, done)
+        )
+        return durable
+
+    def _attempted(
+        self, agent: str, what: bytes | str, durable: Future[None], done: Future[None]
+    ) -> None:
+        """A write of `agent`'s file is over: `durable` completes, or waits for `recover`."""
+        error = done.exception()
+        if error is None:
+            self._written(agent)  # what waited longer first
+            durable.set_result(None)
+            with self._lock:
+                self._writing -= 1
+            return
+        with self._lock:
+            self._writing -= 1
+            waiting = self.unwritten.get(agent, (what, []))[1]
+            self.unwritten[agent] = (what, [*waiting, durable])
+        self.faults.failed(self.checkpoints.path(agent), error, STALLED)
+        self.outbox.wake()  # a `drain` waits no more
+
+    def _written(self, agent: str) -> None:
+        """`agent`'s file is on the disk: what waited for an earlier failed write of it too."""
+        with self._lock:
+            _, waiting = self.unwritten.pop(agent, (b"", []))
+        for future in waiting:
+            future.set_result(None)
 
     def commit(
         self, msg: MessageBase, publish: bool = True, after: Future[None] | None = None
@@ -224,7 +278,7 @@ class Ledger:
         identity (`<id>.r<n>` is `<id>`) per `REFUSALS_S`, so that a flood of refused messages
         from one certificate grows the journal by a bounded amount a minute."""
         identity = incarnation(sender or "")[0]
-        now = time.monotonic()
+        now = self.clock()
         start, count = self._refusals.get(identity, (now, 0))
         if now - start >= REFUSALS_S:
             start, count = now, 0

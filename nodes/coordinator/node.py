@@ -13,8 +13,9 @@ accept or reject), and so do failed jobs once checked and journaled; a message w
 from its key's node segment is rejected by the bus check, journaled and counted. Once a second
 the loop publishes the run's status, every 5 s its population; births and failed children go out
 on ``births/<agent>``, and a Zenoh query on ``births/*`` or ``population`` answers a monitor that
-starts late. When the state says the run is over, the policy writes its results and the loop
-announces the end a few times, then returns. While the journal or a checkpoint file cannot be
+starts late, one on ``checkpoint/<agent>`` a trainer whose child inherits that agent's weights.
+When the state says the run is over, the policy writes its results and the loop announces the
+end a few times, then returns. While the journal or a checkpoint file cannot be
 written (a full disk: `Ledger.stalled`) the loop commits nothing and publishes only what was on
 the disk before, drops what would need a commit (the workers send their reports and asks
 again), and tries every second to write again; then it goes on where it was, the jobs' leases
@@ -41,6 +42,7 @@ from derl.messages import (
     ChildFailed,
     EvalResult,
     FitnessReport,
+    InvalidKey,
     JobFailed,
     JobLost,
     KeySpace,
@@ -49,6 +51,7 @@ from derl.messages import (
     TrainProgress,
     WorkerReady,
     encode,
+    parse,
 )
 from derl.messages.dispatch import Handler, handles
 from derl.nodes.coordinator.audits import incarnation
@@ -107,26 +110,33 @@ class Coordinator(Handler):
 
     `serve` runs it on the bus. A tool or a test drives it without one, in its own thread, as the
     loop does: `take` each message or liveliness change that came, `assign_idle`, then `settle`
-    (the replies go to `publisher`)."""
+    (the replies go to `publisher`). `clock` times all it does by the clock: leases, re-sent
+    orders, groups, periodic messages, the ledger's windows (a test moves one by hand instead of
+    sleeping)."""
 
     bus: Publisher
     """Where replies are published: the bus while it serves, else the `publisher` given."""
 
     def __init__(
-        self, run: str, run_dir: Path, policy: Policy, publisher: Publisher | None = None
+        self,
+        run: str,
+        run_dir: Path,
+        policy: Policy,
+        publisher: Publisher | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if publisher is not None:
             self.bus = publisher
-        self.run, self.policy = run, policy
+        self.run, self.policy, self.clock = run, policy, clock
         self.state = policy.state
-        self.ledger = Ledger(run, run_dir, policy.state)
+        self.ledger = Ledger(run, run_dir, policy.state, clock)
         policy.start(self.ledger)
         self.keys = KeySpace(run)
         self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
         self.recent_lock = threading.Lock()
         for birth in self.state.births[-RECENT_BIRTHS:]:
             self._remember(birth, encode(birth))
-        now = time.monotonic()
+        now = self.clock()
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart
         self.ordered: dict[str, float] = {}  # node -> when its job's order last went out
         self.ready_inlet: Inlet | None = None  # where WorkerReady comes in (None: handlers
@@ -151,13 +161,17 @@ class Coordinator(Handler):
         """Run until the run is finished (True) or `stop` is set (False)."""
         with open_session(options) as session:
             self.bus = bus = Bus(session, self.run, on_reject=self._bus_rejected)
-            inlets = [bus.inlet(bus.keys.all(kind), types, held) for kind, types, held in INLETS]
+            inlets = [
+                bus.inlet(bus.keys.all(kind), types, held, clock=self.clock)
+                for kind, types, held in INLETS
+            ]
             self.ready_inlet = inlets[0]
             changes: queue.SimpleQueue[tuple[str, str, bool]] = queue.SimpleQueue()
             bus.watch_alive(lambda role, node, up: changes.put(Liveliness(role, node, up)))
             queryables = [
                 session.declare_queryable(bus.keys.all("births"), self._answer_births),
                 session.declare_queryable(bus.keys.population(), self._answer_population),
+                session.declare_queryable(bus.keys.all("checkpoint"), self._answer_checkpoint),
             ]
             finished = self._loop(inlets, changes)
             for queryable in queryables:
@@ -186,7 +200,7 @@ class Coordinator(Handler):
             else:  # until replies are released or the wait is over
                 outbox.released.wait(idle_s)
                 idle_s = min(2 * idle_s, IDLE_S[1])
-            now = time.monotonic()
+            now = self.clock()
             if now >= next_second:
                 next_second = now + STATUS_PERIOD_S
                 if self._every_second(now, last_end=announced == DONE_ANNOUNCEMENTS - 1):
@@ -210,7 +224,7 @@ class Coordinator(Handler):
                 elif isinstance(msg, JobFailed):
                     self.failures_held.append(msg)
         self._publish_released()  # what was on the disk before goes out
-        now = time.monotonic()
+        now = self.clock()
         if now < self.retry_at:
             self.stop.wait(0.05)
             return
@@ -235,7 +249,9 @@ class Coordinator(Handler):
         if not self.state.finished:
             return False
         if last_end:
-            self.ledger.outbox.drain()  # the best agents' checkpoints are on disk
+            self.ledger.drain()  # the best agents' checkpoints are on disk
+            if self.ledger.stalled:  # not yet: the end waits until the files are written
+                return False
             self._publish_released()
             self.policy.finish()
         return True
@@ -251,7 +267,7 @@ class Coordinator(Handler):
         """Handle what is waiting (liveliness changes, then each inlet's messages in turn) in
         passes, a new one only within `GROUP_S`; whether there was anything."""
         took = False
-        until = time.monotonic() + GROUP_S
+        until = self.clock() + GROUP_S
         while True:
             taken: list[MessageBase | tuple[str, str, bool]] = []
             while not changes.empty():
@@ -261,7 +277,7 @@ class Coordinator(Handler):
             for item in taken:
                 self.take(item)
             took = took or bool(taken)
-            if not taken or time.monotonic() >= until:
+            if not taken or self.clock() >= until:
                 return took
 
     def take(self, item: MessageBase | tuple[str, str, bool]) -> None:
@@ -288,7 +304,7 @@ class Coordinator(Handler):
     def _progress(self, msg: TrainProgress) -> None:
         job = self.state.jobs.get(msg.job)
         if job is not None and job.node == msg.node:
-            self.heard[msg.job] = time.monotonic()
+            self.heard[msg.job] = self.clock()
             self.rates[msg.node] = msg.steps_per_s
 
     @handles(FitnessReport)
@@ -303,7 +319,7 @@ class Coordinator(Handler):
         """Flush the group, wait until it is on the disk and publish its replies (the loop does
         this without waiting; tests and tools that drive the handlers call this)."""
         self.ledger.flush()
-        self.ledger.outbox.drain()
+        self.ledger.drain()
         self._publish_released()
 
     def _publish_released(self) -> int:
@@ -340,7 +356,7 @@ class Coordinator(Handler):
             # inlet for seconds, so when it is handled says nothing; it came in after the inlet
             # was last seen empty (at 10,000 workers, counting from when it was handled sent
             # five copies per assignment of jobs that had reached their workers long before)
-            last, now = self.ordered.get(ready.node), time.monotonic()
+            last, now = self.ordered.get(ready.node), self.clock()
             came = now if self.ready_inlet is None else self.ready_inlet.arrived_after
             if last is None or came - last >= RESEND_AFTER_S:
                 self.ordered[ready.node] = now
@@ -350,14 +366,17 @@ class Coordinator(Handler):
 
     def _assign(self, node: str, role: str) -> bool:
         """The next job of `role` for `node`, if there is one (whether it got one); else it
-        waits among the idle workers (keeping its place if it waited already)."""
+        waits among the idle workers (keeping its place if it waited already). A worker that
+        refused the run's jobs (`JobFailed.unfit`) gets none."""
+        if node in self.state.unfit:
+            return False
         job = self.policy.next_job(node, role, self.trainers)
         if job is None:
             if incarnation(node)[0] not in self.state.quarantined:  # those never get work
                 self.idle[role][node] = None
             return False
         self.ledger.commit(job)
-        self.heard[job.job] = self.ordered[node] = time.monotonic()
+        self.heard[job.job] = self.ordered[node] = self.clock()
         self.idle[role].pop(node, None)
         return True
 
@@ -366,10 +385,10 @@ class Coordinator(Handler):
         job taken back), first asked first: they need not ask again for it. At most `GROUP_S`
         of it per turn of the loop: thousands of workers idle until the initial bodies are born
         would otherwise hold the loop for seconds."""
-        until = time.monotonic() + GROUP_S
+        until = self.clock() + GROUP_S
         for role, waiting in self.idle.items():
             for node in list(waiting):
-                if time.monotonic() >= until:
+                if self.clock() >= until:
                     return
                 if not self._assign(node, role) and not self.state.queued(role):
                     break  # no work for this role now
@@ -381,6 +400,13 @@ class Coordinator(Handler):
         job = self.state.jobs.get(failure.job)
         if job is None or job.node != failure.node or job.agent != failure.agent:
             self.ledger.rejection("failure of a job not held by its sender", "", failure)
+            return
+        if failure.unfit:  # once: it gets no more jobs
+            log.warning("%s refused %s and gets no more of this run's jobs: %s", failure.node,
+                        failure.job, failure.error)  # fmt: skip
+            self.ledger.commit(failure, publish=False)
+            self.idle["trainer"].pop(failure.node, None)
+            self.idle["evaluator"].pop(failure.node, None)
             return
         log.warning("%s failed on %s: %s", failure.agent, failure.node, failure.error)
         self.ledger.commit(failure, publish=False)
@@ -461,6 +487,17 @@ class Coordinator(Handler):
             recent = list(self.recent)
         for key, data in recent:
             query.reply(key, data, encoding=MSGPACK)
+
+    def _answer_checkpoint(self, query: zenoh.Query) -> None:
+        """A trainer's query on ``checkpoint/<agent>`` (a child that inherits its parent's
+        weights): the agent's checkpoint file, once it is on the disk; before, no answer (the
+        trainer asks again: the file is written beside the loop)."""
+        try:
+            agent = parse(str(query.key_expr)).parts[0]
+            data = self.ledger.checkpoints.path(agent).read_bytes()
+        except (InvalidKey, OSError):
+            return
+        query.reply(self.keys.checkpoint(agent), data)
 
     def _answer_population(self, query: zenoh.Query) -> None:
         snapshot = encode(self.policy.snapshot())

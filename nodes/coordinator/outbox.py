@@ -6,9 +6,9 @@ The loop journals a group, writes it into the journal file and hands its replies
 The syncer thread takes every group waiting as one batch, fsyncs the journal once (a later
 group's writes may ride along: fsync covers whatever the file holds) and releases the replies in
 order; the loop takes them (`take`) and publishes them. A reply that waits for a checkpoint file
-(an Ack goes out only once its report's checkpoint is on disk, and not at all if its write
-failed: the trainer sends the report again) is released when that write is done, so the jobs and
-births of a group never wait behind another report's file.
+(a Birth and an Ack go out only once the agent's checkpoint is on disk: `Ledger.save`, whose
+future waits through a failed write until the file is written again) is released when that write
+is done, so the jobs of a group never wait behind a report's file.
 
 So nothing is seen that a crash, even a power loss, could forget, the loop never waits for the
 disk, and the loop alone touches the bus: a publish hands the interpreter lock over, which costs
@@ -75,10 +75,16 @@ class Outbox:
             replies += self._released.get()
         return replies
 
-    def drain(self) -> None:
-        """Wait until every reply handed over is released or dropped (or held by a fault)."""
+    def drain(self, until: Callable[[], bool] = lambda: False) -> None:
+        """Wait until every reply handed over is released or dropped (or held by a fault), or
+        `until()` is true (checked again on `wake`)."""
         with self._idle:
-            self._idle.wait_for(lambda: self._pending <= 0 or self.fault is not None)
+            self._idle.wait_for(lambda: self._pending <= 0 or self.fault is not None or until())
+
+    def wake(self) -> None:
+        """Have `drain` check its `until` again."""
+        with self._idle:
+            self._idle.notify_all()
 
     def resume(self) -> None:
         """The journal is written again, every message held for on the disk: release what was

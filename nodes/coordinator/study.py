@@ -15,6 +15,7 @@ from functools import partial
 from pathlib import Path
 
 from derl.analysis.study import StudyConfig
+from derl.envs.registry import TASK_REGISTRY
 from derl.messages import (
     EvalJob,
     EvalResult,
@@ -47,6 +48,9 @@ class StudyPolicy:
         else:
             self.config = read_setup(study_dir).config
         self.state = StudyState(self.config, read_plan(study_dir))
+        tasks = dict.fromkeys([*self.state.worlds, *self.config.test_tasks])
+        found = (TASK_REGISTRY.identity(task) for task in tasks)
+        self.plugins = tuple(plugin for plugin in found if plugin is not None)
 
     def start(self, ledger: Ledger) -> None:
         self.ledger = ledger
@@ -54,7 +58,7 @@ class StudyPolicy:
     def next_job(self, node: str, role: str, trainers: int) -> TrainJob | EvalJob | None:
         if role == "trainer":
             return None  # a study has evaluations only
-        return evaluation_job(self.state, self.run, node, self.config.lease_s)
+        return evaluation_job(self.state, self.run, node, self.config.lease_s, self.plugins)
 
     def on_fitness(self, report: FitnessReport) -> None:
         self.ledger.never_issued(report, report.agent)  # a study trains no children

@@ -32,7 +32,7 @@ from derl.messages import (
     TrainJob,
 )
 from derl.messages.dispatch import Handler, handles
-from derl.nodes.errors import DerlError
+from derl.nodes.errors import USAGE, DerlError
 from derl.nodes.journal.segments import (
     JournalDamaged,
     is_mcap,
@@ -63,6 +63,7 @@ class RunHistory(Handler):
         self.reports: dict[str, FitnessReport] = {}  # child -> the report it was born from
         self.failed: dict[str, ChildFailed] = {}
         self.failures: dict[str, list[JobFailed]] = {}  # agent -> its failed jobs
+        self.unfit: dict[str, str] = {}  # node -> why it refused the run's jobs (JobFailed.unfit)
         self.lost: list[JobLost] = []
         self.evaluations: dict[EvalKey, EvalResult] = {}
         self.audited = 0  # births from two or more trainings (an audit: `EvolutionConfig.audit`)
@@ -72,9 +73,12 @@ class RunHistory(Handler):
         self._accepted: dict[str, list[FitnessReport]] = {}  # child -> its reports, until born
 
     def fingerprint(self) -> str:
-        """The run's fingerprint (`derl.evolution.fingerprint`) over its births so far."""
+        """The run's fingerprint (`derl.evolution.fingerprint`) over its births so far and the
+        plugins its jobs named."""
+        plugins = () if self.first_job is None else self.first_job.plugins
         return fingerprint(
-            (b.agent, b.parent, b.generation, b.fitness, b.genome) for b in self.births
+            ((b.agent, b.parent, b.generation, b.fitness, b.genome) for b in self.births),
+            tuple(plugin.model_dump_json() for plugin in plugins),
         )
 
     def apply(self, msg: MessageBase) -> None:
@@ -146,7 +150,10 @@ class RunHistory(Handler):
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
-        self.failures.setdefault(msg.agent, []).append(msg)
+        if msg.unfit:
+            self.unfit.setdefault(msg.node, msg.error)
+        else:
+            self.failures.setdefault(msg.agent, []).append(msg)
 
     @handles(JobLost)
     def on_job_lost(self, msg: JobLost) -> None:
@@ -189,7 +196,7 @@ def load_history(path: Path) -> RunHistory:
                             "segment or a `derl record` file)")  # fmt: skip
         messages = read_segment(path)
     else:
-        raise DerlError(f"no run directory or log at {path}")
+        raise DerlError(f"no run directory or log at {path}", USAGE)
     history = RunHistory()
     for msg in messages:
         history.apply(msg)

@@ -177,7 +177,9 @@ class LaunchFile(_Strict):
         "is planned there at its first start; none: `derl study --plan-only` planned it)",
     )
     profile: str = Field("smoke", min_length=1, description="smoke | demo | paper | FILE.yaml")
-    env: Literal["ft", "vt", "mvt"] | None = Field(None, description="world (overrides profile)")
+    env: str | None = Field(
+        None, description="world: ft, vt, mvt or a plugin task (overrides profile)"
+    )
     seed: int | None = Field(None, ge=0, description="evolution seed (overrides profile)")
     settings: list[Annotated[str, Field(pattern=r"^[^=\s]+=")]] = Field(
         [], description="profile values changed, each `KEY=VALUE` as `--set` takes it"

@@ -174,13 +174,14 @@ class Bus:
         key_expr: str,
         kinds: tuple[type[MessageBase], ...] = (),
         capacity: int = INLET_CAPACITY,
+        clock: Callable[[], float] = time.monotonic,
     ) -> Inlet:
         """The valid messages on `key_expr`, queued by Zenoh (up to `capacity`, then the oldest
         dropped: a `RingChannel`, which never stalls the session) and decoded by the thread that
-        takes them (`Inlet.take`)."""
+        takes them (`Inlet.take`); `clock` times `Inlet.arrived_after`."""
         subscriber = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(capacity))
         self._subscribers.append(subscriber)
-        return Inlet(self, subscriber, kinds)
+        return Inlet(self, subscriber, kinds, clock)
 
     def check(
         self, payload: bytes, key: str, kinds: tuple[type[MessageBase], ...] = ()
@@ -239,14 +240,18 @@ class Inlet:
     lock to a callback for every sample (measured: each hand-over costs more than decoding).
 
     `arrived_after` bounds how long the last `take`'s messages waited: each came in after that
-    moment (`time.monotonic()`), when the queue was last seen empty. Under a backlog it lies
-    seconds back; otherwise it is the previous take's."""
+    moment (on `clock`), when the queue was last seen empty. Under a backlog it lies seconds
+    back; otherwise it is the previous take's."""
 
     def __init__(
-        self, bus: Bus, subscriber: zenoh.Subscriber, kinds: tuple[type[MessageBase], ...]
+        self,
+        bus: Bus,
+        subscriber: zenoh.Subscriber,
+        kinds: tuple[type[MessageBase], ...],
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.bus, self.subscriber, self.kinds = bus, subscriber, kinds
-        self.empty_at = self.arrived_after = time.monotonic()
+        self.bus, self.subscriber, self.kinds, self.clock = bus, subscriber, kinds, clock
+        self.empty_at = self.arrived_after = clock()
 
     def take(self, limit: int) -> list[MessageBase]:
         """Up to `limit` valid messages that are waiting (checked as `Bus.check`), oldest first."""
@@ -255,7 +260,7 @@ class Inlet:
         for _ in range(limit):
             sample = self.subscriber.try_recv()
             if sample is None:
-                self.empty_at = time.monotonic()
+                self.empty_at = self.clock()
                 break
             message = self.bus.check(sample.payload.to_bytes(), str(sample.key_expr), self.kinds)
             if message is not None:

@@ -2,9 +2,8 @@
 
 `lock_run_dir` holds an OS lock (``flock`` on ``RUN_DIR/.lock``, which names the holder's pid and
 host) while a coordinator runs; the kernel drops it when the process ends, however it ends, so a
-crashed coordinator never leaves a stale lock. `write_atomic` writes a temporary file in the same
-folder, syncs it, renames it over the target and syncs the folder: a reader, or a restart after a
-crash or power loss, finds the old file or the new one, never a part.
+crashed coordinator never leaves a stale lock. `write_atomic` and `sync_folder` are
+`derl.files`' (whole-or-nothing writes, which derl's own files use too), named here for the nodes.
 """
 
 from __future__ import annotations
@@ -15,10 +14,11 @@ import fcntl
 import json
 import os
 import socket
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+from derl.files import sync_folder as sync_folder
+from derl.files import write_atomic as write_atomic
 from derl.nodes.errors import InUse
 
 LOCK_FILE = ".lock"
@@ -57,31 +57,3 @@ def _holder(fd: int) -> str:
         return f"a coordinator with pid {int(holder['pid'])} on host {holder['host']}"
     except (ValueError, KeyError, TypeError):
         return "another process (its pid and host are not written yet)"
-
-
-def write_atomic(path: Path, data: str | bytes) -> None:
-    """Replace `path` by `data` (text as UTF-8) in one step that a crash cannot leave half done."""
-    path = Path(path)
-    content = data.encode() if isinstance(data, str) else data
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(content)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    sync_folder(path.parent)
-
-
-def sync_folder(folder: Path) -> None:
-    """Put `folder`'s entries (the files and folders created, renamed or removed in it) on the
-    disk: an fsync of a file does not, and a power loss can lose a file whose data was synced."""
-    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

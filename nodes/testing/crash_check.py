@@ -27,6 +27,7 @@ from pathlib import Path
 
 import yaml
 
+from derl.agent_folder import CHECKPOINT
 from derl.messages import Birth, MessageBase, TrainJob, decode, encode
 from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import DONE_ANNOUNCEMENTS, Coordinator, Liveliness
@@ -77,8 +78,8 @@ def journal_holds(folder: Path, knowledge: Knowledge, when: str, finished: bool 
         if not (folder / "summary.json").is_file():
             problems.append(f"{when}: no summary.json")
         for best in sorted((folder / "best").glob("*")):
-            if not (best / "checkpoint.pt").is_file():
-                problems.append(f"{when}: {best.name} of the best has no checkpoint.pt")
+            if not (best / CHECKPOINT).is_file():
+                problems.append(f"{when}: {best.name} of the best has no {CHECKPOINT}")
     return problems
 
 

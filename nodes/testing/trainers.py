@@ -1,6 +1,6 @@
 """Simulated trainers' results, for tools and tests that drive the coordinator's own handlers in
-their process without a bus: reports that train nothing, each child's own policy, and a recorder
-of what the coordinator publishes.
+their process without a bus: reports that train nothing, each child's own policy, a recorder
+of what the coordinator publishes, and a whole run driven by simulated trainers (`simulate_run`).
 
 A report is accepted as a real trainer's (its job's body, env steps within the job's budget, a
 fitness within the world's bound, a policy that loads for the body), so the coordinator takes the
@@ -9,9 +9,25 @@ same paths as in a run."""
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass, field
 from functools import cache
+from pathlib import Path
 
-from derl.messages import Curve, FitnessReport, MessageBase, TrainJob
+from derl.evolution import EvolutionConfig
+from derl.messages import (
+    Ack,
+    Cancel,
+    Curve,
+    FitnessReport,
+    MessageBase,
+    Reject,
+    TrainJob,
+    WorkerReady,
+    decode,
+    encode,
+)
+from derl.nodes.coordinator.evolution import EvolutionPolicy
+from derl.nodes.coordinator.node import Coordinator, Liveliness
 from derl.policy_check import untrained_policy
 from derl.unimal import Genome
 
@@ -65,3 +81,68 @@ def honest_report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
         mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
         checkpoint=policy_of(job.agent, job.genome, job.task),
     )  # fmt: skip
+
+
+@dataclass
+class Trainers:
+    """Simulated trainers of run `run`: each answers its job at once (`honest_report`, plus 1.0
+    for the `liar`) and, once answered, asks for work once: an idle one then waits among the
+    coordinator's idle workers for its next job."""
+
+    run: str
+    names: list[str]
+    liar: str | None = None
+    jobs: dict[str, TrainJob] = field(default_factory=dict)  # node -> its unanswered job
+    asked: set[str] = field(default_factory=set)  # idle nodes that asked
+
+    def answer(self, heard: list[MessageBase]) -> list[MessageBase]:
+        out: list[MessageBase] = []
+        for msg in heard:
+            node = getattr(msg, "node", None)
+            if node not in self.names:
+                continue
+            if isinstance(msg, TrainJob):
+                self.jobs[node] = msg
+                self.asked.discard(node)
+                out.append(honest_report(msg, 1.0 if node == self.liar else 0.0))
+            elif isinstance(msg, Ack | Reject | Cancel) and msg.job == self.jobs.get(node, msg).job:
+                del self.jobs[node]
+        return out
+
+    def asking(self) -> list[MessageBase]:
+        new = [n for n in self.names if n not in self.jobs and n not in self.asked]
+        self.asked.update(new)
+        return [WorkerReady(run=self.run, node=n, role="trainer", host="sim", pid=1) for n in new]
+
+
+def simulate_run(
+    run: str,
+    folder: Path,
+    config: EvolutionConfig,
+    names: list[str],
+    liar: str | None = None,
+    rounds: int = 400,
+) -> Coordinator:
+    """The run of `config` in `folder` (begun or not) to its end (every child born, none waiting
+    to be trained again, its results written) by the simulated `Trainers` named `names`; the
+    coordinator, closed."""
+    heard = Recorder()
+    coordinator = Coordinator(run, folder, EvolutionPolicy(run, folder, config), publisher=heard)
+    trainers = Trainers(run, names, liar)
+    for node in names:
+        coordinator.take(Liveliness("trainer", node, True))
+    try:
+        inbox = trainers.asking()
+        for _ in range(rounds):
+            if coordinator.state.finished:
+                coordinator.policy.finish()
+                return coordinator
+            for msg in inbox:
+                coordinator.take(decode(encode(msg)))
+            coordinator.assign_idle()
+            coordinator.settle()
+            inbox = trainers.answer(heard.messages) + trainers.asking()
+            heard.messages.clear()
+        raise AssertionError(f"the run did not finish: {len(coordinator.state.births)} born")
+    finally:
+        coordinator.close()

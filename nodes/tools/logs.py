@@ -42,6 +42,10 @@ class LogError(ValueError):
     """A path that is not a readable log; the text says why."""
 
 
+class NoLog(LogError):
+    """A path where there is nothing (a usage error)."""
+
+
 def log_files(path: Path) -> list[Path]:
     """The MCAP files of a log: the file itself, or a run directory's segments in order."""
     path = Path(path)
@@ -51,7 +55,7 @@ def log_files(path: Path) -> list[Path]:
             raise LogError(f"{path} holds no journal/segment-NNNN.mcap")
         return files
     if not path.is_file():
-        raise LogError(f"{path}: no such file")
+        raise NoLog(f"{path}: no such file")
     if not is_mcap(path):
         raise LogError(f"{path} is not an MCAP file")
     return [path]

@@ -49,7 +49,7 @@ from derl.messages import (
 from derl.messages.dispatch import Handler, handles
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
+from derl.nodes.tools.topic import DISCOVERY_S, Checker, Tap, ask, choose_run
 
 REFRESH_S = 0.5
 RECENT_BIRTHS = 8
@@ -279,12 +279,13 @@ class RunView(Handler):
 def monitor(
     options: ZenohOptions, run: str | None, once: float | None, stop: threading.Event
 ) -> RunView:
-    """Watch a run (`run`, or the only one on the bus) until `stop`; with `once`, gather for
-    that many seconds and print one plain snapshot."""
+    """Watch a run (`run`, or the only one on the bus) until `stop`; with `once`, look for the
+    run for up to that many seconds (at least `DISCOVERY_S`), gather for that many seconds and
+    print one plain snapshot."""
     console = Console() if sys.stdout.isatty() else Console(width=PIPED_WIDTH)
     inbox: deque[tuple[float, MessageBase | tuple[str, str, bool]]] = deque(maxlen=QUEUE)
     with open_session(options) as session:
-        view = RunView(choose_run(session, run))
+        view = RunView(choose_run(session, run, max(once or 0.0, DISCOVERY_S)))
         checker = Checker(session)
         rejected = 0
 

@@ -25,14 +25,16 @@ import derl.messages.schema
 import derl.messages.types
 from derl.analysis.study import STUDY_PROFILES, StudyConfig
 from derl.evolution.config import PROFILES, EvolutionConfig, setting_keys
+from derl.evolution.timing import TrainingTime
 from derl.messages import (
     MESSAGE_TYPES,
     SCHEMA_CHANGES,
     SCHEMA_VERSION,
     Curve,
     KeySpace,
-    Member,
     MessageBase,
+    ParentWeights,
+    PopulationEntry,
 )
 from derl.messages.examples import examples
 from derl.messages.keys import ARITY, PUBLISHERS, ROOT, ROUTES
@@ -46,7 +48,7 @@ from derl.unimal.genome import Genome, Joint, Limb
 
 PPO_ANCHOR: Final = "#ppoconfig"
 HYPER_ANCHOR: Final = "#ppo-ppohyperparameters"
-NESTED: Final = (Curve, Member, Genome, Limb, Joint)
+NESTED: Final = (Curve, PopulationEntry, ParentWeights, Genome, Limb, Joint)
 LAUNCH_MODELS: Final = (LaunchFile, HostSpec, NodeSpec, PeerMesh, RouterTopology)
 
 Links = dict[str, str]
@@ -116,11 +118,18 @@ def protocol() -> str:
     return "\n".join(lines) + "\n"
 
 
+KEYS_WITHOUT_MESSAGES = {
+    "alive": "liveliness token (no payload)",
+    "checkpoint": "answer to a query: the agent's checkpoint file (bytes)",
+}
+"""What goes on a key kind that carries no message."""
+
+
 def _key_row(kind: str, links: Links) -> str:
     types = [name for name, (k, _) in ROUTES.items() if k == kind]
     roles = ", ".join(PUBLISHERS[kind]) or "nobody: journaled only"
     if not types:
-        return f"| `{_key_pattern(kind)}` | liveliness token (no payload) | {roles} | |"
+        return f"| `{_key_pattern(kind)}` | {KEYS_WITHOUT_MESSAGES[kind]} | {roles} | |"
     congestion = sorted({str(congestion_control(name)).rsplit(".", 1)[-1] for name in types})
     published = " or ".join(congestion) if PUBLISHERS[kind] else ""
     names = ", ".join(f"[{name}]({links[name]})" for name in types)
@@ -164,6 +173,7 @@ def configuration() -> str:
     links = {m.__name__: f"#{m.__name__.lower()}" for m in LAUNCH_MODELS}
     links[PPOConfig.__name__] = PPO_ANCHOR
     links[PPOHyperparameters.__name__] = HYPER_ANCHOR
+    links[TrainingTime.__name__] = "#training_time-trainingtime"
     lines = _header("Configuration", "configuration")
     lines += [
         *_profiles(
@@ -184,6 +194,11 @@ def configuration() -> str:
         _markdown(inspect.getdoc(PPOHyperparameters)),
         "",
         *_fields_table(PPOHyperparameters, links, "key", _profile_values(lambda p: p.ppo)),
+        "## training_time: TrainingTime",
+        "",
+        _markdown(inspect.getdoc(TrainingTime)),
+        "",
+        *_fields_table(TrainingTime, links, "key", _profile_values(lambda p: p.training_time)),
         "## PPOConfig",
         "",
         _markdown(inspect.getdoc(PPOConfig)) + " Every job carries one (`TrainJob`, `EvalJob`).",

@@ -30,7 +30,6 @@ written there.
 from __future__ import annotations
 
 import bisect
-import importlib.util
 import logging
 import math
 import threading
@@ -39,7 +38,6 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import zenoh
 
@@ -53,13 +51,13 @@ from derl.messages import (
     MessageBase,
     RunStatus,
 )
+from derl.metrics import EVENTS, TensorBoardRun
+from derl.metrics import NoTensorBoard as NoTensorBoard
+from derl.metrics import require_extra as require_extra
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.runtime.bus import ZenohOptions, open_session
 from derl.nodes.tools.logs import LogError, read_log
 from derl.nodes.tools.topic import Checker, Tap, ask, choose_run
-
-if TYPE_CHECKING:
-    from torch.utils.tensorboard import SummaryWriter
 
 log = logging.getLogger("derl.tensorboard")
 
@@ -75,7 +73,6 @@ TAGS = {
     "run/steps_per_s": "env steps per second of all workers (step: births + evaluations)",
 }
 """Every tag written, with what it is."""
-EXTRA = "pip install 'derl[tensorboard]'"
 FOLD_S = 0.5
 """How often a watcher writes what it heard."""
 PROGRESS_S = 10.0
@@ -83,71 +80,27 @@ PROGRESS_S = 10.0
 point of a step: the file need not hold one a second)."""
 GAP_S = 5.0
 """How long a watcher waits for a missing birth (asking the coordinator once) before going on."""
-EVENTS = "events.out.tfevents.*"
-
-
-class NoTensorBoard(ImportError):
-    """The `tensorboard` package (derl's extra) is not installed."""
-
-
-def require_extra() -> None:
-    """NoTensorBoard, saying how to install it, unless the `tensorboard` package is there."""
-    if importlib.util.find_spec("tensorboard") is None:
-        raise NoTensorBoard(f"TensorBoard is an extra: {EXTRA}")
-
-
-def summary_writer() -> type[SummaryWriter]:
-    """torch's SummaryWriter (NoTensorBoard without the extra)."""
-    require_extra()
-    from torch.utils.tensorboard import SummaryWriter
-
-    return SummaryWriter
-
-
-def last_steps(run_dir: Path) -> dict[str, int]:
-    """The last step of each tag in the event files already in `run_dir`."""
-    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
-
-    last: dict[str, int] = {}
-    for path in sorted(run_dir.glob(EVENTS)):
-        for event in EventFileLoader(str(path)).Load():
-            for value in event.summary.value:
-                last[value.tag] = max(last.get(value.tag, -1), event.step)
-    return last
 
 
 class Scalars:
-    """A run's scalars into one writer (the tags of `TAGS`), each tag's steps only growing."""
+    """A run's scalars (the tags of `TAGS`) into one TensorBoard run, each tag's steps only
+    growing."""
 
-    def __init__(self, writer: SummaryWriter, written: dict[str, int] | None = None) -> None:
+    def __init__(self, board: TensorBoardRun) -> None:
         from derl.analysis.config import AnalysisConfig
 
-        self.writer = writer
-        self.written = dict(written or {})
-        """Tag -> the last step written (in this directory, by anyone)."""
+        self.board = board
         self.percentile = AnalysisConfig().criterion_percentile
         self.initial: list[float] = []
         self.criterion: float | None = None
         self._waiting: list[tuple[Birth, FitnessReport | None, float]] = []
 
-    def scalar(
-        self, tag: str, value: float | None, step: int, wall: float, replace: bool = False
-    ) -> None:
-        """One point, unless it is undefined or its step goes back (or stays, unless it
-        `replace`s the last)."""
-        last = self.written.get(tag, -1)
-        back = step < last or (step == last and not replace)
-        if value is None or not math.isfinite(value) or back:
-            return
-        self.writer.add_scalar(tag, value, step, walltime=wall)
-        self.written[tag] = step
-
     def birth(self, birth: Birth, report: FitnessReport | None, wall: float) -> None:
         """A birth's points (`report`: the one it was born from, for its learning curve)."""
         step = birth.birth
-        self.scalar("birth/fitness", birth.fitness, step, wall)
-        self.scalar("birth/cost_of_work", birth.cost_of_work, step, wall)
-        self.scalar("birth/generation", birth.generation, step, wall)
+        self.board.scalar("birth/fitness", birth.fitness, step, wall)
+        self.board.scalar("birth/cost_of_work", birth.cost_of_work, step, wall)
+        self.board.scalar("birth/generation", birth.generation, step, wall)
         if birth.parent is None:
             self.initial.append(birth.fitness)
         elif self.criterion is None:  # tournaments start once the initial population is born
@@ -187,7 +140,7 @@ class Scalars:
             return
         curve = report.curve
         steps = first_reaching(curve.env_steps, curve.returns, self.criterion)
-        self.scalar("birth/steps_to_criterion", steps, birth.birth, wall)
+        self.board.scalar("birth/steps_to_criterion", steps, birth.birth, wall)
 
     def progress(
         self,
@@ -202,7 +155,7 @@ class Scalars:
         values = {"run/born": born, "run/best_fitness": best, "run/failed": failed,
                   "run/evaluated": evaluated, "run/steps_per_s": steps_per_s}  # fmt: skip
         for tag, value in values.items():
-            self.scalar(tag, value, born + evaluated, wall, replace=True)
+            self.board.scalar(tag, value, born + evaluated, wall, replace=True)
 
 
 def _report(history: RunHistory, birth: Birth) -> FitnessReport | None:
@@ -286,7 +239,6 @@ def watch(
 ) -> Path:
     """Write run `run`'s scalars (or the only run's on the bus) into LOGDIR/<run> until `stop`
     or the run is done; `started(run, directory)` once it writes. The directory."""
-    writer_class = summary_writer()
     heard: deque[tuple[float, MessageBase]] = deque()
     with open_session(options) as session:
         run = choose_run(session, run)
@@ -300,18 +252,16 @@ def watch(
         keys = KeySpace(run)
         taps = [Tap(session, keys.all(kind), on_sample) for kind in ("births", "fitness", "status")]
         directory = logdir / run
-        directory.mkdir(parents=True, exist_ok=True)
-        writer = writer_class(str(directory))
-        live = LiveRun(Scalars(writer, last_steps(directory)),
-                       lambda: ask(session, keys.all("births"), on_sample))  # fmt: skip
+        board = TensorBoardRun(directory)
+        live = LiveRun(Scalars(board), lambda: ask(session, keys.all("births"), on_sample))
         try:
             live.ask_births()  # the births before we came
             started(run, directory)
             while not live.done and not stop.wait(FOLD_S):
                 live.fold(_drain(heard), time.monotonic())
-                writer.flush()
+                board.flush()
         finally:
-            writer.close()
+            board.close()
     for tap in taps:
         tap.join()
     return directory
@@ -339,7 +289,6 @@ class Training:
 def export(source: Path, logdir: Path) -> Path:
     """Write the scalars of the run in `source` (a run directory or an MCAP log) into a new
     LOGDIR/<run>; the directory."""
-    writer_class = summary_writer()
     history = RunHistory()
     events: list[tuple[float, MessageBase]] = []
     reports: dict[str, float] = {}  # job -> when its report came
@@ -358,9 +307,9 @@ def export(source: Path, logdir: Path) -> Path:
         raise FileExistsError(f"{directory} holds event files already; choose another LOGDIR")
     trainings = _trainings(history, reports)
     starts = [t.start for t in trainings]
-    writer = writer_class(str(directory))
+    board = TensorBoardRun(directory)
     try:
-        scalars = Scalars(writer)
+        scalars = Scalars(board)
         born = failed = evaluated = 0
         best: float | None = None
         for wall, message in events:
@@ -377,7 +326,7 @@ def export(source: Path, logdir: Path) -> Path:
             scalars.progress(born, evaluated, best, failed, rate, wall)
         scalars.finish()
     finally:
-        writer.close()
+        board.close()
     return directory
 
 

@@ -146,15 +146,19 @@ class NothingHeard(LookupError):
     """Nothing was heard of what a tool listened for; the text says what that was."""
 
 
-def choose_run(session: zenoh.Session, run: str | None) -> str:
-    """`run`, or the only run found on the bus."""
+def choose_run(session: zenoh.Session, run: str | None, patience: float = DISCOVERY_S) -> str:
+    """`run`, or the only run found on the bus, looked for again while none is found, for up to
+    `patience` seconds."""
     if run:
         return KeySpace(run).run
-    runs = live_runs(session)
+    end = time.monotonic() + patience
+    runs = live_runs(session, min(DISCOVERY_S, patience))
+    while not runs and (left := end - time.monotonic()) > 0:
+        runs = live_runs(session, min(DISCOVERY_S, left))
     if len(runs) == 1:
         return next(iter(runs))
     if not runs:
-        raise NothingHeard(f"no run heard in {DISCOVERY_S:g} s (no derl/*/status, no live node)")
+        raise NothingHeard(f"no run heard in {patience:g} s (no derl/*/status, no live node)")
     lines = [
         f"  {name}: " + (f"{s.born}/{s.target} born" if s else "nodes alive, no status yet")
         for name, s in sorted(runs.items())

@@ -5,7 +5,9 @@ after 1, 2, 4, then every 8 s while no job comes (`ready_wait`: the coordinator 
 idle worker that asked as soon as there is one). The first ask goes out once the coordinator's
 subscription is known here: one sent before is lost, and a neighbour may take the job meanwhile.
 It trains one job at a time with `derl.lifetime`, the job's body (the coordinator decides every
-body) and the job's own PPO configuration (one training per process), reports progress every
+body) and the job's own PPO configuration (one training per process; a child that inherits its
+parent's weights starts from the parent's checkpoint, asked of the coordinator on
+``checkpoint/<parent>`` and checked against the job's SHA-256), reports progress every
 second (the coordinator's lease on the job), and re-sends its result every second until the
 coordinator acknowledges it, so a coordinator restart loses nothing. A Reject makes it drop the
 result, a Cancel of its job stops the training, and a training that raises is reported as
@@ -17,6 +19,7 @@ says so once: a mistyped run id or endpoint must not look like a quiet run.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import queue
@@ -27,6 +30,7 @@ import time
 from collections.abc import Callable
 from typing import Literal
 
+from derl.extensions import REGISTRIES
 from derl.lifetime import LifetimeResult, learn
 from derl.messages import (
     Ack,
@@ -43,6 +47,7 @@ from derl.messages import (
     WorkerReady,
 )
 from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
+from derl.plugins import PluginError, check_plugins
 from derl.rl import Progress
 
 log = logging.getLogger("derl.worker")
@@ -52,6 +57,8 @@ HEARD_POLL_S = 0.01  # how often a worker looks whether its WorkerReady would be
 PROGRESS_PERIOD_S = 1.0
 RESEND_PERIOD_S = 1.0
 UNHEARD_S = 10.0  # an idle worker that heard no status of its run this long says so
+PARENT_WAIT_S = 60.0  # how long a trainer asks for a parent's checkpoint before the job fails
+PARENT_ASK_S = (5.0, 0.5)  # a query's timeout, and the pause before the next
 
 
 def ready_wait(asks: int) -> float:
@@ -70,17 +77,31 @@ class Cancelled(Exception):
     """The coordinator cancelled the job in progress."""
 
 
+class NoParentWeights(Exception):
+    """The parent's checkpoint a job inherits did not come, or is not the one the job names."""
+
+
 class Worker:
+    """Worker `node` of `run` in `role`, training on `nthread` threads; `clock` times its waits,
+    its progress and its silence (a test moves one by hand)."""
+
     def __init__(
-        self, run: str, node: str, role: Literal["trainer", "evaluator"], nthread: int = 1
+        self,
+        run: str,
+        node: str,
+        role: Literal["trainer", "evaluator"],
+        nthread: int = 1,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.run, self.node, self.role, self.nthread = run, node, role, nthread
+        self.clock = clock
         self.stop = threading.Event()
         self.run_finished = threading.Event()
         self.finished_jobs: set[str] = set()  # a copy sent again is not trained twice
         self.cancelled: set[str] = set()
-        self.heard_at = time.monotonic()  # when the run's status was last heard (or the start)
+        self.heard_at = self.clock()  # when the run's status was last heard (or the start)
         self.unheard = False  # said that no coordinator is heard (until one is)
+        self.unfit = False  # refused a job for its plugins (said once)
 
     def serve(self, options: ZenohOptions, max_jobs: int | None = None) -> None:
         with open_session(options) as session:
@@ -100,6 +121,9 @@ class Worker:
                 asks = asks + 1 if job is None else 0
                 if job is None:
                     self._say_if_unheard()
+                    continue
+                if not self._fit_for(job):
+                    self.finished_jobs.add(job.job)
                     continue
                 try:
                     result = self._work(job)
@@ -132,7 +156,7 @@ class Worker:
         return self.stop.is_set() or self.run_finished.is_set() or limit
 
     def _status(self, status: RunStatus) -> None:
-        self.heard_at = time.monotonic()
+        self.heard_at = self.clock()
         if self.unheard:
             self.unheard = False
             log.info("%s: the coordinator of run %s is heard", self.node, self.run)
@@ -140,7 +164,7 @@ class Worker:
             self.run_finished.set()
 
     def _say_if_unheard(self) -> None:
-        silent = time.monotonic() - self.heard_at
+        silent = self.clock() - self.heard_at
         if silent >= UNHEARD_S and not self.unheard:
             self.unheard = True
             log.warning("%s: no coordinator of run %s heard for %.0f s (none publishes derl/%s/"
@@ -158,13 +182,13 @@ class Worker:
             pid=os.getpid(),
             nthread=self.nthread,
         )
-        deadline = time.monotonic() + READY_PERIOD_S[0]
-        while not matched(self.asking) and time.monotonic() < deadline:
+        deadline = self.clock() + READY_PERIOD_S[0]
+        while not matched(self.asking) and self.clock() < deadline and not self.stop.is_set():
             time.sleep(HEARD_POLL_S)  # no coordinator would hear it yet
         self.bus.publish(ready)
-        deadline = time.monotonic() + wait_s
+        deadline = self.clock() + wait_s
         while True:
-            remaining = deadline - time.monotonic()
+            remaining = deadline - self.clock()
             if remaining <= 0 or self._over(None):
                 return None
             try:  # in slices, so that a stop or the run's end is seen within one
@@ -183,6 +207,31 @@ class Worker:
             JobFailed(run=self.run, job=job.job, node=self.node, agent=job.agent, error=text)
         )
 
+    def _fit_for(self, job: TrainJob | EvalJob) -> bool:
+        """Whether this process holds the job's plugins, each in the job's version; if not, the
+        job is refused (`JobFailed.unfit`: the coordinator sends no more) and the reason logged
+        once."""
+        try:
+            check_plugins(job.plugins, REGISTRIES)
+        except PluginError as error:
+            text = f"{self.node} {error}"[:1000]
+            if not self.unfit:
+                log.error("%s; refusing the run's jobs (install the plugin as on the other "
+                          "nodes: docs/extending.md)", text)  # fmt: skip
+            self.unfit = True
+            self.bus.publish(
+                JobFailed(
+                    run=self.run,
+                    job=job.job,
+                    node=self.node,
+                    agent=job.agent,
+                    error=text,
+                    unfit=True,
+                )
+            )
+            return False
+        return True
+
     def _work(self, job: TrainJob | EvalJob) -> FitnessReport | EvalResult:
         log.info("%s: %s of %s on %s (%d steps)", self.node, job.job, job.agent, job.task,
                  job.steps)  # fmt: skip
@@ -194,7 +243,7 @@ class Worker:
                 raise Stopped
             if job.job in self.cancelled:
                 raise Cancelled
-            now = time.monotonic()
+            now = self.clock()
             if now - last >= PROGRESS_PERIOD_S or p.iteration == p.iterations:
                 last = now
                 self.bus.publish(
@@ -210,7 +259,12 @@ class Worker:
                     )
                 )
 
-        summary, result = learn(job.genome, job.task, job.ppo, progress, nthread=self.nthread)
+        parent = None
+        if isinstance(job, TrainJob) and job.inherit is not None:
+            parent = (job.inherit.genome, self._parent_weights(job))
+        summary, result = learn(
+            job.genome, job.task, job.ppo, progress, nthread=self.nthread, parent=parent
+        )
         curve = Curve(env_steps=summary.curve_steps, returns=summary.curve_returns)
         if isinstance(job, TrainJob):
             checkpoint = result.checkpoint.to_bytes()
@@ -227,6 +281,33 @@ class Worker:
             node=self.node,
             job=job.job,
         )
+
+    def _parent_weights(self, job: TrainJob) -> bytes:
+        """The checkpoint of `job`'s parent, asked of the coordinator (which answers once the
+        file is on its disk) until it comes, for up to `PARENT_WAIT_S`; `NoParentWeights` if it
+        does not, or if its SHA-256 is not the job's."""
+        assert job.inherit is not None and job.parent is not None
+        key = self.bus.keys.checkpoint(job.parent)
+        deadline = self.clock() + PARENT_WAIT_S
+        while not self.stop.is_set():
+            for reply in self.bus.session.get(key, timeout=PARENT_ASK_S[0]):
+                if reply.ok is None:
+                    continue
+                data = reply.ok.payload.to_bytes()
+                if hashlib.sha256(data).digest() != job.inherit.sha256:
+                    raise NoParentWeights(
+                        f"the checkpoint of {job.parent} that came has SHA-256 "
+                        f"{hashlib.sha256(data).hexdigest()}, the job names "
+                        f"{job.inherit.sha256.hex()}"
+                    )
+                return data
+            if self.clock() >= deadline:
+                raise NoParentWeights(
+                    f"no checkpoint of {job.parent} came from the coordinator on {key} in "
+                    f"{PARENT_WAIT_S:.0f} s"
+                )
+            time.sleep(PARENT_ASK_S[1])
+        raise Stopped
 
     def _fitness_report(
         self, job: TrainJob, summary: LifetimeResult, curve: Curve, checkpoint: bytes
@@ -246,6 +327,7 @@ class Worker:
             mass=summary.mass,
             episodes=summary.episodes,
             env_steps=summary.env_steps,
+            constraint_rows=summary.constraint_rows,
             wall_s=summary.wall_time_s,
             steps_per_s=summary.steps_per_second,
             checkpoint=checkpoint,
@@ -263,8 +345,8 @@ class Worker:
                 break
         while not self.stop.is_set() and result.job not in self.cancelled:
             self.bus.publish(result)
-            deadline = time.monotonic() + RESEND_PERIOD_S
-            while (wait := deadline - time.monotonic()) > 0:
+            deadline = self.clock() + RESEND_PERIOD_S
+            while (wait := deadline - self.clock()) > 0:
                 try:
                     answer = answers.get(timeout=wait)
                 except queue.Empty:
