@@ -244,7 +244,8 @@ def main() -> None:
         lies = sum(r["lies"] for r in runs)
         print(json.dumps({
             "summary": rate, "profile": args.profile, "trainers": args.trainers,
-            "audit": base.audit, "audit_first": base.audit_first, "audit_top": base.audit_top,
+            "timing": base.timing, "audit": base.audit, "audit_first": base.audit_first,
+            "audit_top": base.audit_top,
             "runs": len(runs), "lied": len(lied),
             "caught_of_lied": f"{sum(r['caught'] for r in lied)}/{len(lied)}",
             "lies_audited": f"{sum(r['lies_audited'] for r in runs)}/{lies}",

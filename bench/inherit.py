@@ -12,10 +12,12 @@ untrained and the wall time. `paired`: the difference parent - none of the fitne
 of each tournament number (the same iteration of the same seed), its mean and a 95 % bootstrap
 interval of that mean (10,000 resamples of the tournaments), and the same for the last half of
 each seed's tournaments.
-With several seeds (`--seeds 0 1`), each seed's runs and differences, and the intervals of
-all the differences pooled. The defaults are the size docs/extending.md reports.
+With several seeds (`--seeds 0 1`), each seed's runs and differences, the intervals of all the
+differences pooled (which treat the children of a run as independent: optimistic), and
+`over_seeds`: a t interval of the seeds' mean differences (the seed the unit). The defaults are
+the size docs/extending.md reports.
 Run: python bench/inherit.py [--total 24] [--population 6] [--tournament 3] [--in-flight 3]
-[--steps 32768] [--seeds 0 1]
+[--steps 32768] [--seeds 0 1 2 3]
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from concurrent.futures import ProcessPoolExecutor
 from typing import cast
 
 import numpy as np
+from scipy import stats
 
 from derl.evolution import Evolution, EvolutionConfig, load_profile
 from derl.lifetime import learn
@@ -111,6 +114,14 @@ def interval(differences: list[float], seed: int = 0) -> dict[str, object]:
     return {"n": len(values), "mean": float(values.mean()), "ci95": [float(low), float(high)]}
 
 
+def over_seeds(means: list[float]) -> dict[str, object]:
+    """The mean of the seeds' mean differences and its 95 % t interval: the seed is the unit
+    (a run's children are not independent of each other: each is bred from earlier ones)."""
+    mean = statistics.fmean(means)
+    half = float(stats.t.ppf(0.975, len(means) - 1)) * statistics.stdev(means) / len(means) ** 0.5
+    return {"n": len(means), "means": means, "mean": mean, "ci95": [mean - half, mean + half]}
+
+
 def compare(size: dict[str, int], seed: int, pool: ProcessPoolExecutor) -> dict[str, object]:
     """The two runs of seed `seed` at `size`, and the differences parent - none of the fitness of
     each tournament's child, in tournament order."""
@@ -144,12 +155,16 @@ def main() -> None:
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(len(INHERIT), mp_context=context) as pool:
         seeds = [compare(size, seed, pool) for seed in args.seeds]
-    pooled = [d for one in seeds for d in cast(list[float], one["differences"])]
-    halves = [d for one in seeds for d in _last_half(cast(list[float], one["differences"]))]
+    differences = [cast(list[float], one["differences"]) for one in seeds]
+    pooled = [d for one in differences for d in one]
+    halves = [d for one in differences for d in _last_half(one)]
+    paired = {"all": interval(pooled), "last_half": interval(halves)}
+    if len(seeds) > 1:
+        paired["over_seeds"] = over_seeds([statistics.fmean(one) for one in differences])
     config = load_profile("demo", **size)
     print(json.dumps({
         "profile": "demo", **size, "num_envs": config.num_envs, "world": config.world,
-        "seeds": seeds, "paired": {"all": interval(pooled), "last_half": interval(halves)},
+        "seeds": seeds, "paired": paired,
     }, indent=1))  # fmt: skip
 
 

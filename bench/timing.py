@@ -2,7 +2,8 @@
 against the cluster timing (`derl.evolution.timing`); prints JSON.
 
 ``--calibrate``: the cluster timing's coefficients (`TrainingTime`) measured on this machine:
-real FT trainings (`derl.lifetime.learn`, one thread) of bodies of 1 to 10 limbs, their CPU
+real FT trainings (`derl.lifetime.learn`, one thread) of `--bodies` bodies of as many limb counts
+(drawn as initial bodies are: 1 to 6 limbs at 6), their CPU
 seconds fitted as env steps x `step_s` + constraint rows x `row_s` (least squares, both at least
 0), and `episode_s`, what the released code paid at every reset, its model rebuilt from XML: the
 median CPU time of building a body's model in its world (`UnimalEnv`, one copy).
@@ -20,8 +21,10 @@ body's result) in each timing, with W simulated trainers. A body's training is n
 Per run: the mean limb count and mass of the first and last quarter of the births in child order
 and their change (the trend), the share of the last P births that descend from the most common
 initial body (its lineage) and the lineages alive among them, and the time to the last birth
-(virtual hours; the window timing's is its W trainers' schedule with the same durations). Per
-timing the mean over seeds with a 95 % t-interval, and cluster - window paired by seed.
+(`hours`: with W simulated trainers whose trainings take their virtual durations, in either
+timing; in the cluster timing they wait for the virtual clock, whose own time to the last birth,
+the released cluster's, is about `utilisation` x `hours`). Per timing the mean over seeds with a
+95 % t-interval, and cluster - window paired by seed.
 In the cluster timing also what the released end of a run would drop (`tools/evolution.py`,
 `wait_or_kill`: the trainings in flight when the last body is saved): of a run N - W + 1 bodies
 long, the W - 1 children bred that finish last in virtual time; their mean limb count
@@ -30,7 +33,7 @@ Also the parallelism the cluster timing leaves real trainers: with R trainers wh
 their virtual durations, the trainers' busy time over R x the run's duration (`utilisation`), at
 R = W / 4, W / 2 and W, for the paper's W and the demo's (P 16, W 8, 128 births).
 Run: python bench/timing.py [--seeds 3] [--births 4000]
-     python bench/timing.py --calibrate [--steps 65536] [--bodies 8]
+     python bench/timing.py --calibrate [--steps 32768] [--bodies 6]
 """
 
 from __future__ import annotations
@@ -69,9 +72,11 @@ def calibrate(steps: int, bodies: int) -> dict[str, object]:
     torch.set_num_threads(1)
     rng = np.random.default_rng(11)
     chosen: dict[int, Genome] = {}
-    while len(chosen) < bodies:  # bodies of as many different limb counts as asked
+    for _ in range(20):  # bodies of as many limb counts as asked (initial ones have 1 to 6)
         for genome in sample_population(8, rng):
             chosen.setdefault(len(genome.limbs), genome)
+        if len(chosen) >= bodies:
+            break
     config = ppo_config(WORLD, steps, 1409, num_envs=32)
     rows, builds = [], []
     for genome in list(chosen.values())[:bodies]:
@@ -221,9 +226,11 @@ def compare(seeds: int, births: int) -> dict[str, object]:
             measures = run(config, initial, probe, config.in_flight)
             measures["seconds"] = time.perf_counter() - start
             runs[timing].append(measures)
+    summary: dict[str, object] = {
+        t: {k: interval([r[k] for r in rs]) for k in rs[0] if k != "seconds"}
+        for t, rs in runs.items()
+    }
     keys = [k for k in runs["window"][0] if k != "seconds"]
-    summary: dict[str, object] = {t: {k: interval([r[k] for r in rs]) for k in keys}
-                                  for t, rs in runs.items()}  # fmt: skip
     summary["cluster_minus_window"] = {
         k: interval([c[k] - w[k] for c, w in zip(runs["cluster"], runs["window"], strict=True)])
         for k in keys
@@ -248,8 +255,8 @@ def parallelism(probe: Probe) -> list[dict[str, object]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calibrate", action="store_true")
-    parser.add_argument("--steps", type=int, default=65536, help="env steps per calibration")
-    parser.add_argument("--bodies", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=32768, help="env steps per calibration")
+    parser.add_argument("--bodies", type=int, default=6)
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--births", type=int, default=4000)
     args = parser.parse_args()

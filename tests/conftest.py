@@ -103,7 +103,7 @@ LONGEST = {
     "test_soak.py::test_a_short_soak_finishes_with_every_child_born_once": 50,
     "test_report.py::test_report_of_a_real_smoke_run": 42,
     "test_inherit.py::test_an_inheriting_evolution_over_zenoh_trains_children_from_their_parents_"
-    "weights": 35,
+    "weights": 17,
     "test_run_supervisor.py::test_run_restarts_a_killed_trainer_and_a_killed_coordinator": 38,
     "test_readme.py::test_the_readme_python_and_body_commands_run": 37,
     "test_run_supervisor.py::test_a_stopped_run_prints_the_command_that_resumes_it": 35,

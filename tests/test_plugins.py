@@ -225,27 +225,29 @@ def test_a_bad_plugin_stops_a_run_before_any_node_with_one_line(
 # --- a real run -----------------------------------------------------------------------------------
 
 
-def _run(folder: Path, installed: Path, trainers: int, without: bool) -> Path:
-    """A run of the plugins' profile with `trainers` trainers holding the plugins (and, first,
-    with `without`, one that lacks them) and an evaluator, to its end."""
+def _run(folder: Path, installed: Path, trainers: int, lacking: bool) -> Path:
+    """A run of the plugins' profile with `trainers` trainers holding the plugins to its end;
+    with `lacking`, first a trainer that lacks them (which refuses), and an evaluator at the end
+    (a run without it evaluates nothing: its births are the same)."""
     folder.mkdir()
-    local = LocalRun.at(folder, **PLUGIN_PROFILE)
+    evaluated = {} if lacking else {"eval_top": 0, "eval_tasks": []}
+    local = LocalRun.at(folder, **{**PLUGIN_PROFILE, **evaluated})
     processes = Processes(folder / "logs")
     held = {"PYTHONPATH": str(installed)}
     try:
         coordinator = processes.start("coordinator", local.coordinator(), held)
-        if without:
+        if lacking:
             processes.start("lacking", local.trainer("lacking"), {"PYTHONPATH": ""})
             wait_until(
                 lambda: [m for m in journaled(local.dir, JobFailed) if m.unfit],
                 120,
                 "the refusal of the trainer without the plugins",
             )
+            evaluator = derl_argv("evaluator", "--run", local.run, "--connect", local.endpoint,
+                                  "--name", "e0")  # fmt: skip
+            processes.start("e0", evaluator, held)
         for k in range(trainers):
             processes.start(f"t{k}", local.trainer(f"t{k}"), held)
-        evaluator = derl_argv("evaluator", "--run", local.run, "--connect", local.endpoint,
-                              "--name", "e0")  # fmt: skip
-        processes.start("e0", evaluator, held)
         assert processes.finish(coordinator, timeout=300) == 0, processes.log("coordinator")
     finally:
         processes.close()
@@ -257,7 +259,7 @@ def _run(folder: Path, installed: Path, trainers: int, without: bool) -> Path:
 def test_a_plugin_run_is_refused_by_a_node_without_it_and_gives_one_fingerprint(
     installed: Path, tmp_path: Path
 ) -> None:
-    three = _run(tmp_path / "three", installed, trainers=3, without=True)
+    three = _run(tmp_path / "three", installed, trainers=3, lacking=True)
     refusals = [m for m in journaled(three, JobFailed) if m.unfit]
     assert len(refusals) == 1 and refusals[0].node == "lacking", refusals
     assert "lacks the task plugin stairs (derl-stairs 0.1.0" in refusals[0].error
@@ -265,7 +267,7 @@ def test_a_plugin_run_is_refused_by_a_node_without_it_and_gives_one_fingerprint(
     assert journaled(three, EvalResult)
     jobs = journaled(three, TrainJob)
     assert {p.name for p in jobs[0].plugins} == {"stairs", "cheap_parents", "stiffen"}
-    one = _run(tmp_path / "one", installed, trainers=1, without=False)
+    one = _run(tmp_path / "one", installed, trainers=1, lacking=False)
     assert load_history(three).fingerprint() == load_history(one).fingerprint()
 
 

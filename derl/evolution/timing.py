@@ -39,7 +39,7 @@ class TrainingTime(BaseModel):
         5.7e-5, gt=0, description="seconds per env step (policy, PPO update and physics)"
     )
     episode_s: float = Field(
-        0.0054, ge=0, description="seconds per episode: the released code rebuilt its model at reset"
+        0.0054, ge=0, description="seconds per episode: the released code rebuilt its model then"
     )
     row_s: float = Field(
         1.4e-5, ge=0, description="seconds per constraint row solved (summed over control steps)"

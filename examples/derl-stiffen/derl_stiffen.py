@@ -24,7 +24,8 @@ def stiffen(genome: Genome, rng: np.random.Generator) -> tuple[Genome, str]:
     weak = [limb for limb in genome.limbs if any(j.gear < max(GEARS) for j in limb.joints)]
     limb = weak[int(rng.integers(len(weak)))]
     joints = tuple(
-        j.model_copy(update={"gear": min(g for g in GEARS if g > j.gear)}) if j.gear < max(GEARS)
+        j.model_copy(update={"gear": min(g for g in GEARS if g > j.gear)})
+        if j.gear < max(GEARS)
         else j
         for j in limb.joints
     )
