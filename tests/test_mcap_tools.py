@@ -124,8 +124,10 @@ def test_a_truncated_log_gives_its_prefix_and_repairs(
 
 
 def test_a_corrupt_byte_is_reported_with_what_is_readable(log: Path) -> None:
+    """A byte flipped in a chunk a third into the file (in a message's record: a byte between
+    chunks, e.g. in an index a reader does not need, may well not matter)."""
     data = bytearray(log.read_bytes())
-    data[len(data) // 3] ^= 0xFF
+    data[data.index(b"stand_height", len(data) // 3) + 3] ^= 0xFF
     log.write_bytes(bytes(data))
     (file,) = info(log)
     assert file.integrity == "corrupt"

@@ -161,7 +161,7 @@ def test_a_retraining_given_up_still_lets_the_tests_start(quadruped: Genome) -> 
 def test_study_settings_are_checked(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="top"):
         StudyConfig(keep=5, top=10)
-    with pytest.raises(ValueError, match="unknown test tasks"):
+    with pytest.raises(ValueError, match="unknown task"):
         StudyConfig(test_tasks=("swim",))
     with pytest.raises(ValueError, match="repeat"):
         StudyConfig(budgets=(1_000_000, 1_000_000))
