@@ -1,5 +1,5 @@
 """What audits cost and how soon they catch a liar: the coordinator's own handlers (`Coordinator`
-with `EvolutionPolicy`, in this process, no bus) driven by simulated trainers in simulated time;
+with `EvolutionRules`, in this process, no bus) driven by simulated trainers in simulated time;
 prints JSON, one line per (audit share, seed) and a summary per share.
 
 Each training takes a uniform 0.5-1.5 time units (drawn per job); its result depends only on the
@@ -26,8 +26,8 @@ from pathlib import Path
 
 from derl.evolution import EvolutionConfig, load_profile
 from derl.messages import Ack, Cancel, Quarantine, Reject, TrainJob, WorkerReady
-from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import Coordinator, Liveliness
+from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.nodes.testing.trainers import Recorder, honest, honest_report
 
 RUN = "audit"
@@ -37,7 +37,7 @@ def simulate(config: EvolutionConfig, trainers: int, seed: int, liar: bool) -> d
     """One run to its end in simulated time (see the module)."""
     folder = Path(tempfile.mkdtemp(prefix="audit-")) / "run"
     heard = Recorder()
-    coordinator = Coordinator(RUN, folder, EvolutionPolicy(RUN, folder, config), publisher=heard)
+    coordinator = Coordinator(RUN, folder, EvolutionRules(RUN, folder, config), publisher=heard)
     names = [f"t{k}" for k in range(trainers)]
     liar_name = names[-1] if liar else None
     for node in names:
@@ -70,7 +70,7 @@ def simulate(config: EvolutionConfig, trainers: int, seed: int, liar: bool) -> d
             if not running:
                 if coordinator.state.finished:
                     break
-                raise RuntimeError(f"stalled at {coordinator.policy.born} born")
+                raise RuntimeError(f"stalled at {coordinator.rules.born} born")
             now, node, _ = heapq.heappop(running)
             coordinator.take(honest_report(holding[node], 1.0 if node == liar_name else 0.0))
             coordinator.settle()

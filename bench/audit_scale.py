@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 from derl.evolution import Evolution, EvolutionConfig, load_profile
 from derl.evolution.fingerprint import fingerprint
-from derl.nodes.coordinator.audits import Record, Rules
+from derl.nodes.coordinator.run.audits import Record, Rules
 from derl.unimal import Genome
 from derl.unimal.space import DENSITIES
 

@@ -74,7 +74,7 @@ import yaml
 import zenoh
 
 from derl.evolution import EvolutionConfig, load_profile
-from derl.evolution.population import breed
+from derl.evolution.evolution import breed
 from derl.messages import (
     Curve,
     FitnessReport,
@@ -458,10 +458,10 @@ class _NoBus:
 def _open_coordinator(run: str, run_dir: Path, config: EvolutionConfig, publisher=None):
     """A run's coordinator, as `derl coordinator` makes it (without its bus: its replies go to
     `publisher`)."""
-    from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import Coordinator
+    from derl.nodes.coordinator.run.rules import EvolutionRules
 
-    return Coordinator(run, run_dir, EvolutionPolicy(run, run_dir, config), publisher=publisher)
+    return Coordinator(run, run_dir, EvolutionRules(run, run_dir, config), publisher=publisher)
 
 
 def _coordinator(run: str, run_dir: Path, config: EvolutionConfig):
@@ -502,8 +502,8 @@ class Driver:
         are written by the coordinator's other thread)."""
         coordinator = self.coordinator
         times: list[float] = []
-        target = coordinator.policy.born + births
-        while coordinator.policy.born < target:
+        target = coordinator.rules.born + births
+        while coordinator.rules.born < target:
             tournaments = bool(coordinator.state.evolution.born) and not coordinator.state.waiting
             if not self.busy or (self.idle and tournaments and not self.retried):
                 self.retried = tournaments  # idle workers ask again once tournaments start
@@ -542,7 +542,7 @@ BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
     "encode (msgpack)": ("messages/codec.py", "encode"),
     "apply (the state's fold)": ("nodes/journal/history.py", "apply"),
     "job_of (per WorkerReady)": ("nodes/coordinator/jobs.py", "job_of"),
-    "wants_tournament": ("nodes/coordinator/evolution_state.py", "wants_tournament"),
+    "wants_tournament": ("nodes/coordinator/run/state.py", "wants_tournament"),
 }
 
 
@@ -703,7 +703,7 @@ def bench_recovery(work: Path, bodies_total: int = 4000, repeats: int = 3) -> di
         times.append(time.perf_counter() - start)
         cpu.append(time.process_time() - cpu0)
         restarted.close()
-        assert restarted.policy.born == bodies_total, restarted.policy.born
+        assert restarted.rules.born == bodies_total, restarted.rules.born
         segments(run_dir)[-1].unlink()  # the empty segment each start opens
     serving = [_time_to_serving(work, run_dir, holder) for _ in range(repeats)]
     return {

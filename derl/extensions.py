@@ -16,8 +16,8 @@ import numpy as np
 
 from derl.envs.registry import TASK_REGISTRY, make_task
 from derl.evolution.config import EvolutionConfig
+from derl.evolution.evolution import tournament_draws
 from derl.evolution.member import Member
-from derl.evolution.population import tournament_draws
 from derl.evolution.selection import SELECTION_REGISTRY, Draws, make_selection, select
 from derl.plugins import PluginError, Registry
 from derl.unimal.genome import Genome

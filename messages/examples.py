@@ -26,6 +26,7 @@ from derl.messages.schema import (
     Reject,
     Rejection,
     Retrained,
+    RunSettings,
     RunStatus,
     Tournament,
     TrainJob,
@@ -174,6 +175,7 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             of="FitnessReport",
             job=job,
         ),
+        RunSettings(run=run, settings='{"name": "smoke", "total": 8}'),
         PopulationSnapshot(
             run=run,
             birth_counter=i + 2,

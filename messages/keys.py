@@ -31,6 +31,7 @@ ARITY: Final[dict[str, int]] = {
     "checkpoint": 1,
     "lost": 1,
     "rejected": 0,
+    "settings": 0,
     "population": 0,
     "status": 0,
 }
@@ -50,6 +51,7 @@ PUBLISHERS: Final[dict[str, tuple[str, ...]]] = {
     "checkpoint": ("coordinator",),
     "lost": ("coordinator",),
     "rejected": (),
+    "settings": (),
     "population": ("coordinator",),
     "status": ("coordinator",),
 }
@@ -73,6 +75,7 @@ ROUTES: Final[dict[str, tuple[str, tuple[str, ...]]]] = {
     "Retrained": ("births", ("agent",)),
     "JobLost": ("lost", ("node",)),
     "Rejection": ("rejected", ()),
+    "RunSettings": ("settings", ()),
     "PopulationSnapshot": ("population", ()),
     "RunStatus": ("status", ()),
 }

@@ -534,6 +534,16 @@ class Rejection(MessageBase):
     """The `job` it names, if any."""
 
 
+class RunSettings(MessageBase):
+    """A fact of the coordinator: the settings the run goes on with (its profile, as JSON),
+    journaled at its first start and again whenever they change (`derl run --extend` raising
+    `total`): the journal says which settings made every birth."""
+
+    type: Literal["RunSettings"] = "RunSettings"
+    settings: Annotated[str, Field(max_length=65536)]
+    """The profile, as JSON (docs/configuration.md)."""
+
+
 class PopulationSnapshot(MessageBase):
     """The current population (periodic and on change); `birth_counter` births so far."""
 
@@ -618,6 +628,7 @@ Message = Annotated[
     | Quarantine
     | Retrained
     | Rejection
+    | RunSettings
     | PopulationSnapshot
     | RunStatus,
     Field(discriminator="type"),

@@ -23,9 +23,9 @@ from derl.messages import (
     Retrained,
     TrainJob,
 )
-from derl.nodes.coordinator.audits import audited, journaled, verdict
-from derl.nodes.coordinator.evolution_state import EvolutionState
 from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.coordinator.run.audits import audited, journaled, verdict
+from derl.nodes.coordinator.run.state import EvolutionState
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import replay
 from derl.nodes.testing.trainers import honest, honest_report, simulate_run

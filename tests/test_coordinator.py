@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from derl.evolution import Evolution, EvolutionConfig, breed, load_profile, population
+from derl.evolution import Evolution, EvolutionConfig, breed, evolution, load_profile
 from derl.messages import (
     Ack,
     Birth,
@@ -42,12 +42,12 @@ from derl.messages import (
     decode,
     encode,
 )
-from derl.nodes.coordinator.audits import journaled
-from derl.nodes.coordinator.evolution import EvolutionPolicy
-from derl.nodes.coordinator.evolution_state import EvolutionState
 from derl.nodes.coordinator.ledger import JOURNALED_REFUSALS
 from derl.nodes.coordinator.node import RESEND_AFTER_S, Coordinator
-from derl.nodes.coordinator.run_files import INITIAL_FILE, PROFILE_FILE
+from derl.nodes.coordinator.run.audits import journaled
+from derl.nodes.coordinator.run.files import INITIAL_FILE, PROFILE_FILE
+from derl.nodes.coordinator.run.rules import EvolutionRules
+from derl.nodes.coordinator.run.state import EvolutionState
 from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
@@ -81,7 +81,7 @@ def _serving(
         subscriber = observer.declare_subscriber(
             f"derl/{run}/**", lambda sample: heard.put(decode(sample.payload.to_bytes()))
         )
-        policy = EvolutionPolicy(run, run_dir, config)
+        policy = EvolutionRules(run, run_dir, config)
         coordinator = Coordinator(run, run_dir, policy, Bus(own, run), clock)
         try:
             yield coordinator, heard
@@ -215,7 +215,7 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     ack = heard.get(timeout=10)
     assert isinstance(ack, Ack) and ack.agent == second.agent
     assert coordinator.ledger.checkpoints.path(second.agent).read_bytes() == _weights(second, 2)
-    assert coordinator.policy.born == 2
+    assert coordinator.rules.born == 2
     assert not coordinator.ledger.stalled
 
 
@@ -263,7 +263,7 @@ def test_a_child_whose_body_is_born_already_is_born_as_its_repeat_untrained(
         assert _written(checkpoint) == coordinator.ledger.checkpoints.path(twin).read_bytes()
 
     checkpoint.unlink()  # as if the coordinator died before the link was on disk
-    restarted = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
+    restarted = Coordinator(run, tmp_path, EvolutionRules(run, tmp_path, config))
     try:
         state = restarted.state
         assert state.born["c00000"].repeat_of == twin
@@ -382,7 +382,7 @@ def test_tournaments_start_once_every_initial_body_is_assigned(
     births = [m for m in _journaled(coordinator) if isinstance(m, Birth)]
     births = [m.agent for m in births]
     assert births[:3] == ["i0000", "i0001", "i0002"] and births[-2:] == ["i0003", child]
-    assert "i0003" in [m.agent for m in coordinator.policy.state.evolution.population]
+    assert "i0003" in [m.agent for m in coordinator.rules.state.evolution.population]
 
 
 def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
@@ -392,7 +392,7 @@ def test_a_child_no_valid_body_can_be_bred_from_is_given_up_at_once(
     valid body itself: three limbs in one place, which no single mutation fixes) gives a child
     that is given up at once (ChildFailed, no training: breeding is deterministic, so no retry
     would change it), and the run goes on. (Breeding gives up after 5 draws here, not 100.)"""
-    monkeypatch.setattr(population, "MAX_DRAWS", 5)
+    monkeypatch.setattr(evolution, "MAX_DRAWS", 5)
     joint = Joint(axis="x", range=(-30, 60), gear=200)
     limb = Limb(id=0, paired=False, length=0.3, theta=0, phi=90, joints=(joint,))
     stacked = [Genome(head_density=700, limb_density=600, limbs=tuple(
@@ -584,7 +584,7 @@ def test_a_worker_that_asked_when_there_was_no_work_gets_a_job_once_there_is_som
     config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 3})
     initial = sample_population(2, np.random.default_rng(3))
     (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
-    coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
+    coordinator = Coordinator(run, tmp_path, EvolutionRules(run, tmp_path, config))
     serving = threading.Thread(target=coordinator.serve, args=(ZenohOptions(listen=(endpoint,)),))
     serving.start()
     jobs: queue.Queue[TrainJob] = queue.Queue()
@@ -627,10 +627,10 @@ def test_a_run_saved_when_ppo_held_every_ppoconfig_field_resumes_as_it_ran(tmp_p
     initial = sample_population(config.population, np.random.default_rng(3))
     (tmp_path / INITIAL_FILE).write_text(json.dumps([g.model_dump() for g in initial]))
     run = run_id()
-    coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config))
+    coordinator = Coordinator(run, tmp_path, EvolutionRules(run, tmp_path, config))
     try:
-        assert coordinator.policy.config.ppo == PPOHyperparameters(lr=1e-4)
-        ppo = coordinator.policy.config.training_ppo()
+        assert coordinator.rules.config.ppo == PPOHyperparameters(lr=1e-4)
+        ppo = coordinator.rules.config.training_ppo()
         assert (ppo.num_envs, ppo.total_steps, ppo.seed, ppo.lr) == (
             config.num_envs, config.train_steps, config.training_seed, 1e-4)  # fmt: skip
     finally:
@@ -642,14 +642,14 @@ def test_a_run_directory_of_another_profile_is_refused(tmp_path: Path) -> None:
     a run directory of another profile is `Refused`, naming both."""
     (tmp_path / PROFILE_FILE).write_text(load_profile("smoke").model_dump_json())
     with pytest.raises(Refused, match="holds a run of profile smoke in ft with seed 0, not demo"):
-        EvolutionPolicy(run_id(), tmp_path, load_profile("demo"))
+        EvolutionRules(run_id(), tmp_path, load_profile("demo"))
 
 
 def test_a_run_whose_jobs_would_not_be_valid_messages_is_refused(tmp_path: Path) -> None:
     """Every value a job carries is checked before anything starts (here the run id, which every
     message and key carries)."""
     with pytest.raises(Refused, match="run 'no spaces' cannot start"):
-        EvolutionPolicy("no spaces", tmp_path, load_profile("smoke"))
+        EvolutionRules("no spaces", tmp_path, load_profile("smoke"))
     assert not (tmp_path / INITIAL_FILE).exists()
 
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 from derl.messages import MESSAGE_TYPES, Birth, ChildFailed, TrainJob
 from derl.messages.dispatch import Handler, handles
 from derl.messages.examples import examples
-from derl.nodes.coordinator.evolution_state import EvolutionState
 from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.coordinator.run.state import EvolutionState
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.tools.foxglove import Bridge
 from derl.nodes.tools.monitor import RunView
@@ -47,7 +47,7 @@ def test_every_reader_of_messages_dispatches_by_the_one_convention() -> None:
     """The fold takes every fact of the journal; the coordinator's state adds the decisions it
     keeps; the coordinator takes what workers send; the monitor and the bridge what they show."""
     facts = {"TrainJob", "EvalJob", "FitnessReport", "Birth", "ChildFailed", "Quarantine",
-             "Retrained", "JobFailed", "JobLost", "EvalResult"}  # fmt: skip
+             "Retrained", "JobFailed", "JobLost", "EvalResult", "RunSettings"}  # fmt: skip
     assert {t.__name__ for t in RunHistory._handlers} == facts
     assert {t.__name__ for t in EvolutionState._handlers} == facts | {"Tournament", "Cancel"}
     assert {t.__name__ for t in Coordinator._handlers} == {

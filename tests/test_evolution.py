@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from derl.analysis.study import load_study_profile
 from derl.evolution import Child, Evolution, breed, load_profile
-from derl.evolution.population import tournament_draws
+from derl.evolution.evolution import tournament_draws
 from derl.unimal import Genome, canonical_genome, check_body, sample_population
 from derl.unimal.mutations import OPERATORS
 
@@ -159,7 +159,7 @@ def test_a_decided_child_waits_for_a_worker_until_its_job_is_journaled(
     fold keeps the child waiting (it is trained next), never decides past it."""
     from derl.messages import Birth, TrainJob
     from derl.messages.examples import examples
-    from derl.nodes.coordinator.evolution_state import EvolutionState, tournament_message
+    from derl.nodes.coordinator.run.state import EvolutionState, tournament_message
     from derl.rl import PPOConfig
 
     config = load_profile("smoke").model_copy(update={"population": 4, "tournament": 3})

@@ -33,8 +33,8 @@ from derl.messages import (
     kind_of,
 )
 from derl.messages.examples import examples
-from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import Coordinator
+from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.nodes.errors import REFUSED, DerlError
 from derl.nodes.journal.segments import (
     Journal,
@@ -183,7 +183,7 @@ def test_a_journal_of_another_schema_version_is_refused_as_a_whole(tmp_path: Pat
         with pytest.raises(DerlError, match=said):
             read()
     with pytest.raises(DerlError) as refused:
-        Coordinator("run1", tmp_path, EvolutionPolicy("run1", tmp_path, load_profile("smoke")))
+        Coordinator("run1", tmp_path, EvolutionRules("run1", tmp_path, load_profile("smoke")))
     assert refused.value.code == REFUSED and "derl that wrote it" in str(refused.value)
     assert segments(tmp_path) == [path]  # no new segment was started beside it
 

@@ -25,8 +25,8 @@ from derl.envs.rewards import RewardWeights
 from derl.envs.task import Task
 from derl.envs.worlds import ft
 from derl.evolution import load_profile
+from derl.evolution.evolution import tournament_draws
 from derl.evolution.member import Member
-from derl.evolution.population import tournament_draws
 from derl.evolution.selection import (
     SELECTION_REGISTRY,
     Draws,
@@ -37,8 +37,8 @@ from derl.evolution.selection import (
 )
 from derl.messages import Ack, EvalResult, JobFailed, MessageBase, Reject, TrainJob, WorkerReady
 from derl.nodes.cli.main import main
-from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import Coordinator, Liveliness
+from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.nodes.journal.history import load_history
 from derl.nodes.testing.trainers import Recorder, fake_report
 from derl.nodes.testing.waiting import wait_until
@@ -146,7 +146,7 @@ def _answers(world: str, fitness: float, tmp_path: Path) -> MessageBase:
     policy of it): an Ack or a Reject."""
     run, heard = "tbound", Recorder()
     config = load_profile("smoke", world=world).model_copy(update={"eval_top": 0, "eval_tasks": ()})
-    coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config), heard)
+    coordinator = Coordinator(run, tmp_path, EvolutionRules(run, tmp_path, config), heard)
     try:
         coordinator.take(Liveliness("trainer", "w1", True))
         coordinator.take(WorkerReady(run=run, node="w1", role="trainer", host="h", pid=1))
@@ -333,7 +333,7 @@ def test_a_worker_that_refuses_a_run_gets_no_more_jobs_and_costs_no_attempt(
 ) -> None:
     run, heard = "tunfit", Recorder()
     config = load_profile("smoke").model_copy(update={"eval_top": 0, "eval_tasks": ()})
-    coordinator = Coordinator(run, tmp_path, EvolutionPolicy(run, tmp_path, config), heard)
+    coordinator = Coordinator(run, tmp_path, EvolutionRules(run, tmp_path, config), heard)
     try:
         for node in ("lacking", "holding"):
             coordinator.take(Liveliness("trainer", node, True))

@@ -286,3 +286,5 @@ def test_a_run_extended_with_more_bodies_gives_the_births_of_a_run_that_long_fro
     simulate_run("r", extended, config, names[:2])
     assert _births(extended) == _births(whole) and len(_births(whole)) == 12
     assert load_history(extended).fingerprint() == load_history(whole).fingerprint()
+    settings = [json.loads(s) for s in load_history(extended).settings]  # the extension, journaled
+    assert [s["total"] for s in settings] == [8, 12], settings

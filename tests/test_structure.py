@@ -89,7 +89,7 @@ def test_no_import_cycle_among_derls_modules() -> None:
     modules = _modules()
     graph = {name: _imports_of(name, path, modules) for name, path in modules.items()}
     assert graph["derl.nodes.coordinator.node"] >= {"derl.nodes.coordinator.ledger"}  # it reads
-    assert "derl.analysis" in graph["derl.nodes.coordinator.study_files"]  # inside a function
+    assert "derl.analysis" in graph["derl.nodes.coordinator.study.files"]  # inside a function
     assert _cycles(graph) == []
 
 

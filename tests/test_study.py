@@ -26,8 +26,8 @@ from nodes_fixtures import (
 from derl.analysis import RetrainJob, RetrainPlan
 from derl.analysis.study import STUDY_PROFILES, StudyConfig, load_study_profile
 from derl.messages import Curve, EvalJob, EvalResult, JobFailed
-from derl.nodes.coordinator.study_files import SETUP_FILE, StudySetup, read_plan, read_setup
-from derl.nodes.coordinator.study_state import StudyState
+from derl.nodes.coordinator.study.files import SETUP_FILE, StudySetup, read_plan, read_setup
+from derl.nodes.coordinator.study.state import StudyState
 from derl.nodes.testing.waiting import wait_until
 from derl.rl import PPOConfig
 from derl.unimal import Genome, body_hash

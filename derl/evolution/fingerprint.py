@@ -1,6 +1,6 @@
 """A run's fingerprint: one short hash of its births, so two researchers compare runs in a line.
 
-A run is a function of its profile and seed (`derl.evolution.population`): whatever the number of
+A run is a function of its profile and seed (`derl.evolution.evolution`): whatever the number of
 trainers, their speed or what crashed, the same children are born of the same parents with the
 same bodies and the same fitness to the bit. The fingerprint hashes exactly that, each birth as
 (child, parent, generation, the fitness's bits, `body_hash` of the body), in child order

@@ -72,9 +72,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _coordinator(args: argparse.Namespace) -> int:
-    from derl.nodes.coordinator.evolution import EvolutionPolicy
     from derl.nodes.coordinator.node import serve
-    from derl.nodes.coordinator.study import serve_study
+    from derl.nodes.coordinator.run.rules import EvolutionRules
+    from derl.nodes.coordinator.study.rules import serve_study
 
     try:  # its directory and settings: a restart would not change them
         if args.study is not None:
@@ -88,8 +88,8 @@ def _coordinator(args: argparse.Namespace) -> int:
             finished = serve_study(args.run, args.study, options_from(args), args.study_runs,
                                    study)  # fmt: skip
         else:
-            policy = partial(EvolutionPolicy, args.run, run_dir, config)
-            finished = serve(args.run, run_dir, policy, options_from(args))
+            rules = partial(EvolutionRules, args.run, run_dir, config)
+            finished = serve(args.run, run_dir, rules, options_from(args))
     except zenoh.ZError as error:
         fail_on_bus(error)
     return 0 if finished is True else 1

@@ -93,7 +93,7 @@ def _thresholds(text: str) -> dict[str, float]:
 
 def _runs_or_study(paths: list[Path]) -> list[RunLog]:
     """The runs of `paths`, or a study's runs with its results (`derl study`)."""
-    from derl.nodes.coordinator.study_files import SETUP_FILE, study_logs
+    from derl.nodes.coordinator.study.files import SETUP_FILE, study_logs
 
     studies = [path for path in paths if (path / SETUP_FILE).is_file()]
     if not studies:

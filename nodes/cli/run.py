@@ -141,7 +141,7 @@ def resumed_config(
     saved settings (the coordinator keeps them), or exit (status 2) where a --set asks for
     another value of a setting than the saved one, unless it is `--extend`'s total, larger:
     saved now, the coordinator goes on to it."""
-    from derl.nodes.coordinator.run_files import save_config, saved_config
+    from derl.nodes.coordinator.run.files import save_config, saved_config
 
     saved = saved_config(run_dir)
     if saved is None or (saved.name, saved.world, saved.seed) != (

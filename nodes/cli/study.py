@@ -57,7 +57,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from derl.nodes.coordinator.study_files import SETUP_FILE, prepare_study, read_plan
+    from derl.nodes.coordinator.study.files import SETUP_FILE, prepare_study, read_plan
 
     config = study_profile_from(args)
     if not (args.study_dir / SETUP_FILE).exists():  # checked before DIR is made

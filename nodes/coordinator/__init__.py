@@ -1,2 +1,3 @@
 """The coordinator node: one loop (`node`) over a ledger (`ledger`: journal, state, replies), with
-a policy (`policy`) deciding what messages mean: a run's (`evolution`) or a study's (`study`)."""
+its rules (`rules`) deciding what messages mean: a run's (`run`: rules, state, audits, files) or
+a study's (`study`: rules, state, files)."""

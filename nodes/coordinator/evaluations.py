@@ -1,4 +1,4 @@
-"""Evaluation jobs and their results, the same in every policy: a run's test stage and a study.
+"""Evaluation jobs and their results, the same in every rule set: a run's test stage and a study.
 
 The state plans the evaluations (an agent in a task with a seed and a budget: `EvalKey`) and
 hands out the next one waiting; an `EvalJob` carries the agent's body and its learning

@@ -43,10 +43,10 @@ from derl.messages import (
     Rejection,
     encode,
 )
-from derl.nodes.coordinator.audits import incarnation
 from derl.nodes.coordinator.disk_faults import DiskFaults
 from derl.nodes.coordinator.jobs import JobBook
 from derl.nodes.coordinator.outbox import Outbox, Reply
+from derl.nodes.coordinator.run.audits import incarnation
 from derl.nodes.errors import Refused
 from derl.nodes.journal.segments import Journal, JournalDamaged, replay, segments
 from derl.nodes.runtime.checkpoints import CheckpointFiles

@@ -1,20 +1,20 @@
-"""The coordinator node: one loop for every coordinator, whose policy decides what messages mean.
+"""The coordinator node: one loop for every coordinator, whose rules decide what messages mean.
 
 The loop takes every subscription's messages from Zenoh's queues (`Inlet`), so the state has one
 writer. It takes what is waiting as a group (group commit): whatever the group makes the
 coordinator decide is committed through its `Ledger` (journaled, applied to the state, the
 replies released by the outbox thread once the journal file is synced) while the loop goes on,
 and only then published, so nothing is seen that a crash could forget. A worker that asks for
-work (WorkerReady) gets the job its policy chooses, or waits among the idle workers and gets one
+work (WorkerReady) gets the job its rules choose, or waits among the idle workers and gets one
 as soon as there is some; one that asks again while it holds a job gets that job again. A worker
 that loses its liveliness token, or sends no progress for its job's lease, loses the job (JobLost,
-journaled): its agent goes to the next ready worker. Results go to the policy (`Policy`:
+journaled): its agent goes to the next ready worker. Results go to the rules (`Rules`:
 accept or reject), and so do failed jobs once checked and journaled; a message whose node differs
 from its key's node segment is rejected by the bus check, journaled and counted. Once a second
 the loop publishes the run's status, every 5 s its population; births and failed children go out
 on ``births/<agent>``, and a Zenoh query on ``births/*`` or ``population`` answers a monitor that
 starts late, one on ``checkpoint/<agent>`` a trainer whose child inherits that agent's weights.
-When the state says the run is over, the policy writes its results and the loop announces the
+When the state says the run is over, the rules write its results and the loop announces the
 end a few times, then returns. While the journal or a checkpoint file cannot be
 written (a full disk: `Ledger.stalled`) the loop commits nothing and publishes only what was on
 the disk before, drops what would need a commit (the workers send their reports and asks
@@ -54,9 +54,9 @@ from derl.messages import (
     parse,
 )
 from derl.messages.dispatch import Handler, handles
-from derl.nodes.coordinator.audits import incarnation
 from derl.nodes.coordinator.ledger import Ledger
-from derl.nodes.coordinator.policy import Policy
+from derl.nodes.coordinator.rules import Rules
+from derl.nodes.coordinator.run.audits import incarnation
 from derl.nodes.runtime.bus import (
     INLET_CAPACITY,
     MSGPACK,
@@ -106,7 +106,7 @@ class Liveliness(NamedTuple):
 
 
 class Coordinator(Handler):
-    """The node loop of run `run` in `run_dir`, with `policy` deciding what messages mean.
+    """The node loop of run `run` in `run_dir`, with `rules` deciding what messages mean.
 
     `serve` runs it on the bus. A tool or a test drives it without one, in its own thread, as the
     loop does: `take` each message or liveliness change that came, `assign_idle`, then `settle`
@@ -121,16 +121,16 @@ class Coordinator(Handler):
         self,
         run: str,
         run_dir: Path,
-        policy: Policy,
+        rules: Rules,
         publisher: Publisher | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if publisher is not None:
             self.bus = publisher
-        self.run, self.policy, self.clock = run, policy, clock
-        self.state = policy.state
-        self.ledger = Ledger(run, run_dir, policy.state, clock)
-        policy.start(self.ledger)
+        self.run, self.rules, self.clock = run, rules, clock
+        self.state = rules.state
+        self.ledger = Ledger(run, run_dir, rules.state, clock)
+        rules.start(self.ledger)
         self.keys = KeySpace(run)
         self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
         self.recent_lock = threading.Lock()
@@ -153,7 +153,7 @@ class Coordinator(Handler):
         self.retry_at = 0.0  # when a stalled coordinator next tries to write its journal
         self.stop = threading.Event()
         log.info("run %s: %d journaled messages replayed, %d born", run, self.ledger.replayed,
-                 policy.progress().born)  # fmt: skip
+                 rules.progress().born)  # fmt: skip
 
     # --- the loop ----------------------------------------------------------------------------
 
@@ -208,7 +208,7 @@ class Coordinator(Handler):
                     if announced >= DONE_ANNOUNCEMENTS:
                         return True
             if now >= next_snapshot:
-                self._say(self.policy.snapshot())
+                self._say(self.rules.snapshot())
                 next_snapshot = now + SNAPSHOT_PERIOD_S
         return False
 
@@ -243,7 +243,7 @@ class Coordinator(Handler):
         # so once a second everything alive leaves the cyclic GC's care: else its full passes over
         # a large run's state stall the loop for hundreds of ms (measured: 0.5 s at 20k births).
         gc.freeze()
-        self.policy.log_progress()
+        self.rules.log_progress()
         self._check_leases(now)
         self._say(self.status())
         if not self.state.finished:
@@ -253,7 +253,7 @@ class Coordinator(Handler):
             if self.ledger.stalled:  # not yet: the end waits until the files are written
                 return False
             self._publish_released()
-            self.policy.finish()
+            self.rules.finish()
         return True
 
     def close(self) -> None:
@@ -309,11 +309,11 @@ class Coordinator(Handler):
 
     @handles(FitnessReport)
     def _fitness(self, msg: FitnessReport) -> None:
-        self.policy.on_fitness(msg)
+        self.rules.on_fitness(msg)
 
     @handles(EvalResult)
     def _evaluation(self, msg: EvalResult) -> None:
-        self.policy.on_evaluation(msg)
+        self.rules.on_evaluation(msg)
 
     def settle(self) -> None:
         """Flush the group, wait until it is on the disk and publish its replies (the loop does
@@ -370,7 +370,7 @@ class Coordinator(Handler):
         refused the run's jobs (`JobFailed.unfit`) gets none."""
         if node in self.state.unfit:
             return False
-        job = self.policy.next_job(node, role, self.trainers)
+        job = self.rules.next_job(node, role, self.trainers)
         if job is None:
             if incarnation(node)[0] not in self.state.quarantined:  # those never get work
                 self.idle[role][node] = None
@@ -410,7 +410,7 @@ class Coordinator(Handler):
             return
         log.warning("%s failed on %s: %s", failure.agent, failure.node, failure.error)
         self.ledger.commit(failure, publish=False)
-        self.policy.on_failure(failure, job)
+        self.rules.on_failure(failure, job)
 
     def _bus_rejected(self, why: str, key: str, msg: MessageBase | None) -> None:
         """A message the bus check refused; the ones that decode are journaled (`Rejection`)."""
@@ -500,12 +500,12 @@ class Coordinator(Handler):
         query.reply(self.keys.checkpoint(agent), data)
 
     def _answer_population(self, query: zenoh.Query) -> None:
-        snapshot = encode(self.policy.snapshot())
+        snapshot = encode(self.rules.snapshot())
         query.reply(self.keys.population(), snapshot, encoding=MSGPACK)
 
     def status(self) -> RunStatus:
         """The run now, as the loop publishes it every second."""
-        progress, state = self.policy.progress(), self.state
+        progress, state = self.rules.progress(), self.state
         return RunStatus(
             run=self.run,
             born=progress.born,
@@ -527,12 +527,12 @@ class Coordinator(Handler):
         )
 
 
-def serve(run: str, run_dir: Path, policy: Callable[[], Policy], options: ZenohOptions) -> bool:
-    """The coordinator of `run` in `run_dir`, with the policy `policy()` makes, until the run is
-    finished (True) or it is stopped (False); the run directory is locked from before the policy
-    reads its files until the end (`RunDirLocked` if another process holds it)."""
+def serve(run: str, run_dir: Path, rules: Callable[[], Rules], options: ZenohOptions) -> bool:
+    """The coordinator of `run` in `run_dir`, with the rules `rules()` makes, until the run is
+    finished (True) or it is stopped (False); the run directory is locked from before the rules
+    read its files until the end (`RunDirLocked` if another process holds it)."""
     with lock_run_dir(run_dir):
-        coordinator = Coordinator(run, run_dir, policy())
+        coordinator = Coordinator(run, run_dir, rules())
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: coordinator.stop.set())
         return coordinator.serve(options)

@@ -29,6 +29,7 @@ from derl.messages import (
     MessageBase,
     Quarantine,
     Retrained,
+    RunSettings,
     TrainJob,
 )
 from derl.messages.dispatch import Handler, handles
@@ -70,6 +71,7 @@ class RunHistory(Handler):
         self.quarantined: dict[str, Quarantine] = {}  # identity -> the quarantine that caught it
         self.retrained: dict[str, Retrained] = {}  # child -> its result's replacement
         self.other_runs = 0
+        self.settings: list[str] = []  # the run's settings as JSON, each time they were set
         self._accepted: dict[str, list[FitnessReport]] = {}  # child -> its reports, until born
 
     def fingerprint(self) -> str:
@@ -94,6 +96,10 @@ class RunHistory(Handler):
     def issued_to(self, job: str, node: str, agent: str) -> bool:
         """Whether `job` was given to `node` for `agent` (a child, or an evaluated agent)."""
         return self.issued.get(job) == (node, agent)
+
+    @handles(RunSettings)
+    def on_settings(self, msg: RunSettings) -> None:
+        self.settings.append(msg.settings)
 
     @handles(TrainJob)
     def on_train_job(self, msg: TrainJob) -> None:

@@ -29,8 +29,8 @@ import yaml
 
 from derl.agent_folder import CHECKPOINT
 from derl.messages import Birth, MessageBase, TrainJob, decode, encode
-from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import DONE_ANNOUNCEMENTS, Coordinator, Liveliness
+from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.nodes.journal.segments import cut_torn_tail, replay, segments
 from derl.nodes.runtime.processes import spawn_derl, stop_all
 from derl.nodes.testing.crash import (
@@ -94,8 +94,8 @@ def check(folder: Path, knowledge: Knowledge, jobs: dict[str, TrainJob]) -> list
     [])."""
     heard = Recorder()
     try:
-        policy = EvolutionPolicy(RUN, folder, config())
-        coordinator = Coordinator(RUN, folder, policy, publisher=heard)
+        rules = EvolutionRules(RUN, folder, config())
+        coordinator = Coordinator(RUN, folder, rules, publisher=heard)
     except (SystemExit, Exception) as refused:  # a refusal, or a fault
         return [f"the coordinator did not start: {refused!r}"]
     problems = journal_holds(folder, knowledge, "at the start")
@@ -109,7 +109,7 @@ def check(folder: Path, knowledge: Knowledge, jobs: dict[str, TrainJob]) -> list
             after += coordinator.state.finished
             if after == DONE_ANNOUNCEMENTS:  # as the serve loop does before it ends
                 coordinator.settle()
-                coordinator.policy.finish()
+                coordinator.rules.finish()
                 break
             for msg in inbox:
                 coordinator.take(decode(encode(msg)))
@@ -124,7 +124,7 @@ def check(folder: Path, knowledge: Knowledge, jobs: dict[str, TrainJob]) -> list
             if not inbox:  # nothing answered: each sends its report again or asks again
                 inbox = [t.again() for t in trainers.values()]
         else:
-            problems.append(f"the run did not finish: {coordinator.policy.progress().born} born")
+            problems.append(f"the run did not finish: {coordinator.rules.progress().born} born")
     finally:
         coordinator.close()
     return problems + journal_holds(folder, knowledge, "at the end", finished=True)

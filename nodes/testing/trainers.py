@@ -26,8 +26,8 @@ from derl.messages import (
     decode,
     encode,
 )
-from derl.nodes.coordinator.evolution import EvolutionPolicy
 from derl.nodes.coordinator.node import Coordinator, Liveliness
+from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.policy_check import untrained_policy
 from derl.unimal import Genome
 
@@ -127,7 +127,7 @@ def simulate_run(
     to be trained again, its results written) by the simulated `Trainers` named `names`; the
     coordinator, closed."""
     heard = Recorder()
-    coordinator = Coordinator(run, folder, EvolutionPolicy(run, folder, config), publisher=heard)
+    coordinator = Coordinator(run, folder, EvolutionRules(run, folder, config), publisher=heard)
     trainers = Trainers(run, names, liar)
     for node in names:
         coordinator.take(Liveliness("trainer", node, True))
@@ -135,7 +135,7 @@ def simulate_run(
         inbox = trainers.asking()
         for _ in range(rounds):
             if coordinator.state.finished:
-                coordinator.policy.finish()
+                coordinator.rules.finish()
                 return coordinator
             for msg in inbox:
                 coordinator.take(decode(encode(msg)))

@@ -1,4 +1,4 @@
-"""A run's policy: the aging tournament evolution as jobs, births and failures.
+"""A run's rules: the aging tournament evolution as jobs, births and failures.
 
 A ready trainer gets the first waiting child (an initial body, or one whose job was lost or
 failed: on another trainer than the one it failed on, while there is one), else, once every
@@ -17,11 +17,12 @@ the fitness is within what the world allows and the env steps within the job's b
 checkpoint is written, and the Birth and the Ack go out once it is on disk. A report that can
 never be taken is rejected. A child whose training failed `max_attempts` times is given up
 (ChildFailed). Once evolution is over the best bodies are evaluated (`evaluations`), and the
-run's results are written (`run_files`).
+run's results are written (`files`).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -45,20 +46,21 @@ from derl.messages import (
     PopulationSnapshot,
     Quarantine,
     Retrained,
+    RunSettings,
     TrainJob,
 )
-from derl.nodes.coordinator.audits import Verdict, identity, journaled, trials, verdict
 from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_evaluation
-from derl.nodes.coordinator.evolution_state import EvolutionState, tournament_message
 from derl.nodes.coordinator.jobs import Job
 from derl.nodes.coordinator.ledger import Ledger
-from derl.nodes.coordinator.policy import Progress
-from derl.nodes.coordinator.run_files import (
+from derl.nodes.coordinator.rules import Progress
+from derl.nodes.coordinator.run.audits import Verdict, identity, journaled, trials, verdict
+from derl.nodes.coordinator.run.files import (
     read_initial_population,
     run_config,
     save_initial_population,
     write_results,
 )
+from derl.nodes.coordinator.run.state import EvolutionState, tournament_message
 from derl.nodes.errors import Refused
 from derl.plugins import PluginError
 from derl.unimal import Genome, MutationFailed
@@ -68,8 +70,8 @@ log = logging.getLogger("derl.coordinator")
 T = TypeVar("T")
 
 
-class EvolutionPolicy:
-    """The policy of an evolution run of `config` in `run_dir` (see the module)."""
+class EvolutionRules:
+    """The rules of an evolution run of `config` in `run_dir` (see the module)."""
 
     def __init__(self, run: str, run_dir: Path, config: EvolutionConfig) -> None:
         self.run, self.run_dir = run, run_dir
@@ -100,6 +102,12 @@ class EvolutionPolicy:
         for birth in self.state.births:
             if birth.repeat_of is not None and not ledger.checkpoints.path(birth.agent).exists():
                 ledger.link(birth.agent, birth.repeat_of)
+        settings = self.config.model_dump_json()
+        if not self.state.settings or self.state.settings[-1] != settings:
+            if self.state.settings:
+                log.info("the run goes on with other settings (%s): journaled",
+                         ", ".join(changed(self.state.settings[-1], settings)))  # fmt: skip
+            ledger.commit(RunSettings(run=self.run, settings=settings), publish=False)
 
     # --- jobs --------------------------------------------------------------------------------
 
@@ -430,3 +438,9 @@ def check_jobs(run: str, config: EvolutionConfig) -> None:
                         lease_s=config.lease_s, plugins=plugins)  # fmt: skip
     except (ValueError, ValidationError) as error:
         raise Refused(f"run {run!r} cannot start: {error}") from None
+
+
+def changed(was: str, now: str) -> list[str]:
+    """The settings that differ between two profiles as JSON, each as ``key old -> new``."""
+    old, new = json.loads(was), json.loads(now)
+    return [f"{k} {old.get(k)} -> {new[k]}" for k in new if old.get(k) != new[k]]

@@ -12,7 +12,7 @@ from __future__ import annotations
 from derl.analysis.selection import RetrainJob, RetrainPlan, kept_bodies
 from derl.analysis.study import StudyConfig
 from derl.nodes.coordinator.jobs import JobBook
-from derl.nodes.coordinator.study_files import selected_bodies, study_agent
+from derl.nodes.coordinator.study.files import selected_bodies, study_agent
 from derl.nodes.errors import Refused
 from derl.nodes.journal.history import EvalKey
 from derl.rl import PPOConfig

@@ -42,8 +42,8 @@ from derl.messages import (
     TrainJob,
 )
 from derl.messages.dispatch import handles
-from derl.nodes.coordinator.audits import Record, Rules, identity, result_bits, trials
 from derl.nodes.coordinator.jobs import Job, JobBook
+from derl.nodes.coordinator.run.audits import Record, Rules, identity, result_bits, trials
 from derl.nodes.journal.history import EvalKey
 from derl.rl import PPOConfig
 from derl.unimal import Genome, Mutation
@@ -301,7 +301,7 @@ class EvolutionState(JobBook):
             del self.held[held]
             self.waiting.appendleft(held)
 
-    # --- questions the node and the policy ask ----------------------------------------------
+    # --- questions the node and the rules ask ----------------------------------------------
 
     def queued(self, role: str) -> bool:
         """A waiting child may be one that an idle trainer may not take and another may."""

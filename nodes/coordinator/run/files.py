@@ -21,7 +21,7 @@ from pydantic import ValidationError
 
 from derl.agent_folder import AgentFolder, TrainingSettings
 from derl.evolution import EvolutionConfig
-from derl.nodes.coordinator.evolution_state import EvolutionState
+from derl.nodes.coordinator.run.state import EvolutionState
 from derl.nodes.errors import Refused
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 from derl.nodes.runtime.rundir import write_atomic

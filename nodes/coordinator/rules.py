@@ -1,12 +1,12 @@
-"""What a coordinator's messages mean: the interface between the node loop and its policies.
+"""What a coordinator's messages mean: the interface between the node loop and its rules.
 
 The loop (`node.Coordinator`) is the same for every coordinator: it takes the bus's messages in
 groups, commits through its `Ledger` (journal, state, replies released once on disk), keeps the
 workers' liveliness and the jobs' leases, answers queries and publishes the status. What a message
-means is its policy's: which job a ready worker gets, whether a result is taken (a birth, an
+means is its rules': which job a ready worker gets, whether a result is taken (a birth, an
 evaluation) or rejected, what a failed job leads to, what the run looks like and what it leaves
-in its directory. Two policies exist: `EvolutionPolicy` (a run: `evolution.py`) and `StudyPolicy`
-(the paper's appendix D: `study.py`). A policy changes the state only by committing messages
+in its directory. Two rule sets exist: `EvolutionRules` (a run: `run/rules.py`) and `StudyRules`
+(the paper's appendix D: `study/rules.py`). Rules change the state only by committing messages
 through the ledger it is given at `start`, so a restarted coordinator rebuilds it from the journal.
 """
 
@@ -29,7 +29,7 @@ from derl.nodes.coordinator.ledger import Ledger
 
 @dataclass(frozen=True)
 class Progress:
-    """A policy's part of `RunStatus`: children born of the target, the best so far, births
+    """The rules' part of `RunStatus`: children born of the target, the best so far, births
     checked by an audit and children to train again (`audits`)."""
 
     born: int = 0
@@ -40,8 +40,9 @@ class Progress:
     retraining: int = 0
 
 
-class Policy(Protocol):
-    """What the node loop asks of a coordinator's policy."""
+class Rules(Protocol):
+    """What the node loop asks of a coordinator's rules ("policy" in derl is the trained
+    controller only: `derl.rl.Policy`)."""
 
     @property
     def state(self) -> JobBook:

@@ -1,7 +1,7 @@
-"""A study's policy: the paper's appendix D as evaluation jobs, journaled like a run.
+"""A study's rules: the paper's appendix D as evaluation jobs, journaled like a run.
 
-A study directory holds what the study is and the bodies it retrains (`study_files`). Its
-coordinator is the run's node loop with this policy and its own state (`study_state`: the
+A study directory holds what the study is and the bodies it retrains (`files`). Its
+coordinator is the run's node loop with these rules and its own state (`state`: the
 retrainings, then the tests of the best retrained bodies, as evaluations). Only evaluators get
 work; at the end it writes `selection.json` (per world the kept and the tested bodies with
 their mean fitness) and `summary.json` (every result).
@@ -28,17 +28,17 @@ from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_
 from derl.nodes.coordinator.jobs import Job
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.node import serve
-from derl.nodes.coordinator.policy import Progress
-from derl.nodes.coordinator.study_files import StudyRequest, prepare_study, read_plan, read_setup
-from derl.nodes.coordinator.study_state import StudyState
+from derl.nodes.coordinator.rules import Progress
+from derl.nodes.coordinator.study.files import StudyRequest, prepare_study, read_plan, read_setup
+from derl.nodes.coordinator.study.state import StudyState
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.nodes.runtime.rundir import write_atomic
 
 log = logging.getLogger("derl.study")
 
 
-class StudyPolicy:
-    """The policy of the study in `study_dir`: evaluators retrain and test; trainers get nothing.
+class StudyRules:
+    """The rules of the study in `study_dir`: evaluators retrain and test; trainers get nothing.
     Given the runs and settings of `request`, it makes the study there first if there is none."""
 
     def __init__(self, run: str, study_dir: Path, request: StudyRequest) -> None:
@@ -119,5 +119,5 @@ def serve_study(
     given `runs` and `config`, it makes the study there first if there is none yet."""
     if not runs:
         read_setup(study_dir)  # a study, before anything is made there
-    policy = partial(StudyPolicy, run, study_dir, StudyRequest(runs or [], config))
-    return serve(run, study_dir, policy, options)
+    rules = partial(StudyRules, run, study_dir, StudyRequest(runs or [], config))
+    return serve(run, study_dir, rules, options)

@@ -5,7 +5,7 @@ retraining jobs `derl.analysis.plan` chose from the runs' journals: a decision, 
 so a restarted study never chooses again from runs that grew since (`prepare_study` makes both).
 An agent of a study is named ``<run>.<agent>``. `study_logs` reads a study back for
 `derl report`. At the end its coordinator writes `selection.json` and `summary.json`
-(`study.StudyPolicy.finish`).
+(`study.StudyRules.finish`).
 """
 
 from __future__ import annotations
