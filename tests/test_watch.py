@@ -249,7 +249,13 @@ def test_watch_alive_takes_only_tokens_of_the_key_space(bus: Bus) -> None:
     later = bus.token("trainer", "t1")  # seen after the stray one's end would have been
     wait_until(lambda: len(seen) >= 3, 10, "the later token")
     later.undeclare()
-    assert seen == [("trainer", "t0", True), ("trainer", "t0", False), ("trainer", "t1", True)]
+    wait_until(lambda: len(seen) >= 4, 10, "the later token gone")
+    assert seen == [
+        ("trainer", "t0", True),
+        ("trainer", "t0", False),
+        ("trainer", "t1", True),
+        ("trainer", "t1", False),
+    ]
 
 
 # --- topic -----------------------------------------------------------------------------------
