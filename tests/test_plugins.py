@@ -16,7 +16,18 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
-from nodes_fixtures import REPO, LocalRun, Processes, assert_born_once, derl_argv, journaled
+import yaml
+from nodes_fixtures import (
+    REPO,
+    LocalRun,
+    Processes,
+    assert_born_once,
+    derl_argv,
+    free_port,
+    journaled,
+    run_id,
+    write_profile,
+)
 
 import derl
 from derl.envs import EnvConfig, make_task
@@ -225,28 +236,25 @@ def test_a_bad_plugin_stops_a_run_before_any_node_with_one_line(
 # --- a real run -----------------------------------------------------------------------------------
 
 
-def _run(folder: Path, installed: Path, trainers: int, lacking: bool) -> Path:
-    """A run of the plugins' profile with `trainers` trainers holding the plugins to its end;
-    with `lacking`, first a trainer that lacks them (which refuses), and an evaluator at the end
-    (a run without it evaluates nothing: its births are the same)."""
+def _run(folder: Path, installed: Path) -> Path:
+    """A run of the plugins' profile by nodes started one by one: first a trainer that lacks the
+    plugins (which refuses), then an evaluator and 3 trainers that hold them, to its end."""
     folder.mkdir()
-    evaluated = {} if lacking else {"eval_top": 0, "eval_tasks": []}
-    local = LocalRun.at(folder, **{**PLUGIN_PROFILE, **evaluated})
+    local = LocalRun.at(folder, **PLUGIN_PROFILE)
     processes = Processes(folder / "logs")
     held = {"PYTHONPATH": str(installed)}
     try:
         coordinator = processes.start("coordinator", local.coordinator(), held)
-        if lacking:
-            processes.start("lacking", local.trainer("lacking"), {"PYTHONPATH": ""})
-            wait_until(
-                lambda: [m for m in journaled(local.dir, JobFailed) if m.unfit],
-                120,
-                "the refusal of the trainer without the plugins",
-            )
-            evaluator = derl_argv("evaluator", "--run", local.run, "--connect", local.endpoint,
-                                  "--name", "e0")  # fmt: skip
-            processes.start("e0", evaluator, held)
-        for k in range(trainers):
+        processes.start("lacking", local.trainer("lacking"), {"PYTHONPATH": ""})
+        wait_until(
+            lambda: [m for m in journaled(local.dir, JobFailed) if m.unfit],
+            120,
+            "the refusal of the trainer without the plugins",
+        )
+        evaluator = derl_argv("evaluator", "--run", local.run, "--connect", local.endpoint,
+                              "--name", "e0")  # fmt: skip
+        processes.start("e0", evaluator, held)
+        for k in range(3):
             processes.start(f"t{k}", local.trainer(f"t{k}"), held)
         assert processes.finish(coordinator, timeout=300) == 0, processes.log("coordinator")
     finally:
@@ -255,11 +263,40 @@ def _run(folder: Path, installed: Path, trainers: int, lacking: bool) -> Path:
     return local.dir
 
 
+def _launched(folder: Path, installed: Path) -> Path:
+    """The same run through `derl launch` (a launch file: a coordinator and one trainer, both
+    holding the plugins), no evaluator (a run without it evaluates nothing: its births are the
+    same)."""
+    folder.mkdir()
+    port = free_port(span=2)
+    unevaluated = {**PLUGIN_PROFILE, "eval_top": 0, "eval_tasks": []}
+    profile = write_profile(folder / "profile.yaml", **unevaluated)
+    launch = {
+        "run": run_id(), "run_dir": str(folder / "run"), "profile": str(profile),
+        "topology": {"kind": "peer_mesh", "seed": f"tcp/127.0.0.1:{port}"},
+        "hosts": [{"name": "local", "listen": f"tcp/127.0.0.1:{port}", "nodes": [
+            {"role": "coordinator", "restart": "never"}, {"role": "trainer", "count": 1}]}],
+    }  # fmt: skip
+    (folder / "launch.yaml").write_text(yaml.safe_dump(launch))
+    processes = Processes(folder / "logs")
+    try:
+        launcher = processes.start("launch", derl_argv("launch", str(folder / "launch.yaml")),
+                                   {"PYTHONPATH": str(installed)})  # fmt: skip
+        assert processes.finish(launcher, timeout=300) == 0, processes.log("launch")
+    finally:
+        processes.close()
+    assert_born_once(folder / "run", 8)
+    return folder / "run"
+
+
 @pytest.mark.slow
 def test_a_plugin_run_is_refused_by_a_node_without_it_and_gives_one_fingerprint(
     installed: Path, tmp_path: Path
 ) -> None:
-    three = _run(tmp_path / "three", installed, trainers=3, lacking=True)
+    """Run by nodes started one by one (3 trainers, one lacking the plugins, and an evaluator),
+    then through `derl launch` on 1 trainer: one fingerprint; `derl study` of the first retrains
+    its bodies in the plugin's world and tests them on it."""
+    three = _run(tmp_path / "three", installed)
     refusals = [m for m in journaled(three, JobFailed) if m.unfit]
     assert len(refusals) == 1 and refusals[0].node == "lacking", refusals
     assert "lacks the task plugin stairs (derl-stairs 0.1.0" in refusals[0].error
@@ -267,8 +304,18 @@ def test_a_plugin_run_is_refused_by_a_node_without_it_and_gives_one_fingerprint(
     assert journaled(three, EvalResult)
     jobs = journaled(three, TrainJob)
     assert {p.name for p in jobs[0].plugins} == {"stairs", "cheap_parents", "stiffen"}
-    one = _run(tmp_path / "one", installed, trainers=1, lacking=False)
+    one = _launched(tmp_path / "one", installed)
     assert load_history(three).fingerprint() == load_history(one).fingerprint()
+    study = tmp_path / "study"
+    studied = subprocess.run(
+        derl_argv("study", str(three), "--study-dir", str(study), "--port", "0", "--set",
+                  "seeds=1", "--set", "test_tasks=[stairs]", "--set", "budgets=[2048]"),
+        env={**os.environ, "PYTHONPATH": str(installed)}, capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert studied.returncode == 0, studied.stdout + studied.stderr
+    results = journaled(study, EvalResult)
+    assert {r.task for r in results} == {"stairs"} and len(results) >= 2, results
 
 
 def test_derl_train_and_rollout_take_a_plugin_task(installed: Path, tmp_path: Path) -> None:

@@ -135,7 +135,7 @@ class Worker:
                     continue
                 except Exception as error:  # a failed training is reported, never fatal
                     log.exception("%s: %s failed", self.node, job.job)
-                    self._failed(job, error)
+                    self._failed(job, f"{type(error).__name__}: {error}")
                     self.finished_jobs.add(job.job)
                     continue
                 self._deliver(result, answers)
@@ -201,11 +201,10 @@ class Worker:
             return None
         return job
 
-    def _failed(self, job: TrainJob | EvalJob, error: Exception) -> None:
-        text = f"{type(error).__name__}: {error}"[:1000]
-        self.bus.publish(
-            JobFailed(run=self.run, job=job.job, node=self.node, agent=job.agent, error=text)
-        )
+    def _failed(self, job: TrainJob | EvalJob, text: str, unfit: bool = False) -> None:
+        """`job` failed here (`unfit`: this node cannot run the run's jobs at all)."""
+        self.bus.publish(JobFailed(run=self.run, job=job.job, node=self.node, agent=job.agent,
+                                   error=text[:1000], unfit=unfit))  # fmt: skip
 
     def _fit_for(self, job: TrainJob | EvalJob) -> bool:
         """Whether this process holds the job's plugins, each in the job's version; if not, the
@@ -214,21 +213,12 @@ class Worker:
         try:
             check_plugins(job.plugins, REGISTRIES)
         except PluginError as error:
-            text = f"{self.node} {error}"[:1000]
+            text = f"{self.node} {error}"
             if not self.unfit:
                 log.error("%s; refusing the run's jobs (install the plugin as on the other "
                           "nodes: docs/extending.md)", text)  # fmt: skip
             self.unfit = True
-            self.bus.publish(
-                JobFailed(
-                    run=self.run,
-                    job=job.job,
-                    node=self.node,
-                    agent=job.agent,
-                    error=text,
-                    unfit=True,
-                )
-            )
+            self._failed(job, text, unfit=True)
             return False
         return True
 
