@@ -96,12 +96,13 @@ def test_train_and_rollout_commands(quadruped: Genome, tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_ppo_makes_a_quadruped_walk_forward(quadruped: Genome) -> None:
     random_fitness = _random_policy_fitness(quadruped)
-    summary, _ = learn(quadruped, "ft", ppo_config("ft", 500_000, seed=1409))
-    # Measured here: the random policy scores -10 (it falls backwards). After 500k steps, over
-    # seeds 0-5 and 1409, the fitness (its last 10 iterations', `fitness_window`) was 25.6 to
-    # 50.0 (mean 40, sd 8; this seed's 50.0) and the curve rose by 34 to 62 from its first
-    # iteration (this seed's 62). The bounds are half the worst seed's, 3 sd or more below the
-    # mean: any seed passes where PPO learns as it does, and a policy that learns nothing fails.
+    summary, _ = learn(quadruped, "ft", ppo_config("ft", 300_000, seed=1409))
+    # Measured here: the random policy scores -10 (it falls backwards). After 300k steps, over
+    # seeds 0-3 and 1409, the fitness (its last 10 iterations', `fitness_window`) was 6.4 to 19.2
+    # (mean 11.2; this seed's 11.1; 25.6 to 50.0 after 500k, which took 1.8 times the CPU) and
+    # the curve rose by 15 to 29 from its first iteration (this seed's 26). The bounds are half
+    # the worst seed's: any seed passes where PPO learns as it does, and a policy that learns
+    # nothing fails.
     assert random_fitness < 0
-    assert summary.fitness > 12.0 and summary.fitness > random_fitness + 20.0
-    assert summary.curve_returns[-1] > summary.curve_returns[0] + 16.0
+    assert summary.fitness > 3.0 and summary.fitness > random_fitness + 8.0
+    assert summary.curve_returns[-1] > summary.curve_returns[0] + 7.5
