@@ -24,12 +24,13 @@ from nodes_fixtures import (
     run_id,
     write_profile,
 )
+from pydantic import ValidationError
 
 from derl.evolution import load_profile
 from derl.nodes.cli.main import build_parser
 from derl.nodes.launch.commands import build_commands, dry_run_text, plan
 from derl.nodes.launch.local import LOCAL_FILE, local_launch
-from derl.nodes.launch.model import LaunchFile, load
+from derl.nodes.launch.model import LaunchFile, NodeSpec, load
 from derl.nodes.testing.waiting import wait_until
 
 LOCAL = REPO / "launch" / "local.yaml"
@@ -109,6 +110,18 @@ def test_derl_run_starts_the_local_launch_files_graph_with_its_numbers(tmp_path:
     assert [c.role for c in study] == ["coordinator", "evaluator", "evaluator"]
     assert study[0].args == ("coordinator", "--run", "s1", "--study", str(tmp_path), "--listen",
                              endpoint)  # fmt: skip
+    board = build_commands(local_launch("r1", endpoint, {"trainer": 2, "evaluator": 1},
+                                        tmp_path / "tb", run_dir=tmp_path))  # fmt: skip
+    written = [c.role for c in board if "--tensorboard" in c.args]
+    assert written == ["trainer", "trainer"]  # each training from its trainer: the trainers'
+    assert board[1].args[board[1].args.index("--tensorboard") + 1] == str(tmp_path / "tb")
+
+
+def test_only_trainers_take_a_tensorboard_folder_in_a_launch_file() -> None:
+    trainer = NodeSpec(role="trainer", tensorboard=Path("tb"))
+    assert trainer.tensorboard == Path("tb")
+    with pytest.raises(ValidationError, match=r"trainer's setting \(evaluator nodes train"):
+        NodeSpec(role="evaluator", tensorboard=Path("tb"))
 
 
 def test_cluster_example_dry_run_starts_ssh_hosts_over_ssh() -> None:

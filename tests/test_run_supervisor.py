@@ -21,12 +21,13 @@ from nodes_fixtures import (
     derl_argv,
     free_port,
     jobs,
+    journaled,
     pid_alive,
 )
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from derl.evolution import load_profile
-from derl.messages import RunStatus
+from derl.messages import Birth, RunStatus
 from derl.nodes.cli.run import FREE_RUNNING, TrainingRate, fingerprint_line
 from derl.nodes.errors import REFUSED
 from derl.nodes.launch.commands import NodeCommand
@@ -130,6 +131,16 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
         events.Reload()
         assert [e.step for e in events.Scalars("birth/fitness")] == list(range(6))
         assert events.Scalars("run/born")[-1].value == 6
+        # each child's training from its trainer, as `derl train --tensorboard` writes one
+        born = {m.agent for m in journaled(run_dir, Birth) if m.repeat_of is None}  # trained
+        children = board / "uber-run" / "children"
+        assert born <= {p.name for p in children.iterdir()}
+        child = EventAccumulator(str(children / sorted(born)[-1]), size_guidance={"scalars": 0})
+        child.Reload()
+        tags = set(child.Tags()["scalars"])
+        assert {"rollout/ep_rew_mean", "train/approx_kl", "train/entropy", "time/fps"} <= tags
+        steps = [e.step for e in child.Scalars("train/approx_kl")]
+        assert steps == sorted(set(steps)) and steps[-1] == 8192  # smoke's lifetime, once each
     finally:
         processes.close()
 

@@ -63,6 +63,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         worker.add_argument(
             "--name", help="node id (default: role-host-pid-index; NAME-k with --workers)"
         )
+        if role == "trainer":
+            worker.add_argument(
+                "--tensorboard",
+                type=Path,
+                metavar="LOGDIR",
+                help="write each training's curves and PPO diagnostics to TensorBoard event "
+                "files in LOGDIR/<run>/children/<agent> (pip install 'derl[tensorboard]')",
+            )
         add_bus_arguments(worker)
         worker.set_defaults(handler=_worker, role=role)
 
@@ -101,8 +109,17 @@ def _worker(args: argparse.Namespace) -> int:
     from derl.nodes.worker.node import serve
 
     name = args.name or node_name(args.role)
+    board = getattr(args, "tensorboard", None)  # a trainer's option
+    if board is not None:
+        from derl.metrics import NoTensorBoard, require_extra
+
+        try:
+            require_extra()
+        except NoTensorBoard as error:  # no restart would change that
+            raise Refused(f"--tensorboard: {error}") from None
     try:
-        serve(args.run, name, args.role, options_from(args), nthread=args.threads)
+        serve(args.run, name, args.role, options_from(args), nthread=args.threads,
+              tensorboard=board)  # fmt: skip
     except zenoh.ZError as error:
         fail_on_bus(error)
     return 0
@@ -122,6 +139,8 @@ def child_args(args: argparse.Namespace, k: int) -> list[str]:
         line += ["--zenoh-config", str(args.zenoh_config)]
     if args.multicast:
         line.append("--multicast")
+    if getattr(args, "tensorboard", None) is not None:
+        line += ["--tensorboard", str(args.tensorboard)]
     return line
 
 

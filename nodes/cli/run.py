@@ -74,7 +74,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         type=Path,
         metavar="LOGDIR",
         help="also write the run's curves to TensorBoard event files in LOGDIR/<run> "
-        "(`derl tensorboard`; pip install 'derl[tensorboard]')",
+        "(`derl tensorboard`), and each child's training, with its PPO diagnostics, in "
+        "LOGDIR/<run>/children/<agent> (pip install 'derl[tensorboard]')",
     )
     run.add_argument(
         "--run-dir", type=Path, help="default: runs/<profile>-<world>[-s<seed>][-<KEY=VALUE>...]"
@@ -101,10 +102,11 @@ def _run(args: argparse.Namespace) -> int:
     run = local_run_id(run_dir)
     endpoint = f"tcp/127.0.0.1:{port}"
     workers = {"trainer": args.workers, "evaluator": int(config.eval_top > 0)}
-    graph = local_launch(run, endpoint, workers, **coordinator_settings(args, run_dir))
-    nodes = build_commands(graph)
+    graph = local_launch(run, endpoint, workers, args.tensorboard,
+                         **coordinator_settings(args, run_dir))  # fmt: skip
+    nodes = build_commands(graph)  # trainers writing each training with --tensorboard
     board = ("--tensorboard", str(args.tensorboard)) if args.tensorboard else ()
-    if args.tensorboard:
+    if args.tensorboard:  # and the run's curves
         nodes.append(tensorboard_node(run, endpoint, args.tensorboard))
     env = ("--env", args.env) if args.env else ()
     seed = ("--seed", str(args.seed)) if args.seed is not None else ()

@@ -142,7 +142,8 @@ def _role_args(launch: LaunchFile, spec: NodeSpec, name: str) -> list[str]:
                 "--run-dir", str(launch.run_dir)]  # fmt: skip
     if spec.role == "router":
         return []
-    return ["--run", launch.run, "--name", name, "--threads", str(spec.threads)]
+    board = ["--tensorboard", str(spec.tensorboard)] if spec.tensorboard is not None else []
+    return ["--run", launch.run, "--name", name, "--threads", str(spec.threads), *board]
 
 
 def _bus_args(

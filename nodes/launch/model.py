@@ -107,6 +107,19 @@ class NodeSpec(_Strict):
         description="where these processes listen in a peer mesh, process k on port + k (port "
         "0: a free one each); default: the host's `listen`",
     )
+    tensorboard: Path | None = Field(
+        None,
+        description="trainers: write each training's curves and PPO diagnostics to TensorBoard "
+        "in LOGDIR/<run>/children/<agent> (`derl trainer --tensorboard`)",
+    )
+
+    @model_validator(mode="after")
+    def _trainers_write_trainings(self) -> NodeSpec:
+        if self.tensorboard is not None and self.role != "trainer":
+            raise ValueError(
+                f"tensorboard is a trainer's setting ({self.role} nodes train nothing)"
+            )
+        return self
 
 
 class PeerMesh(_Strict):

@@ -182,8 +182,8 @@ def slurm_launch(
         )
     proto = "tls" if certs else "tcp"
     endpoint = f"{proto}/{addresses[job.first_node]}:{port}"
-    local = local_launch(run, endpoint, {"trainer": trainers, "evaluator": evaluators},
-                         **coordinator)  # fmt: skip
+    workers = {"trainer": trainers, "evaluator": evaluators}
+    local = local_launch(run, endpoint, workers, None, **coordinator)  # None: no --tensorboard
     specs: dict[str, NodeSpec] = {spec.role: spec for host in local.hosts for spec in host.nodes}
     roles = ["coordinator", *["evaluator"] * evaluators, *["trainer"] * trainers]
     hosts: dict[str, dict] = {}

@@ -28,6 +28,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Literal
 
 from derl.extensions import REGISTRIES
@@ -46,6 +47,7 @@ from derl.messages import (
     TrainProgress,
     WorkerReady,
 )
+from derl.metrics import TensorBoardRun, record
 from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
 from derl.plugins import PluginError, check_plugins
 from derl.rl import Progress
@@ -92,9 +94,11 @@ class Worker:
         role: Literal["trainer", "evaluator"],
         nthread: int = 1,
         clock: Callable[[], float] = time.monotonic,
+        tensorboard: Path | None = None,
     ) -> None:
         self.run, self.node, self.role, self.nthread = run, node, role, nthread
         self.clock = clock
+        self.tensorboard = tensorboard  # each training's records: LOGDIR/<run>/children/<agent>
         self.stop = threading.Event()
         self.run_finished = threading.Event()
         self.finished_jobs: set[str] = set()  # a copy sent again is not trained twice
@@ -226,6 +230,7 @@ class Worker:
         log.info("%s: %s of %s on %s (%d steps)", self.node, job.job, job.agent, job.task,
                  job.steps)  # fmt: skip
         last = 0.0
+        board = self._board(job)
 
         def progress(p: Progress) -> None:
             nonlocal last
@@ -233,6 +238,8 @@ class Worker:
                 raise Stopped
             if job.job in self.cancelled:
                 raise Cancelled
+            if board is not None:
+                board.write(record(p))
             now = self.clock()
             if now - last >= PROGRESS_PERIOD_S or p.iteration == p.iterations:
                 last = now
@@ -252,9 +259,13 @@ class Worker:
         parent = None
         if isinstance(job, TrainJob) and job.inherit is not None:
             parent = (job.inherit.genome, self._parent_weights(job))
-        summary, result = learn(
-            job.genome, job.task, job.ppo, progress, nthread=self.nthread, parent=parent
-        )
+        try:
+            summary, result = learn(
+                job.genome, job.task, job.ppo, progress, nthread=self.nthread, parent=parent
+            )
+        finally:
+            if board is not None:
+                board.close()
         curve = Curve(env_steps=summary.curve_steps, returns=summary.curve_returns)
         if isinstance(job, TrainJob):
             checkpoint = result.checkpoint.to_bytes()
@@ -271,6 +282,14 @@ class Worker:
             node=self.node,
             job=job.job,
         )
+
+    def _board(self, job: TrainJob | EvalJob) -> TensorBoardRun | None:
+        """Where a training's records go in TensorBoard (`derl.metrics`, as `derl train
+        --tensorboard` writes them), if this trainer writes them: LOGDIR/<run>/children/<agent>
+        (a second training of the child goes on after the first's last step)."""
+        if self.tensorboard is None or not isinstance(job, TrainJob):
+            return None
+        return TensorBoardRun(self.tensorboard / self.run / "children" / job.agent)
 
     def _parent_weights(self, job: TrainJob) -> bytes:
         """The checkpoint of `job`'s parent, asked of the coordinator (which answers once the
@@ -356,8 +375,9 @@ def serve(
     role: Literal["trainer", "evaluator"],
     options: ZenohOptions,
     nthread: int = 1,
+    tensorboard: Path | None = None,
 ) -> None:
-    worker = Worker(run, node, role, nthread)
+    worker = Worker(run, node, role, nthread, tensorboard=tensorboard)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: worker.stop.set())
     worker.serve(options)
