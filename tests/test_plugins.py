@@ -308,8 +308,9 @@ def test_a_plugin_run_is_refused_by_a_node_without_it_and_gives_one_fingerprint(
     assert load_history(three).fingerprint() == load_history(one).fingerprint()
     study = tmp_path / "study"
     studied = subprocess.run(
-        derl_argv("study", str(three), "--study-dir", str(study), "--port", "0", "--set",
-                  "seeds=1", "--set", "test_tasks=[stairs]", "--set", "budgets=[2048]"),
+        derl_argv("study", str(three), "--study-dir", str(study), "--port", "0", "--workers",
+                  "1", "--set", "seeds=1", "--set", "retrain_steps=2048", "--set",
+                  "test_tasks=[stairs]", "--set", "budgets=[2048]"),
         env={**os.environ, "PYTHONPATH": str(installed)}, capture_output=True, text=True,
         timeout=300,
     )  # fmt: skip
