@@ -53,6 +53,7 @@ from derl.analysis.lineage import (
 )
 from derl.analysis.morphology import Morphology, column, over_time, sample
 from derl.analysis.progress import describe
+from derl.analysis.report import headline
 from derl.analysis.selection import new_seeds, top_of_surviving_lineages
 from derl.analysis.statistics import (
     BootstrapConfig,
@@ -609,6 +610,34 @@ def test_the_quarters_compare_distinct_bodies_resampling_lineages(quadruped: Gen
     assert "difference 175, no interval (too few lineages to resample)" in describe(
         "q", one, config.bootstrap
     )
+
+
+def test_runs_of_a_world_are_compared_as_replicates_paired_over_seeds(quadruped: Genome) -> None:
+    """Three runs of FT (seeds), each with a difference between its quarters (175 scaled by 1.0,
+    1.1, 1.2: 175, 192.5, 210): their mean, 192.5, with the t interval over the 3 runs and the
+    paired t test; a world of one run has none."""
+    config = AnalysisConfig(stability_sample=1, time_points=5, gaits=0,
+                            bootstrap=BootstrapConfig(method="percentile"))  # fmt: skip
+    base = quarters_run(quadruped, "b3")
+    runs = [
+        base.model_copy(update={"name": f"s{k}", "bodies": tuple(
+            b.model_copy(update={"fitness": b.fitness * (1 + k / 10)}) for b in base.bodies)})
+        for k in range(3)
+    ]  # fmt: skip
+    analysis = analyse(runs, config)
+    (world,) = analysis.worlds
+    replicated = world.summary.replicates
+    assert replicated is not None and replicated.runs == ["s0", "s1", "s2"]
+    assert replicated.differences == pytest.approx([175.0, 192.5, 210.0])
+    half = stats.t.ppf(0.975, 2) * 17.5 / np.sqrt(3)  # sd 17.5 over 3 runs
+    mean = replicated.mean
+    assert (mean.n, mean.value) == (3, pytest.approx(192.5))
+    assert (mean.low, mean.high) == (pytest.approx(192.5 - half), pytest.approx(192.5 + half))
+    assert replicated.p_value == pytest.approx(2 * stats.t.sf(192.5 / (17.5 / np.sqrt(3)), 2))
+    line = next(line for line in headline(analysis) if "runs as replicates" in line)
+    assert line.startswith("FT, 3 runs as replicates: the last quarter's median fitness minus")
+    assert "s0 +175, s1 +192.5, s2 +210; mean +192.5, 95% CI [+149" in line
+    assert analyse(runs[:1], config).worlds[0].summary.replicates is None
 
 
 def test_fig6_correlations_pool_each_world_and_each_generation(quadruped: Genome) -> None:

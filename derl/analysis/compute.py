@@ -53,7 +53,7 @@ from derl.analysis.lineage import (
     window,
 )
 from derl.analysis.morphology import DESCRIPTORS, Morphology, column, measure, over_time
-from derl.analysis.progress import Quarters, quarters
+from derl.analysis.progress import Quarters, Replicates, quarters, replicates
 from derl.analysis.records import Record, RunLog
 from derl.analysis.selection import rank_by_mean
 from derl.analysis.statistics import (
@@ -153,6 +153,9 @@ class WorldSummary(Record):
     """Fig. 5d: the top agent with the longest ancestry against its founder."""
     gains: GainSummary
     """Fig. 5d pooled: every top agent against its founder, medians."""
+    replicates: Replicates | None = None
+    """Its runs as replicates (seeds): each run's last quarter against its first, compared
+    across runs (`derl.analysis.progress`); None below two runs."""
 
 
 class CorrelationRow(Record):
@@ -464,6 +467,10 @@ def analyse_world(
         births=int(times[-1]),
         illustrative=gains[deepest],
         gains=summarize_gains(gains),
+        replicates=replicates(
+            [(r.run.name, r.summary.quarters) for r in runs if r.summary.quarters is not None],
+            config.bootstrap,
+        ),
     )
     return WorldAnalysis(
         summary=summary,

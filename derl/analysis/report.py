@@ -25,6 +25,7 @@ from derl.analysis.config import AnalysisConfig
 from derl.analysis.gaits import write_gaits
 from derl.analysis.page import FigureEntry, write_page
 from derl.analysis.progress import describe as describe_quarters
+from derl.analysis.progress import describe_replicates
 from derl.analysis.records import Body, RunLog
 from derl.analysis.tables import write_tables
 from derl.analysis.testsuite import budget_label, budgets
@@ -89,6 +90,9 @@ def headline(analysis: Analysis) -> list[str]:
             "reward: kept as censored values, not dropped"
         )
     for w in analysis.worlds:
+        if (replicated := w.summary.replicates) is not None:
+            config = analysis.config.bootstrap
+            lines.append(describe_replicates(w.summary.world, replicated, config))
         if w.summary.top_rule == "retrained":
             lines.append(f"{w.summary.world.upper()}: top agents are {top_rule(w.summary)}")
     return lines
