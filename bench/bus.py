@@ -532,9 +532,9 @@ class Driver:
 
 
 BREAKDOWN = {  # label: (file, function) whose cumulative time is reported
-    "tournament (drawing contestants)": ("evolution/population.py", "tournament"),
-    "breeding (mutation and validity check)": ("evolution/population.py", "breed"),
-    "repeat lookup (body hash)": ("evolution/population.py", "repeat"),
+    "tournament (drawing contestants)": ("evolution/evolution.py", "tournament"),
+    "breeding (mutation and validity check)": ("evolution/evolution.py", "breed"),
+    "repeat lookup (body hash)": ("evolution/evolution.py", "repeat"),
     "journal writes": ("nodes/journal/segments.py", "write"),
     "journal flushes (the fsync is on the outbox thread)": ("nodes/journal/segments.py", "flush"),
     "checkpoint hand-off (a thread writes the file)": ("nodes/runtime/checkpoints.py", "save"),
