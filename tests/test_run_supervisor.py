@@ -107,15 +107,18 @@ def test_a_stopped_run_prints_the_command_that_resumes_it(tmp_path: Path) -> Non
     processes = Processes(tmp_path / "test-logs")
     try:
         board, port = tmp_path / "tb", free_port()
-        argv = ["run", "--profile", "smoke", "--set", "total=6", "--set", "ppo.lr=1e-4", "--seed",
-                "3", "--run-dir", str(run_dir), "--tensorboard", str(board)]  # fmt: skip
+        # eval_top 0: no evaluator (what is tested here is the stop and the resume)
+        argv = ["run", "--profile", "smoke", "--set", "total=6", "--set", "ppo.lr=1e-4", "--set",
+                "eval_top=0", "--seed", "3", "--run-dir", str(run_dir), "--tensorboard",
+                str(board)]  # fmt: skip
         run = processes.start("run", derl_argv(*argv, "--port", str(port)))
         wait_until(lambda: births(run_dir), 120, "a birth")
         run.send_signal(signal.SIGINT)
         assert run.wait(timeout=30) == 130
         said = re.search(r"stopped; `(derl run .+)` resumes the run", processes.log("run"))
         assert said is not None, processes.log("run")
-        assert said[1] == (f"derl run --profile smoke --set total=6 --set ppo.lr=1e-4 --seed 3 "
+        assert said[1] == (f"derl run --profile smoke --set total=6 --set ppo.lr=1e-4 "
+                           f"--set eval_top=0 --seed 3 "
                            f"--run-dir '{run_dir}' --port {port} "
                            f"--tensorboard {board}")  # fmt: skip
         again = processes.start("again", derl_argv(*shlex.split(said[1])[1:], "--port",
