@@ -72,7 +72,7 @@ def register(commands: argparse._SubParsersAction) -> None:
                 "files in LOGDIR/<run>/children/<agent> (pip install 'derl[tensorboard]')",
             )
         add_bus_arguments(worker)
-        worker.set_defaults(handler=_worker, role=role)
+        worker.set_defaults(handler=_worker, role=role, tensorboard=None)  # trainers: a flag
 
     router = commands.add_parser("router", help="run a Zenoh router for star topologies")
     add_bus_arguments(router, run_required=False)
@@ -109,7 +109,7 @@ def _worker(args: argparse.Namespace) -> int:
     from derl.nodes.worker.node import serve
 
     name = args.name or node_name(args.role)
-    board = getattr(args, "tensorboard", None)  # a trainer's option
+    board = args.tensorboard
     if board is not None:
         from derl.metrics import NoTensorBoard, require_extra
 
@@ -139,7 +139,7 @@ def child_args(args: argparse.Namespace, k: int) -> list[str]:
         line += ["--zenoh-config", str(args.zenoh_config)]
     if args.multicast:
         line.append("--multicast")
-    if getattr(args, "tensorboard", None) is not None:
+    if args.tensorboard is not None:
         line += ["--tensorboard", str(args.tensorboard)]
     return line
 
