@@ -82,7 +82,7 @@ def simulate(config: EvolutionConfig, trainers: int, seed: int, liar: bool) -> d
             "born": len(state.births),
             "audited": len(state.checked),
             "caught_after_births": _births_before(folder, quarantine) if quarantine else None,
-            "lies_left": sum(b.fitness != honest(b.repeat_of or b.agent) for b in state.births),
+            "lies_left": sum(b.fitness != honest(b.genome) for b in state.births),
             "caught": quarantine is not None,
         }
     finally:

@@ -6,15 +6,19 @@ with the same pieces: the run's `Evolution` (pool, tournaments, `correct`) for w
 whom, and the audit rules `nodes.coordinator.audits.Rules` and `Record` for which children are
 trained twice; the queue follows `EvolutionState` (a child that waits for another identity goes
 first, a disagreement waits for a third identity, the liar is quarantined and its unchecked births
-trained again first, its jobs taken back). Bodies are not bred: a child's honest fitness is its
+trained again first, its jobs taken back; once they are, every tournament decided after the first
+of them is undone and decided again, `Evolution.undo`, a child bred again from the same parent born
+from the undone one's training at once). Bodies are not bred: a child's honest fitness is its
 parent's honest fitness plus a draw, N(-2, 10), from 100 + N(0, 10) for an initial body (a model:
-the audits' top-rank rule sees the ranks this makes), a training lasts U(0.5, 1.5).
+the audits' top-rank rule sees the ranks this makes), drawn from the child and its parent (the
+same parent breeds the same body), and a training lasts U(0.5, 1.5).
 
 One trainer lies on a share of its reports (`--rates`, drawn per child) with 1.25 x + 1 of the
 honest fitness (the issue's liar, real checkpoints). Per run (JSON, one line): whether the liar was
-caught, the births when it was, its lies and those born from (before the catch), births whose
-parent differs from the honest run's (swayed), trainings beyond one per birth, the duration over
-the unaudited run's, and whether the fingerprint equals the honest run's; then a summary per rate.
+caught, the births when it was, its lies and those born from (before the catch), the births
+undone, births whose parent differs from the honest run's at the end (swayed), trainings beyond
+one per birth, the duration over the unaudited run's, and whether the fingerprint equals the
+honest run's; then a summary per rate.
 Run: python bench/audit_scale.py [--seeds 20] [--first-seed 0] [--rates 1 0.1 0.01]
 [--trainers 288] [--set KEY VALUE]
 """
@@ -50,7 +54,7 @@ class Run:
     config: EvolutionConfig
     trainers: int
     rate: float
-    honest: dict[str, float] = field(default_factory=dict)
+    honest: dict[tuple[str, str | None], float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.rules = Rules.of(self.config)
@@ -66,16 +70,20 @@ class Run:
         self.quarantined: set[str] = set()
         self.running: list[tuple[float, int, str, str]] = []  # (finish, n, trainer, child)
         self.in_training: dict[str, str] = {}  # trainer -> child
-        self.trainings = self.lies = self.lies_born = self.lies_audited = 0
+        self.idle: deque[str] = deque(self.names)
+        self.trainings = self.lies = self.lies_born = self.lies_audited = self.undone = 0
         self.caught_at: int | None = None
+        self.decided_before: dict[str, int] = {}  # child -> tournaments decided before its birth
+        self.undo_from: int | None = None  # the first tournament to decide again
+        self.kept: dict[tuple[str, str | None], float] = {}  # (undone child, parent) -> fitness
 
     def fitness(self, child: str) -> float:
-        if child not in self.honest:
-            parent = self.evolution.parents[child]
-            rng = _draw(self.config.seed, child)
+        parent = self.evolution.parents[child]
+        if (child, parent) not in self.honest:
+            rng = _draw(self.config.seed, child, parent)
             base = 100.0 if parent is None else self.fitness(parent) - 2.0
-            self.honest[child] = base + rng.gauss(0.0, 10.0)
-        return self.honest[child]
+            self.honest[(child, parent)] = base + rng.gauss(0.0, 10.0)
+        return self.honest[(child, parent)]
 
     def tried_by(self, child: str) -> set[str]:
         if child in self.retraining:
@@ -86,14 +94,19 @@ class Run:
         child = next((c for c in self.queue if trainer not in self.tried_by(c)), None)
         if child is not None:
             self.queue.remove(child)
-        elif len(self.evolution.parents) < self.config.total:
+        while child is None:
+            if self.undo_from is not None or len(self.evolution.parents) >= self.config.total:
+                return False
             decided = self.evolution.tournament()
             if decided is None:
                 return False
             self.evolution.record(decided)
-            child = decided.name
-        else:
-            return False
+            kept = self.kept.get((decided.name, decided.parent))
+            if kept is None:
+                child = decided.name
+            else:  # bred again from the same parent: born from the undone child's training
+                self.born(decided.name, "kept", kept, [])
+                self.born_from[decided.name] = ("kept", True)
         self.in_training[trainer] = child
         self.trainings += 1
         finish = now + _draw(self.config.seed, "time", self.trainings).uniform(0.5, 1.5)
@@ -109,6 +122,8 @@ class Run:
         if child in self.retraining:
             self.retraining.discard(child)
             self.evolution.correct(child, value)
+            if not self.retraining and self.undo_from is not None:
+                self.undo()
             return
         record = self.records.setdefault(trainer, Record())
         first = child not in self.trials
@@ -139,6 +154,7 @@ class Run:
         self.trials.pop(child, None)
         self.auditing.discard(child)
         self.born_from[child] = (who, len(trials) > 1)
+        self.decided_before[child] = self.evolution.iterations
         self.lies_born += value != self.fitness(child)
         self.evolution.birth(child, value, HEAD)
         agreed = [w for w, v in trials if v == value]
@@ -158,14 +174,44 @@ class Run:
         for child in reversed(retrain):
             self.retraining.add(child)
             self.queue.appendleft(child)
+        decided = [self.decided_before[c] for c in retrain]
+        if self.undo_from is not None:
+            decided.append(self.undo_from)
+        if decided and min(decided) < self.evolution.iterations:
+            self.undo_from = min(decided)
         if liar in self.in_training:
             self.queue.appendleft(self.in_training.pop(liar))
             self.running = [r for r in self.running if r[2] != liar]
             heapq.heapify(self.running)
 
+    def undo(self) -> None:
+        """Every tournament from `undo_from` on is decided again (`Evolution.undo`): each born
+        child's (honest) result is kept for the same parent's child bred again, its trainings in
+        flight end, and its trainer is idle."""
+        evolution, iteration = self.evolution, self.undo_from
+        assert iteration is not None
+        first = len(evolution.initial) + iteration
+        for child, k in evolution.index.items():
+            if k >= first and child in evolution.fitness:
+                self.kept[(child, evolution.parents[child])] = evolution.fitness[child]
+        gone = set(evolution.undo(iteration))
+        self.undone += sum(child in self.born_from for child in gone)
+        self.undo_from = None
+        self.queue = deque(c for c in self.queue if c not in gone)
+        for child in gone:
+            self.born_from.pop(child, None)
+            self.trials.pop(child, None)
+            self.auditing.discard(child)
+        for trainer, child in list(self.in_training.items()):
+            if child in gone:
+                del self.in_training[trainer]
+                self.idle.append(trainer)
+        self.running = [r for r in self.running if r[3] not in gone]
+        heapq.heapify(self.running)
+
     def play(self) -> float:
         """The run to its end; its duration."""
-        now, idle = 0.0, deque(self.names)
+        now, idle = 0.0, self.idle
         while not (self.evolution.complete and not self.retraining):
             for _ in range(len(idle)):
                 trainer = idle.popleft()
@@ -211,6 +257,7 @@ def seed_runs(
             "caught": lying.caught_at is not None,
             "caught_after_births": lying.caught_at,
             "lies_born": lying.lies_born,
+            "undone": lying.undone,
             "swayed": sum(births[c][0] != truth[c][0] for c in births),
             "extra_trainings": round(lying.trainings / len(births) - 1, 4),
             "honest_extra_trainings": round(honest.trainings / len(truth) - 1, 4),
@@ -250,6 +297,7 @@ def main() -> None:
             "caught_of_lied": f"{sum(r['caught'] for r in lied)}/{len(lied)}",
             "lies_audited": f"{sum(r['lies_audited'] for r in runs)}/{lies}",
             "lies_born": sum(r["lies_born"] for r in runs),
+            "undone_median": statistics.median(r["undone"] for r in lied) if lied else 0,
             "swayed_median": statistics.median(r["swayed"] for r in runs),
             "same_fingerprint": f"{sum(r['same_fingerprint'] for r in runs)}/{len(runs)}",
             "extra_trainings": statistics.median(r["honest_extra_trainings"] for r in runs),

@@ -24,11 +24,11 @@ initial body (its lineage) and the lineages alive among them, and the time to th
 (`hours`: with W simulated trainers whose trainings take their virtual durations, in either
 timing; in the cluster timing they wait for the virtual clock, whose own time to the last birth,
 the released cluster's, is about `utilisation` x `hours`). Per timing the mean over seeds with a
-95 % t-interval, and cluster - window paired by seed.
-In the cluster timing also what the released end of a run would drop (`tools/evolution.py`,
-`wait_or_kill`: the trainings in flight when the last body is saved): of a run N - W + 1 bodies
-long, the W - 1 children bred that finish last in virtual time; their mean limb count
-(`dropped_limbs`) against that of the P - W kept before them (`kept_limbs`).
+95 % t-interval, and cluster - window and released - cluster paired by seed.
+And the cluster timing with the released end (`end: released`, as `tools/evolution.py`'s
+`wait_or_kill` drops the trainings in flight when the last body is saved: `Evolution.released_end`):
+the same measures over the N bodies it keeps, and the children it dropped (`dropped`), their mean
+limb count (`dropped_limbs`) against that of the last quarter kept.
 Also the parallelism the cluster timing leaves real trainers: with R trainers whose trainings take
 their virtual durations, the trainers' busy time over R x the run's duration (`utilisation`), at
 R = W / 4, W / 2 and W, for the paper's W and the demo's (P 16, W 8, 128 births).
@@ -149,7 +149,7 @@ def run(
     def next_child() -> str | None:
         if waiting:
             return waiting.popleft()
-        if evolution.settled + len(running) >= config.total:
+        if config.end == "all" and evolution.settled + len(running) >= config.total:
             return None
         decided = evolution.tournament()
         if decided is None:
@@ -176,6 +176,9 @@ def run(
         idle += 1
         body = evolution.genomes[name]
         evolution.birth(name, surrogate_fitness(body), body, None, work(body))
+        if (drop := evolution.released_end()) is not None:
+            evolution.drop(drop)  # what trains still is dropped: the run is over
+            break
         dispatch()
     assert evolution.complete
     born = sorted(evolution.born, key=lambda m: evolution.index[m.agent])
@@ -196,12 +199,13 @@ def run(
         measures.update({f"{name}_first": first, f"{name}_last": end, f"{name}_trend": end - first})
     measures["top_lineage_share"] = last.most_common(1)[0][1] / config.population
     measures["lineages"] = len(last)
-    if evolution.clock is not None:  # the released end of a run N - W + 1 long (see the module)
-        order = sorted(evolution.clock.finished)
-        dropped = [m for _, k in order[-(config.in_flight - 1) :] if (m := evolution.by_index[k])]
-        kept = [evolution.by_index[k] for _, k in order[-config.population : -config.in_flight]]
-        measures["dropped_limbs"] = mean(dropped, 2)
-        measures["kept_limbs"] = mean(kept, 2)
+    if evolution.dropped is not None:  # the released end (see the module)
+        dropped = sorted(evolution.dropped)
+        measures["dropped"] = len(dropped)
+        measures["dropped_limbs"] = statistics.fmean(
+            probe(evolution.genomes[c])[2] for c in dropped
+        )
+        measures["kept_limbs"] = measures["limbs_last"]
     return measures
 
 
@@ -216,12 +220,14 @@ def interval(values: list[float]) -> dict[str, float]:
 
 def compare(seeds: int, births: int) -> dict[str, object]:
     probe = Probe()
-    runs: dict[str, list[dict[str, object]]] = {"window": [], "cluster": []}
+    settings = {"window": [("timing", "window")], "cluster": [("timing", "cluster")],
+                "released": [("timing", "cluster"), ("end", "released")]}  # fmt: skip
+    runs: dict[str, list[dict[str, object]]] = {name: [] for name in settings}
     for seed in range(seeds):
         base = load_profile("paper", total=births, seed=seed)
         initial = sample_population(base.population, np.random.default_rng([seed, 0]))
         for timing in runs:
-            config = load_profile("paper", [("timing", timing)], total=births, seed=seed)
+            config = load_profile("paper", settings[timing], total=births, seed=seed)
             start = time.perf_counter()
             measures = run(config, initial, probe, config.in_flight)
             measures["seconds"] = time.perf_counter() - start
@@ -231,10 +237,10 @@ def compare(seeds: int, births: int) -> dict[str, object]:
         for t, rs in runs.items()
     }
     keys = [k for k in runs["window"][0] if k != "seconds"]
-    summary["cluster_minus_window"] = {
-        k: interval([c[k] - w[k] for c, w in zip(runs["cluster"], runs["window"], strict=True)])
-        for k in keys
-    }
+    for a, b in (("cluster", "window"), ("released", "cluster")):
+        summary[f"{a}_minus_{b}"] = {
+            k: interval([x[k] - y[k] for x, y in zip(runs[a], runs[b], strict=True)]) for k in keys
+        }
     return {"seeds": seeds, "births": births, "rows_per_step": ROWS_PER_STEP, "runs": runs,
             "summary": summary, "parallelism": parallelism(probe)}  # fmt: skip
 

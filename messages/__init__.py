@@ -11,6 +11,7 @@ from derl.messages.schema import (
     Cancel,
     ChildFailed,
     Curve,
+    Dropped,
     EvalJob,
     EvalResult,
     FitnessReport,
@@ -31,6 +32,7 @@ from derl.messages.schema import (
     Tournament,
     TrainJob,
     TrainProgress,
+    Undo,
     WorkerReady,
 )
 
@@ -44,6 +46,7 @@ __all__ = [
     "ChildFailed",
     "Curve",
     "DecodeError",
+    "Dropped",
     "EvalJob",
     "EvalResult",
     "FitnessReport",
@@ -67,6 +70,7 @@ __all__ = [
     "Tournament",
     "TrainJob",
     "TrainProgress",
+    "Undo",
     "WorkerReady",
     "check_segment",
     "decode",

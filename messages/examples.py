@@ -14,6 +14,7 @@ from derl.messages.schema import (
     Cancel,
     ChildFailed,
     Curve,
+    Dropped,
     EvalJob,
     EvalResult,
     FitnessReport,
@@ -31,6 +32,7 @@ from derl.messages.schema import (
     Tournament,
     TrainJob,
     TrainProgress,
+    Undo,
     WorkerReady,
 )
 from derl.rl.config import PPOConfig
@@ -166,7 +168,11 @@ def examples(run: str = "run1", i: int = 0, checkpoint_bytes: int = 64) -> list[
             cost_of_work=0.75,
             energy=4.5e3,
             mass=6.25,
+            episodes=160,
+            constraint_rows=61_250_000,
         ),
+        Undo(run=run, node=node, agent=child, iteration=12, voided=9),
+        Dropped(run=run, agent=child, agents=(f"c{i + 4000:05d}", f"c{i + 4001:05d}")),
         Rejection(
             run=run,
             reason="wrong key",

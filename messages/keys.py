@@ -73,6 +73,8 @@ ROUTES: Final[dict[str, tuple[str, tuple[str, ...]]]] = {
     "ChildFailed": ("births", ("agent",)),
     "Quarantine": ("births", ("agent",)),
     "Retrained": ("births", ("agent",)),
+    "Undo": ("births", ("agent",)),
+    "Dropped": ("births", ("agent",)),
     "JobLost": ("lost", ("node",)),
     "Rejection": ("rejected", ()),
     "RunSettings": ("settings", ()),

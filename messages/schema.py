@@ -495,6 +495,26 @@ class Quarantine(MessageBase):
     """Its unchecked births, trained again."""
 
 
+class Undo(MessageBase):
+    """A caught lie undone (also on ``births/<agent>``, `agent` the child whose audit caught
+    `node`), once the liar's births are trained again: every tournament from `iteration` on was
+    decided after the first of its births, while a lie was in the population, so each is void
+    and decided again with the honest results. Their children (``c<iteration>`` on) are
+    forgotten, born or not (their jobs cancelled); an honest training of a body bred again is
+    kept: a child bred with it is born from it without training (its Birth names the kept job),
+    so the run ends with the births of the same profile and seed run honestly."""
+
+    type: Literal["Undo"] = "Undo"
+    node: Id
+    """The quarantined identity whose lie is undone."""
+    agent: Id
+    """The child whose audit caught it."""
+    iteration: Count
+    """The first tournament decided again."""
+    voided: Count
+    """Births forgotten."""
+
+
 class Retrained(MessageBase):
     """A child born from a quarantined identity's report, trained again by another (also on
     ``births/<agent>``): its result replaces the one it was born with, for it and its repeats."""
@@ -516,6 +536,23 @@ class Retrained(MessageBase):
     """As in FitnessReport."""
     mass: Positive
     """The body's mass, kg."""
+    episodes: Count | None = None
+    """Its training's episodes (the cluster timing's duration; None: not said)."""
+    constraint_rows: Count | None = None
+    """Its training's constraint rows, as in FitnessReport (None: not said)."""
+
+
+class Dropped(MessageBase):
+    """The released end of a run (`end: released`; also on ``births/<agent>``, `agent` the N-th
+    body to finish in virtual time, the released run's last saved one): the children bred that
+    are not among the N that finished first (in flight then, or trained past it) are dropped:
+    their jobs are cancelled and a birth of theirs does not count."""
+
+    type: Literal["Dropped"] = "Dropped"
+    agent: Id
+    """The N-th body to finish."""
+    agents: Annotated[tuple[Id, ...], Field(max_length=MAX_ITEMS)]
+    """The children dropped."""
 
 
 class Rejection(MessageBase):
@@ -627,6 +664,8 @@ Message = Annotated[
     | ChildFailed
     | Quarantine
     | Retrained
+    | Undo
+    | Dropped
     | Rejection
     | RunSettings
     | PopulationSnapshot

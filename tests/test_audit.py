@@ -8,6 +8,7 @@ which adds 1.0 to every fitness."""
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from functools import cache
 from pathlib import Path
@@ -21,13 +22,15 @@ from derl.messages import (
     FitnessReport,
     Quarantine,
     Retrained,
+    Tournament,
     TrainJob,
+    Undo,
 )
 from derl.nodes.coordinator.node import Coordinator
 from derl.nodes.coordinator.run.audits import audited, journaled, verdict
 from derl.nodes.coordinator.run.state import EvolutionState
 from derl.nodes.journal.history import load_history
-from derl.nodes.journal.segments import replay
+from derl.nodes.journal.segments import JournalWriter, replay
 from derl.nodes.testing.trainers import honest, honest_report, simulate_run
 from derl.unimal import Genome
 
@@ -111,8 +114,7 @@ def test_honest_trainers_give_the_births_of_an_unaudited_run(
     assert not state.quarantined
     assert (len(state.checked) > 0) == (audit > 0)
     fitness = {b.agent: b.fitness for b in state.births}
-    assert fitness == {child: honest(b.repeat_of or child)
-                       for child, b in state.born.items()}  # fmt: skip
+    assert fitness == {child: honest(b.genome) for child, b in state.born.items()}
     assert len(fitness) == _config(audit).total
 
 
@@ -135,12 +137,14 @@ def test_a_new_identity_that_lies_is_caught_at_its_first_report_and_never_born_f
     }
 
 
-def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
-    tmp_path: Path,
+def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_its_lie_undone(
+    tmp_path: Path, unaudited: Coordinator
 ) -> None:
     """Audited by the drawn share alone, the liar is caught at the first audited child it trains;
-    each of its births that no audit checked is trained again, so no lie stays in the population,
-    the births or the results; after the catch it gets no job, and a coordinator started on the
+    each of its births that no audit checked is trained again, then every tournament decided
+    after the first of them is decided again (an Undo), the honest trainings of the children
+    undone kept for the bodies bred again: the run ends with the births and the fingerprint of
+    the honest run. After the catch the liar gets no job, and a coordinator started on the
     journal knows all of it."""
     folder = tmp_path / "run"
     coordinator = run_with(folder, 0.3, liar=LIAR, **SHARE_ALONE)
@@ -154,19 +158,31 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert set(caught.retrain) == liar_births and liar_births  # every one trained again
     retrained = {m.agent: m for m in journal if isinstance(m, Retrained)}
     assert set(retrained) == liar_births
-    assert all(r.was == honest(c) + 1.0 for c, r in retrained.items())
-    assert all(r.fitness == honest(c) and r.node != LIAR for c, r in retrained.items())
+    assert all(r.was == r.fitness + 1.0 and r.node != LIAR for r in retrained.values())
     after = journal.index(caught)
     assert not [m for m in journal[after:] if isinstance(m, TrainJob) and m.node == LIAR]
     assert LIAR not in coordinator.idle["trainer"]  # it would stand before the others' turn
 
-    truth = {child: honest(b.repeat_of or child) for child, b in state.born.items()}
-    assert {b.agent: b.fitness for b in state.births} == truth
+    (undo,) = [m for m in journal if isinstance(m, Undo)]
+    assert journal.index(undo) > max(journal.index(m) for m in retrained.values())
+    assert undo.voided > 0 and undo.node == LIAR
+    honest_run = unaudited.state
+    assert state.fingerprint() == honest_run.fingerprint()
+    assert {b.agent: (b.parent, b.fitness) for b in state.births} == {
+        b.agent: (b.parent, b.fitness) for b in honest_run.births
+    }
+    at = journal.index(undo)
+    trained_before = {m.job for m in journal[:at] if isinstance(m, TrainJob)}
+    kept = [m for m in journal[at:] if isinstance(m, Birth) and m.job in trained_before]
+    assert kept  # bodies bred again born from the undone children's trainings, not trained
+    assert all((folder / "checkpoints" / f"{m.agent}.pt").exists() for m in kept)
+    truth = {child: honest(b.genome) for child, b in state.born.items()}
     assert {m.agent: m.fitness for m in state.evolution.born} == truth
     assert all(m.fitness == truth[m.agent] for m in state.evolution.population)
     assert state.evolution.best().fitness == max(truth.values())
     history = load_history(folder)  # what `derl report` reads
     assert {b.agent: b.fitness for b in history.births} == truth
+    assert history.fingerprint() == honest_run.fingerprint()
     assert list(history.quarantined) == [LIAR]
     summary = json.loads((folder / "summary.json").read_text())
     assert list(summary["quarantined"]) == [LIAR]
@@ -180,6 +196,51 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_no_lie_stays(
     assert resumed.checked == state.checked
     status = coordinator.status()
     assert status.quarantined == (LIAR,) and status.audited == len(state.checked) > 0
+
+
+def test_a_lie_undone_in_the_cluster_timing_ends_as_the_honest_run(tmp_path: Path) -> None:
+    """In the cluster timing the liar's births' durations join the virtual clock too: a liar
+    that lies on half its reports, caught and undone, leaves the honest run's births."""
+    config = {"timing": "cluster", "seed": 2}
+    names = ["t0", "t1", "t2", "t3"]
+    honest_run = simulate_run(RUN, tmp_path / "honest", _config(0.0, **config), names)
+    lied = simulate_run(RUN, tmp_path / "lied", _config(0.3, **config, **SHARE_ALONE), names,
+                        liar=LIAR, rate=0.5)  # fmt: skip
+    assert list(lied.state.quarantined) == [LIAR]
+    assert [m for m in replay(tmp_path / "lied") if isinstance(m, Undo)]
+    assert lied.state.fingerprint() == honest_run.state.fingerprint()
+
+
+def test_a_coordinator_stopped_while_it_undoes_a_lie_resumes_the_undoing(
+    tmp_path: Path, unaudited: Coordinator
+) -> None:
+    """The run of the test above, its coordinator stopped at each step of the undoing (while the
+    liar's births are trained again, just before the Undo, just after it, after the first child
+    bred again) and started on its journal with honest trainers: each ends as the honest run."""
+    lied = tmp_path / "lied"
+    run_with(lied, 0.3, liar=LIAR, **SHARE_ALONE)
+    journal = list(replay(lied))
+    (caught,) = [m for m in journal if isinstance(m, Quarantine)]
+    (undo,) = [m for m in journal if isinstance(m, Undo)]
+    at = journal.index(undo)
+    redone = next(k for k in range(at, len(journal)) if isinstance(journal[k], Tournament))
+    cuts = {
+        "retraining": journal.index(caught) + 1,
+        "before the undo": at,
+        "after the undo": at + 1,
+        "after a tournament decided again": redone + 1,
+    }
+    for name, cut in cuts.items():
+        folder = tmp_path / name.replace(" ", "-")
+        (folder / "journal").mkdir(parents=True)
+        writer = JournalWriter(folder / "journal" / "segment-0000.mcap")
+        for msg in journal[:cut]:
+            writer.write(msg)
+        writer.close()
+        shutil.copytree(lied / "checkpoints", folder / "checkpoints")
+        resumed = simulate_run(RUN, folder, _config(0.3, **SHARE_ALONE), ["t0", "t1", "t2"])
+        assert resumed.state.fingerprint() == unaudited.state.fingerprint(), name
+        assert len([m for m in replay(folder) if isinstance(m, Undo)]) == 1, name
 
 
 def test_a_real_trainer_that_inflates_every_report_leaves_the_honest_run(

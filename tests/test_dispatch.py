@@ -47,7 +47,8 @@ def test_every_reader_of_messages_dispatches_by_the_one_convention() -> None:
     """The fold takes every fact of the journal; the coordinator's state adds the decisions it
     keeps; the coordinator takes what workers send; the monitor and the bridge what they show."""
     facts = {"TrainJob", "EvalJob", "FitnessReport", "Birth", "ChildFailed", "Quarantine",
-             "Retrained", "JobFailed", "JobLost", "EvalResult", "RunSettings"}  # fmt: skip
+             "Retrained", "Undo", "Dropped", "JobFailed", "JobLost", "EvalResult",
+             "RunSettings"}  # fmt: skip
     assert {t.__name__ for t in RunHistory._handlers} == facts
     assert {t.__name__ for t in EvolutionState._handlers} == facts | {"Tournament", "Cancel"}
     assert {t.__name__ for t in Coordinator._handlers} == {

@@ -95,13 +95,14 @@ def _evolve(config_changes: dict[str, object], trainers: int, seed: int) -> list
     rng = random.Random(seed)
     waiting = [child.name for child in evolution.initial]
     training: list[str] = []
-    while evolution.settled < config.total:
+    while not evolution.complete:
         while len(training) < trainers:
             if waiting:
                 training.append(waiting.pop(0))
                 continue
             started = evolution.settled + len(training)
-            decided = evolution.tournament() if started < config.total else None
+            open_ended = config.end == "released"  # it breeds until N bodies finished
+            decided = evolution.tournament() if open_ended or started < config.total else None
             if decided is None:
                 break
             evolution.record(decided)
@@ -115,6 +116,9 @@ def _evolve(config_changes: dict[str, object], trainers: int, seed: int) -> list
             continue
         work = (drawn % 50, len(genome.limbs) * 10**7)  # episodes, constraint rows
         evolution.birth(done, drawn / 1e5, genome, work=work)
+        if (dropped := evolution.released_end()) is not None:
+            assert set(training) <= set(dropped)  # all in flight then finish past the N-th
+            evolution.drop(dropped)
     born = sorted(evolution.born, key=lambda m: evolution.index[m.agent])
     return [(m.agent, m.parent, m.fitness) for m in born]
 
@@ -130,6 +134,23 @@ def test_births_do_not_depend_on_the_trainers_or_the_order_trainings_finish_in(
     if timing == "window":
         free = {**windowed, "in_flight": 0}  # the released code's rule: it depends on both
         assert _evolve(free, 4, 2) != _evolve(free, 4, 3)
+
+
+def test_the_released_end_keeps_the_n_first_to_finish_whatever_the_trainers() -> None:
+    """`end: released`: the virtual workers breed while fewer than N bodies finished, and the run
+    keeps the N that finished first (the released code drops what is in flight when its N-th body
+    is saved): the same N births on 1 trainer or 9 and in any order, and not the first N bred."""
+    released = {"population": 8, "in_flight": 4, "tournament": 3, "timing": "cluster",
+                "end": "released"}  # fmt: skip
+    expected = _evolve(released, trainers=1, seed=0)
+    assert len(expected) == 40
+    for trainers, seed in [(2, 1), (4, 2), (9, 4)]:
+        assert _evolve(released, trainers, seed) == expected, (trainers, seed)
+    every_child = _evolve({**released, "end": "all"}, trainers=4, seed=2)
+    assert {b[0] for b in every_child} != {b[0] for b in expected}
+    assert every_child[: len(every_child) // 2] == expected[: len(every_child) // 2]
+    with pytest.raises(ValidationError, match="end released needs timing cluster"):
+        load_profile("smoke", [("end", "released")])
 
 
 def test_the_pool_is_the_latest_born_of_the_first_children_in_child_order() -> None:
@@ -162,12 +183,16 @@ def test_the_cluster_timing_breeds_when_a_virtual_worker_comes_free_from_the_lat
     clock.done(1, 15, born=True)
     assert clock.breeding(0) is None  # body 0 might still finish before 15
     clock.done(0, 12, born=True)
-    assert clock.breeding(0) == (15, [0, 1])  # worker 1 is free at 15; body 2 ends at 22 or later
+    assert clock.breeding(0) == (
+        15,
+        [0, 1],
+        2,
+    )  # worker 1 is free at 15; body 2 ends at 22 or later
     assert clock.breeding(1) is None  # child 3 started at 15 on worker 1 and trains still
     clock.done(3, 11, born=True)
     assert clock.breeding(1) is None  # body 2 (from 12) might end before child 3 (at 26)
     clock.done(2, 20, born=True)
-    assert clock.breeding(1) == (26, [0, 1, 3])  # body 2 ends at 32: not in it yet
+    assert clock.breeding(1) == (26, [0, 1, 3], 3)  # body 2 ends at 32: not in it yet
     config = load_profile("smoke", [("timing", "cluster")])
     assert config.training_time.least(1000) < config.training_time.duration(1000, 1, 1)
     with pytest.raises(ValidationError, match="timing cluster needs"):
@@ -288,3 +313,48 @@ def test_a_run_extended_with_more_bodies_gives_the_births_of_a_run_that_long_fro
     assert load_history(extended).fingerprint() == load_history(whole).fingerprint()
     settings = [json.loads(s) for s in load_history(extended).settings]  # the extension, journaled
     assert [s["total"] for s in settings] == [8, 12], settings
+
+
+def test_the_coordinator_ends_a_run_as_the_released_code_did_on_any_trainers_and_resumed(
+    tmp_path: Path,
+) -> None:
+    """`end: released` in the coordinator's own handlers, driven by simulated trainers (no bus;
+    each body's episodes, and so its virtual duration, its own): the run keeps the N bodies
+    that finished first in virtual time and drops what was bred past them (a Dropped, their
+    jobs cancelled): the same births with 1 trainer and 3, and with a coordinator started on the
+    journal cut just before the Dropped."""
+    from derl.messages import Dropped
+    from derl.nodes.journal.segments import JournalWriter, replay
+    from derl.nodes.testing.trainers import simulate_run
+
+    config = load_profile("smoke", [("timing", "cluster"), ("end", "released")],
+                          population=6, in_flight=4, total=20, eval_top=0)  # fmt: skip
+    one = simulate_run("r", tmp_path / "one", config, ["t0"])
+    three = simulate_run("r", tmp_path / "three", config, ["t0", "t1", "t2"])
+    for run in (one, three):
+        assert len(run.state.births) == 20 and run.state.evolution.complete
+        assert run.state.fingerprint() == one.state.fingerprint()
+    journal = list(replay(tmp_path / "three"))
+    (dropped,) = [m for m in journal if isinstance(m, Dropped)]
+    assert dropped.agents and not set(dropped.agents) & set(three.state.born)
+    assert dropped.agent in three.state.born
+    cut = tmp_path / "cut"
+    (cut / "journal").mkdir(parents=True)
+    writer = JournalWriter(cut / "journal" / "segment-0000.mcap")
+    for msg in journal[: journal.index(dropped)]:
+        writer.write(msg)
+    writer.close()
+    resumed = simulate_run("r", cut, config, ["t0", "t1"])
+    assert resumed.state.fingerprint() == one.state.fingerprint()
+    assert load_history(cut).fingerprint() == one.state.fingerprint()
+
+    from derl.nodes.cli.main import build_parser
+    from derl.nodes.cli.options import profile_from
+    from derl.nodes.cli.run import resumed_config
+    from derl.nodes.errors import DerlError
+
+    changes = ["timing=cluster", "end=released", "population=6", "in_flight=4", "eval_top=0"]
+    argv = ["run", *(f"--set={s}" for s in changes), "--set=total=30", "--extend"]
+    args = build_parser().parse_args([*argv, "--run-dir", str(tmp_path / "three")])
+    with pytest.raises(DerlError, match=r"end: released.*cannot go on to more"):
+        resumed_config(args, tmp_path / "three", profile_from(args))

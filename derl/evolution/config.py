@@ -131,6 +131,14 @@ class EvolutionConfig(JobSettings):
         "join sooner (durations from `training_time`); both are the same on any number of "
         'trainers (docs/fidelity.md, "Timing")',
     )
+    end: Literal["all", "released"] = Field(
+        "all",
+        description="how the run ends: all: every one of the N children is trained and born; "
+        "released (timing cluster only): as the released code, whose workers breed until N "
+        "bodies are saved and drop what is in flight then: the virtual workers breed while "
+        "fewer than N bodies finished, and the run keeps the N that finished first "
+        '(docs/fidelity.md, "End of a run")',
+    )
     training_time: TrainingTime = Field(
         default_factory=TrainingTime,
         description="the cluster timing's virtual duration of a training, from its counts",
@@ -265,6 +273,9 @@ class EvolutionConfig(JobSettings):
             )
         if self.timing == "cluster" and not self.in_flight:
             raise ValueError("timing cluster needs its W workers: in_flight >= 1")
+        if self.end == "released" and self.timing != "cluster":
+            raise ValueError("end released needs timing cluster: its virtual finishes decide "
+                             "which N bodies the run keeps")  # fmt: skip
         if self.eval_top and not self.eval_tasks:
             raise ValueError("eval_top needs eval_tasks")
         self.training_ppo()  # the budget holds whole rollouts, the minibatch fits, ...

@@ -2,17 +2,19 @@
 
 Children are numbered in the order they are bred (`index`): the P initial bodies first, from the
 run's seed, then tournament k's child. A tournament draws T members with replacement from a
-population, the fittest is the parent (the first drawn among equals), and one mutation of its body
-is the child. Which population is the run's `in_flight`, W, the number of children the evolution
-keeps in flight (the paper's 288 trainings at once): the child numbered n is bred from the P latest
-born of the first n - W children (`pool`), once every one of them is born or given up (`ready`),
-whatever order their trainings finished in. So the births depend on the seed alone, not on how
-many trainers ran, how fast, or what crashed and resumed. W = 0 is free-running (the released
-code's rule, not reproducible): the P most recently born, in the order they were born, as soon as
-one is. The cluster timing (`timing: cluster`, `derl.evolution.timing`) keeps the released
-code's dynamics instead and stays a function of the seed: W virtual workers, each breeding a
-child when its training ends in virtual time (durations counted from what the training did),
-from the P bodies that finished last by then. Tournament k draws from a hash of (seed, k)
+population, the fittest is the parent (the first drawn among equals), and one mutation of its
+body is the child. Which population is the run's `in_flight`, W, the number of children the
+evolution keeps in flight (the paper's 288 trainings at once): the child numbered n is bred from
+the P latest born of the first n - W children (`pool`), once every one of them is born or given
+up (`ready`), whatever order their trainings finished in. So the births depend on the seed
+alone, not on how many trainers ran, how fast, or what crashed and resumed. W = 0 is
+free-running (the released code's rule, not reproducible): the P most recently born, in the
+order they were born, as soon as one is. The cluster timing (`timing: cluster`,
+`derl.evolution.timing`) keeps the released code's dynamics instead and stays a function of the
+seed: W virtual workers, each breeding a child when its training ends in virtual time (durations
+counted from what the training did), from the P bodies that finished last by then; with the
+released end (`end: released`), the workers breed while fewer than N bodies finished and the run
+keeps the N that finished first. Tournament k draws from a hash of (seed, k)
 (`tournament_draws`), so a decision depends only on the state it was made in: replaying recorded
 decisions and births rebuilds the same state, and the next decision is the one the crashed run
 would have made.
@@ -134,6 +136,7 @@ class Evolution:
         self.parents: dict[str, str | None] = {c.name: None for c in self.initial}
         self.seeds: dict[str, int | None] = {c.name: None for c in self.initial}
         self.born: list[Member] = []
+        self.births_made = 0  # births ever (an undone one's number is not given again)
         self.fitness: dict[str, float] = {}
         self.given_up: set[str] = set()  # children never born (not bred, or trainings failed)
         self.bodies: dict[str, str] = {}  # body_key -> the first agent born with it
@@ -146,6 +149,8 @@ class Evolution:
         self.settled_indices: set[int] = set()  # numbers of children born or given up
         self.prefix = 0  # the first `prefix` children are all born or given up
         self.clock: ClusterClock | None = None  # the cluster timing's (`derl.evolution.timing`)
+        self.closed = False  # the released end: N bodies finished, no child is bred any more
+        self.dropped: set[str] | None = None  # the released end: the children dropped
         if config.timing == "cluster":
             self.steps = config.training_ppo().total_steps  # every training's env steps
             least = config.training_time.least(self.steps)
@@ -168,11 +173,17 @@ class Evolution:
         born or given up (should none of them be born: of the first children up to the first
         born one). Free-running (W = 0): the P most recently born, once one is. The cluster
         timing: the P that finished last in virtual time when the next child is bred
-        (`ClusterClock.breeding`)."""
+        (`ClusterClock.breeding`); with the released end, none once N bodies finished by then
+        (`closed`)."""
         config = self.config
         if self.clock is not None:
-            breeding = self.clock.breeding(self.iterations)
-            return None if breeding is None else [self.by_index[k] for k in breeding[1]]
+            breeding = None if self.closed else self.clock.breeding(self.iterations)
+            if breeding is None:
+                return None
+            if config.end == "released" and breeding[2] >= config.total:
+                self.closed = True  # N bodies finished: the released code's workers stop
+                return None
+            return [self.by_index[k] for k in breeding[1]]
         if not config.in_flight:
             return self.born[-config.population :] or None
         if not self.born_indices or self.born_indices[0] >= self.prefix:
@@ -192,8 +203,41 @@ class Evolution:
 
     @property
     def complete(self) -> bool:
-        """Every child of the run is born or given up."""
+        """Every child of the run is born or given up (with the released end: what was in
+        flight at the N-th finish is dropped, `drop`)."""
+        if self.config.end == "released":
+            return self.dropped is not None
         return self.settled >= self.config.total
+
+    def released_end(self) -> list[str] | None:
+        """With the released end (`end: released`), once it is known: the children bred that
+        are not among the N born that finished first in virtual time (in flight when the N-th
+        finished, or trained past it), to `drop`; None before (or with the other end, or once
+        dropped)."""
+        if self.config.end != "released" or self.dropped is not None or self.clock is None:
+            return None
+        if not self.closed:
+            self.pool()  # closes it if N bodies finished by the next breeding
+        if not self.closed or self.clock.nth_finish(self.config.total) is None:
+            return None
+        kept = {k for _, k in self.clock.finished[: self.config.total]}
+        bred = (c for c in self.parents if self.index[c] not in kept and c not in self.given_up)
+        return sorted(bred, key=self.index.__getitem__)
+
+    def drop(self, children: list[str]) -> None:
+        """The released end: `children` (`released_end`) never joined the population (none is
+        a parent: each finished after every breeding); a born one's birth does not count."""
+        gone = set(children)
+        self.dropped = gone
+        self.born = [m for m in self.born if m.agent not in gone]
+        for child in gone:
+            self.fitness.pop(child, None)
+        indices = {self.index[c] for c in gone if c in self.index}
+        self.by_index = {k: m for k, m in self.by_index.items() if k not in indices}
+        self.born_indices = sorted(self.by_index)
+        if self.clock is not None:
+            self.clock.finished = [f for f in self.clock.finished if f[1] not in indices]
+        self._best = self._fittest()
 
     def best(self) -> Member | None:
         """The fittest agent born (the first in child order of equals)."""
@@ -291,9 +335,16 @@ class Evolution:
         while self.prefix in self.settled_indices:
             self.prefix += 1
 
-    def correct(self, agent: str, fitness: float, cost_of_work: float = float("nan")) -> None:
+    def correct(
+        self,
+        agent: str,
+        fitness: float,
+        cost_of_work: float = float("nan"),
+        work: tuple[int, int] | None = None,
+    ) -> None:
         """`agent` (born) and its repeats have `fitness` and `cost_of_work`, not what they were
-        born with (it was trained again: the first result was a lie)."""
+        born with (it was trained again: the first result was a lie); `work`, if said: its
+        training's episodes and constraint rows (the cluster timing's duration)."""
         if agent not in self.fitness:
             return
         for k, member in enumerate(self.born):
@@ -302,7 +353,65 @@ class Evolution:
                     member, fitness=fitness, cost_of_work=cost_of_work
                 )
                 self.fitness[member.agent] = fitness
-        self._best = max(self.born, key=lambda m: (m.fitness, -self.index[m.agent]))
+        self._best = self._fittest()
+        if self.clock is not None and work is not None:
+            duration = self.config.training_time.duration(self.steps, *work)
+            self._new_clock({self.index[agent]: duration})
+
+    def undo(self, iteration: int) -> list[str]:
+        """Every tournament from `iteration` on is void (decided while a lie was in the
+        population): its child is forgotten, born or not, and the next tournament is
+        `iteration` again, decided from the state the earlier ones left. The children
+        forgotten, in child order; a born one that was a repeat of one of them is its own."""
+        first = len(self.initial) + iteration
+        void = sorted((c for c, k in self.index.items() if k >= first), key=self.index.__getitem__)
+        for child in void:
+            self.genomes.pop(child, None)
+            self.mutations.pop(child, None)
+            self.parents.pop(child, None)
+            self.seeds.pop(child, None)
+            self.fitness.pop(child, None)
+            self.hashes.pop(child, None)
+            self.given_up.discard(child)
+            del self.index[child]
+        gone = set(void)
+        self.born = [
+            replace(m, repeat_of=None) if m.repeat_of in gone else m
+            for m in self.born
+            if m.agent not in gone
+        ]
+        self.by_index = {self.index[m.agent]: m for m in self.born}
+        self.born_indices = sorted(self.by_index)
+        self.settled_indices = {k for k in self.settled_indices if k < first}
+        self.prefix = min(self.prefix, first)
+        self.iterations = iteration
+        self.closed = False
+        self.bodies = {}
+        for member in self.born:
+            self.bodies.setdefault(self.body_key(member.agent), member.agent)
+        self._best = self._fittest()
+        if self.clock is not None:
+            self._new_clock({}, before=first)
+        return void
+
+    def _fittest(self) -> Member | None:
+        """The fittest born agent, the first in child order of equals (`best`)."""
+        if not self.born:
+            return None
+        return max(self.born, key=lambda m: (m.fitness, -self.index[m.agent]))
+
+    def _new_clock(self, durations: dict[int, int], before: int | None = None) -> None:
+        """The cluster clock again from its children's durations (`durations` replacing some;
+        only children numbered below `before`, if given): a duration it knew changed, or
+        children were forgotten."""
+        old = self.clock
+        assert old is not None
+        clock = ClusterClock(self.config.in_flight, len(self.initial), self.config.population,
+                             old.least)  # fmt: skip
+        for child, duration in sorted({**old.duration, **durations}.items()):
+            if before is None or child < before:
+                clock.done(child, duration, born=child in old.born)
+        self.clock = clock
 
     def repeat_of(self, genome: Genome) -> str | None:
         """The first agent born with the body `genome` (None: a body not born yet)."""
@@ -330,8 +439,9 @@ class Evolution:
         self.genomes.setdefault(agent, genome)
         self.bodies.setdefault(self.body_key(agent), agent)
         member = Member(
-            agent, fitness, self.parents[agent], len(self.born), repeat_of, cost_of_work
+            agent, fitness, self.parents[agent], self.births_made, repeat_of, cost_of_work
         )
+        self.births_made += 1
         self.born.append(member)
         index = self.index[agent]
         bisect.insort(self.born_indices, index)

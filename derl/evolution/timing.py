@@ -11,6 +11,8 @@ training's virtual duration is a deterministic function of what it did (`Trainin
 steps, its episodes, the constraint rows MuJoCo solved), counted by the trainer and carried in
 its report and its `Birth`, so a resumed coordinator rebuilds the same clock from the journal.
 Times are whole microseconds: equal times are exact, and are ordered by the child's number.
+The released end (`end: released`): a worker breeds only while fewer than N bodies finished,
+and the run keeps the N that finished first (`nth_finish`); what was in flight then is dropped.
 
 A real trainer may train any child in flight; the clock only says when the next child may be
 bred: once every child that could finish before the next worker comes free is known. Every
@@ -107,11 +109,12 @@ class ClusterClock:
                 if child in self.born:
                     bisect.insort(self.finished, (time, child))
 
-    def breeding(self, iteration: int) -> tuple[int, list[int]] | None:
-        """When tournament `iteration`'s child is bred (virtual microseconds) and the P children
-        it draws from (those that finished last by then, oldest first); None while not known.
-        Every earlier tournament's child is taken to be bred (`Evolution.record` or given up):
-        child P + j starts on the worker that came free at breeding j."""
+    def breeding(self, iteration: int) -> tuple[int, list[int], int] | None:
+        """When tournament `iteration`'s child is bred (virtual microseconds), the P children
+        it draws from (those that finished last by then, oldest first) and how many born
+        children finished by then; None while not known. Every earlier tournament's child is
+        taken to be bred (`Evolution.record` or given up): child P + j starts on the worker that
+        came free at breeding j."""
         while len(self.events) < iteration:
             if not self._assign():
                 return None
@@ -120,7 +123,17 @@ class ClusterClock:
             return None
         time, last, _ = event
         end = bisect.bisect_right(self.finished, (time, last))
-        return time, [child for _, child in self.finished[max(0, end - self.population) : end]]
+        pool = [child for _, child in self.finished[max(0, end - self.population) : end]]
+        return time, pool, end
+
+    def nth_finish(self, n: int) -> tuple[int, int] | None:
+        """The `n`-th finish of a born child (time, child), once no finish still unknown could
+        come before it (no child is bred before it: the caller knows); None before."""
+        if len(self.finished) < n:
+            return None
+        nth = self.finished[n - 1]
+        _, bound = self._scan()
+        return nth if bound is None or bound > nth else None
 
     def _assign(self) -> bool:
         """Breeding number len(events) happens: its child starts on the worker that came free."""
@@ -139,8 +152,21 @@ class ClusterClock:
         no child whose finish is unknown could finish before it (or at it, numbered lower)."""
         if self._next is not None:
             return self._next
+        best, bound = self._scan()
+        if best is None or (bound is not None and bound <= best[:2]):
+            return None
+        if not self.finished or self.finished[0] > best[:2]:  # none born by then: no draw
+            self.workers[best[2]].retired = True
+            return self._peek()
+        self._next = best
+        return best
+
+    def _scan(self) -> tuple[tuple[int, int, int] | None, tuple[int, int] | None]:
+        """The first worker to come free of those whose children's durations are all known
+        (time, its last child, the worker), and the earliest a finish not known yet can be
+        (time, child: each unknown duration taken as the least)."""
         best: tuple[int, int, int] | None = None
-        bound: tuple[int, int] | None = None  # the earliest an unknown finish can be
+        bound: tuple[int, int] | None = None
         for w, worker in enumerate(self.workers):
             if worker.retired:
                 continue
@@ -154,10 +180,4 @@ class ClusterClock:
                     bound = (time, child)
             if known and (best is None or (time, worker.children[-1]) < best[:2]):
                 best = (time, worker.children[-1], w)
-        if best is None or (bound is not None and bound <= best[:2]):
-            return None
-        if not self.finished or self.finished[0] > best[:2]:  # none born by then: no draw
-            self.workers[best[2]].retired = True
-            return self._peek()
-        self._next = best
-        return best
+        return best, bound

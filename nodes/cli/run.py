@@ -160,6 +160,10 @@ def resumed_config(
         fail(f"--set {change.key}={json.dumps(new)}: the run in {run_dir} has {change.key} "
              f"{json.dumps(old)}{hint}; a run keeps its settings: use a new --run-dir to run "
              "with others", USAGE)  # fmt: skip
+    if args.extend and more and saved.end == "released":
+        fail(f"--extend: the run in {run_dir} ends as the released code did (end: released): "
+             "it dropped what was in flight at its last body, so it cannot go on to more; "
+             "start a new --run-dir with the larger total", USAGE)  # fmt: skip
     if args.extend and more:
         console.print(f"extending the run in {run_dir} from {saved.total} to {config.total} "
                       "bodies", highlight=False)  # fmt: skip

@@ -1,26 +1,29 @@
 """The one reading of a run's journal: its messages folded, in order, into the run's facts.
 
 `RunHistory.apply` dispatches each message to its handler (`derl.messages.dispatch`), which
-records what it means: a TrainJob or EvalJob assigns work (the first one says the run's world and
-budget), the FitnessReport the coordinator accepted is the evidence of a birth (its learning curve
-is kept) and the Birth that follows it is the birth (index, generation, fitness), a ChildFailed
-gives a child up, an EvalResult completes an evaluation, a Quarantine names a trainer caught
-lying and a Retrained replaces a child's result. Every reader uses it: the coordinator's states
-(`nodes.coordinator.jobs` and the states built on it extend the handlers to keep the jobs in
-flight, and keep no learning curves), `derl report` and `derl study` (`run_log`), the monitor.
-"""
+records what it means: a TrainJob or EvalJob assigns work (the first one says the run's world
+and budget), the FitnessReport the coordinator accepted is the evidence of a birth (its learning
+curve is kept) and the Birth that follows it is the birth (index, generation, fitness), a
+ChildFailed gives a child up, an EvalResult completes an evaluation, a Quarantine names a
+trainer caught lying, a Retrained replaces a child's result, an Undo forgets the children of the
+tournaments decided again after a caught lie, and a Dropped those dropped at the released end.
+Every reader uses it: the coordinator's states (`nodes.coordinator.jobs` and the states built on
+it extend the handlers to keep the jobs in flight, and keep no learning curves), `derl report`
+and `derl study` (`run_log`), the monitor."""
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from derl.evolution.evolution import tournament_child
 from derl.evolution.fingerprint import child_order, fingerprint
 from derl.messages import (
     Birth,
     ChildFailed,
+    Dropped,
     EvalJob,
     EvalResult,
     FitnessReport,
@@ -31,6 +34,7 @@ from derl.messages import (
     Retrained,
     RunSettings,
     TrainJob,
+    Undo,
 )
 from derl.messages.dispatch import Handler, handles
 from derl.nodes.errors import USAGE, DerlError
@@ -67,9 +71,11 @@ class RunHistory(Handler):
         self.unfit: dict[str, str] = {}  # node -> why it refused the run's jobs (JobFailed.unfit)
         self.lost: list[JobLost] = []
         self.evaluations: dict[EvalKey, EvalResult] = {}
-        self.audited = 0  # births from two or more trainings (an audit: `EvolutionConfig.audit`)
+        self.checked_births: set[str] = set()  # born from two or more trainings (an audit)
         self.quarantined: dict[str, Quarantine] = {}  # identity -> the quarantine that caught it
         self.retrained: dict[str, Retrained] = {}  # child -> its result's replacement
+        self.kept_reports: dict[str, FitnessReport] = {}  # an undone child's job -> its report
+        self.dropped: set[str] = set()  # children dropped at the released end (`Dropped`)
         self.other_runs = 0
         self.settings: list[str] = []  # the run's settings as JSON, each time they were set
         self._accepted: dict[str, list[FitnessReport]] = {}  # child -> its reports, until born
@@ -122,12 +128,15 @@ class RunHistory(Handler):
         self.births.append(msg)
         self.born[msg.agent] = msg
         reports = self._accepted.pop(msg.agent, [])
-        self.audited += len(reports) > 1
+        if len(reports) > 1:
+            self.checked_births.add(msg.agent)
         report = next((r for r in reports if r.job == msg.job), None)
         if msg.repeat_of is not None:
             self.repeats += 1
             if report is None:
                 report = self.reports.get(msg.repeat_of)
+        if report is None:  # born from an undone child's training (`Undo`)
+            report = self.kept_reports.get(msg.job)
         if report is not None:
             self.reports[msg.agent] = report
 
@@ -148,11 +157,47 @@ class RunHistory(Handler):
         report = next((r for r in self._accepted.pop(msg.agent, []) if r.job == msg.job), None)
         fields = ("job", "node", "fitness", "cost_of_work", "energy", "mass")
         result = {k: getattr(msg, k) for k in fields}
+        if msg.episodes is not None and msg.constraint_rows is not None:
+            result.update(episodes=msg.episodes, constraint_rows=msg.constraint_rows)
         for k, birth in enumerate(self.births):
             if msg.agent in (birth.agent, birth.repeat_of):
                 self.births[k] = self.born[birth.agent] = birth.model_copy(update=result)
                 if report is not None:
                     self.reports[birth.agent] = report
+
+    @handles(Undo)
+    def on_undo(self, msg: Undo) -> None:
+        """The children of the tournaments from `msg.iteration` on are forgotten (`_forget`)."""
+        first = child_order(tournament_child(msg.iteration))
+        self._forget(lambda agent: child_order(agent) >= first)
+
+    @handles(Dropped)
+    def on_dropped(self, msg: Dropped) -> None:
+        """The children dropped at the released end are forgotten (`_forget`)."""
+        dropped = set(msg.agents)
+        self.dropped.update(dropped)
+        self._forget(dropped.__contains__)
+
+    def _forget(self, gone: Callable[[str], bool]) -> None:
+        """The agents `gone` says are forgotten: their births, failures and results (a birth
+        that was a repeat of one is its own); the report each was born from is kept by its job
+        (`kept_reports`, for a child born from an undone child's training)."""
+        for birth in self.births:
+            if gone(birth.agent) and birth.agent in self.reports:
+                self.kept_reports[birth.job] = self.reports.pop(birth.agent)
+        self.births = [
+            b.model_copy(update={"repeat_of": None})
+            if b.repeat_of is not None and gone(b.repeat_of)
+            else b
+            for b in self.births
+            if not gone(b.agent)
+        ]
+        self.born = {b.agent: b for b in self.births}
+        self.repeats = sum(b.repeat_of is not None for b in self.births)
+        self.checked_births = {a for a in self.checked_births if not gone(a)}
+        for table in (self.failed, self.failures, self.retrained, self._accepted):
+            for agent in [a for a in table if gone(a)]:
+                del table[agent]
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
@@ -170,6 +215,11 @@ class RunHistory(Handler):
         self.evaluations.setdefault((msg.agent, msg.task, msg.seed, msg.steps), msg)
 
     # --- questions --------------------------------------------------------------------------
+
+    @property
+    def audited(self) -> int:
+        """Births from two or more trainings (an audit: `EvolutionConfig.audit`)."""
+        return len(self.checked_births)
 
     def generation(self, parent: str | None) -> int:
         """The generation of a child of `parent` (0 for the initial population)."""

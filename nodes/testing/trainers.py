@@ -29,7 +29,7 @@ from derl.messages import (
 from derl.nodes.coordinator.node import Coordinator, Liveliness
 from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.policy_check import untrained_policy
-from derl.unimal import Genome
+from derl.unimal import Genome, body_hash
 
 
 class Recorder:
@@ -65,20 +65,29 @@ def fake_report(run: str, job: TrainJob, fitness: float, points: int = 100) -> F
     )  # fmt: skip
 
 
-def honest(child: str) -> float:
-    """The fitness of `child` as every honest training finds it (training is deterministic):
-    drawn from its name."""
-    return int.from_bytes(hashlib.sha256(child.encode()).digest()[:2], "little") / 100
+def honest(genome: Genome) -> float:
+    """The fitness of a body as every honest training finds it (training is deterministic):
+    drawn from its `body_hash`."""
+    return int.from_bytes(bytes.fromhex(body_hash(genome))[:2], "little") / 100
+
+
+def lies_about(child: str, rate: float) -> bool:
+    """Whether a liar that lies on a share `rate` of its reports lies about `child` (drawn from
+    the child's name)."""
+    draw = int.from_bytes(hashlib.sha256(f"lie {child}".encode()).digest()[:8], "little")
+    return draw < rate * 2**64
 
 
 def honest_report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
-    """`job`'s report with the child's `honest` fitness plus `lie` (a liar's: not 0) and the
-    child's own policy (`policy_of`)."""
+    """`job`'s report with its body's `honest` fitness plus `lie` (a liar's: not 0), 4-19
+    episodes drawn from the body too (the cluster timing's duration), and the child's own policy
+    (`policy_of`)."""
+    episodes = 4 + int(honest(job.genome) * 100) % 16
     return FitnessReport(
         run=job.run, agent=job.agent, job=job.job, node=job.node, genome=job.genome,
-        fitness=honest(job.agent) + lie, fitness_source="window", fitness_episodes=4,
+        fitness=honest(job.genome) + lie, fitness_source="window", fitness_episodes=4,
         curve=Curve(env_steps=(job.steps,), returns=(1.0,)), energy=2.0, cost_of_work=0.5,
-        mass=3.0, episodes=8, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
+        mass=3.0, episodes=episodes, env_steps=job.steps, wall_s=1.0, steps_per_s=1.0,
         checkpoint=policy_of(job.agent, job.genome, job.task),
     )  # fmt: skip
 
@@ -86,12 +95,14 @@ def honest_report(job: TrainJob, lie: float = 0.0) -> FitnessReport:
 @dataclass
 class Trainers:
     """Simulated trainers of run `run`: each answers its job at once (`honest_report`, plus 1.0
-    for the `liar`) and, once answered, asks for work once: an idle one then waits among the
-    coordinator's idle workers for its next job."""
+    where the `liar` lies: on a share `rate` of its children, `lies_about`) and, once answered,
+    asks for work once: an idle one then waits among the coordinator's idle workers for its
+    next job."""
 
     run: str
     names: list[str]
     liar: str | None = None
+    rate: float = 1.0
     jobs: dict[str, TrainJob] = field(default_factory=dict)  # node -> its unanswered job
     asked: set[str] = field(default_factory=set)  # idle nodes that asked
 
@@ -104,7 +115,8 @@ class Trainers:
             if isinstance(msg, TrainJob):
                 self.jobs[node] = msg
                 self.asked.discard(node)
-                out.append(honest_report(msg, 1.0 if node == self.liar else 0.0))
+                lies = node == self.liar and lies_about(msg.agent, self.rate)
+                out.append(honest_report(msg, 1.0 if lies else 0.0))
             elif isinstance(msg, Ack | Reject | Cancel) and msg.job == self.jobs.get(node, msg).job:
                 del self.jobs[node]
         return out
@@ -122,13 +134,14 @@ def simulate_run(
     names: list[str],
     liar: str | None = None,
     rounds: int = 400,
+    rate: float = 1.0,
 ) -> Coordinator:
     """The run of `config` in `folder` (begun or not) to its end (every child born, none waiting
-    to be trained again, its results written) by the simulated `Trainers` named `names`; the
-    coordinator, closed."""
+    to be trained again, its results written) by the simulated `Trainers` named `names` (`liar`
+    lies on a share `rate` of its reports); the coordinator, closed."""
     heard = Recorder()
     coordinator = Coordinator(run, folder, EvolutionRules(run, folder, config), publisher=heard)
-    trainers = Trainers(run, names, liar)
+    trainers = Trainers(run, names, liar, rate)
     for node in names:
         coordinator.take(Liveliness("trainer", node, True))
     try:

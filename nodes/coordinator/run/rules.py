@@ -36,6 +36,7 @@ from derl.messages import (
     Birth,
     Cancel,
     ChildFailed,
+    Dropped,
     EvalJob,
     EvalResult,
     FitnessReport,
@@ -48,6 +49,7 @@ from derl.messages import (
     Retrained,
     RunSettings,
     TrainJob,
+    Undo,
 )
 from derl.nodes.coordinator.evaluations import evaluation_job, log_given_up, on_evaluation
 from derl.nodes.coordinator.jobs import Job
@@ -102,6 +104,8 @@ class EvolutionRules:
         for birth in self.state.births:
             if birth.repeat_of is not None and not ledger.checkpoints.path(birth.agent).exists():
                 ledger.link(birth.agent, birth.repeat_of)
+        self._undo()  # if the coordinator stopped before it, once the liars' births were in
+        self._released_end()
         settings = self.config.model_dump_json()
         if not self.state.settings or self.state.settings[-1] != settings:
             if self.state.settings:
@@ -124,6 +128,7 @@ class EvolutionRules:
             return None
         if trainers <= 1:
             self._born_unchecked(node)
+        self._released_end()
         window = self.config.in_flight
         if 0 < window < trainers and not self.said_window:
             self.said_window = True
@@ -140,7 +145,12 @@ class EvolutionRules:
                 child = decided.name
             if child is None:
                 return None
-            if self._bred(child) and not self._born_as_repeat(child) and not state.hold(child):
+            if (
+                self._bred(child)
+                and not self._born_as_repeat(child)
+                and not self._born_as_kept(child)
+                and not state.hold(child)
+            ):
                 break
         state.training(child)
         genome, mutation = evolution.body(child)
@@ -215,28 +225,44 @@ class EvolutionRules:
     def _born_as_repeat(self, child: str) -> bool:
         """If `child`'s body is born already (a repeat: training is deterministic within a
         run), it is born now with that body's result and checkpoint, and True."""
-        state = self.state
-        earlier = state.evolution.repeat(child)
+        earlier = self.state.evolution.repeat(child)
         if earlier is None:
             return False
+        self._born_from(child, self.state.born[earlier], earlier, earlier)
+        log.debug("born %s as a repeat of %s", child, earlier)
+        return True
+
+    def _born_as_kept(self, child: str) -> bool:
+        """If an undone child's honest training had `child`'s body (and parent's training, where
+        children inherit: `Evolution.body_key`), `child` is born now from it (its result, and
+        its file kept as `checkpoints/<job>.pt`) without training, and True."""
+        kept = self.state.kept.get(self.state.evolution.body_key(child))
+        if kept is None:
+            return False
+        self._born_from(child, kept, None, kept.job)
+        log.debug("born %s from %s, the training of an undone child with its body", child,
+                  kept.job)  # fmt: skip
+        return True
+
+    def _born_from(self, child: str, result: Birth, repeat_of: str | None, file: str) -> None:
+        """`child` is born with the result of an earlier `Birth` (`repeat_of`: that agent's,
+        a repeat), its checkpoint file a link to `file`'s (an agent's, or a kept job's)."""
+        state = self.state
         genome, mutation = state.evolution.body(child)
-        first = state.born[earlier]
         parent = state.evolution.parents[child]
-        birth = first.model_copy(
+        birth = result.model_copy(
             update={
                 "agent": child,
                 "parent": parent,
-                "birth": len(state.births),
+                "birth": state.next_birth(),
                 "generation": state.generation(parent),
                 "mutation": None if mutation is None else mutation.op,
                 "mutation_detail": "" if mutation is None else mutation.detail,
                 "genome": genome,
-                "repeat_of": earlier,
+                "repeat_of": repeat_of,
             }
         )
-        self.ledger.commit(birth, after=self.ledger.link(child, earlier))
-        log.debug("born %s as a repeat of %s", child, earlier)
-        return True
+        self.ledger.commit(birth, after=self.ledger.link(child, file))
 
     # --- results -----------------------------------------------------------------------------
 
@@ -248,6 +274,12 @@ class EvolutionRules:
             ledger.never_issued(report, child)  # whatever the child's state
         elif identity(report.node) in state.quarantined:
             ledger.reject(report, child, f"{identity(report.node)} is quarantined: it lied")
+        elif child in state.dropped:
+            ledger.reject(report, child, "the child was dropped at the run's released end (it "
+                          "kept the N bodies that finished first)")  # fmt: skip
+        elif report.job in state.undone:
+            ledger.reject(report, child, f"the child of job {report.job} was undone: its "
+                          "tournament is decided again (a lie swayed it)")  # fmt: skip
         elif child in state.born and not (child in state.retraining and order is not None):
             saved = None  # a crash (or a failed write) may have lost its checkpoint file
             born_from = state.born[child].job
@@ -288,7 +320,7 @@ class EvolutionRules:
             parent=order.parent,
             job=report.job,
             node=report.node,
-            birth=len(state.births),
+            birth=state.next_birth(),
             generation=state.generation(order.parent),
             fitness=report.fitness,
             cost_of_work=report.cost_of_work,
@@ -305,11 +337,8 @@ class EvolutionRules:
 
     def _end_other_job(self, child: str, done: str) -> None:
         """A report for `child` was taken from job `done`: another job for it is cancelled."""
-        other = self.state.by_child.get(child)
-        if other is not None and other != done:
-            node = self.state.jobs[other].node
-            self.ledger.commit(Cancel(run=self.run, job=other, node=node,
-                                      reason=f"{child} was answered by {done}"))  # fmt: skip
+        if self.state.by_child.get(child) not in (None, done):
+            self._cancel(child, f"answered by {done}")
 
     def _decided(self, decided: Verdict, order: TrainJob, file: Future[None]) -> None:
         """An audit's trials decided: the birth, and the liar's quarantine (`audits`)."""
@@ -339,7 +368,8 @@ class EvolutionRules:
         """A child born from a liar's report, trained again: its result is this one's (published
         once its new checkpoint `file` is on the disk)."""
         was = self.state.born[report.agent].fitness
-        same = ("agent", "job", "node", "fitness", "cost_of_work", "energy", "mass")
+        same = ("agent", "job", "node", "fitness", "cost_of_work", "energy", "mass", "episodes",
+                "constraint_rows")  # fmt: skip
         result = {k: getattr(report, k) for k in same}
         self.ledger.commit(Retrained(run=self.run, was=was, **result), after=file)
         for birth in self.state.births:  # its repeats' files: links to the new one
@@ -347,6 +377,62 @@ class EvolutionRules:
                 self.ledger.link(birth.agent, report.agent)
         log.info("%s trained again: fitness %.2f (it was born with %.2f)", report.agent,
                  report.fitness, was)  # fmt: skip
+        self._undo()
+
+    def _released_end(self) -> None:
+        """With the released end (`end: released`), once it is known (`Evolution.released_end`):
+        the jobs of the children that are not among the N that finished first are cancelled and
+        they are dropped (a Dropped, published)."""
+        state = self.state
+        drop = state.evolution.released_end()
+        if drop is None:
+            return
+        for child in drop:
+            self._cancel(child, "the run ended (the released end)")
+        clock = state.evolution.clock
+        assert clock is not None
+        _, nth = clock.finished[self.config.total - 1]
+        last = next(c for c, k in state.evolution.index.items() if k == nth)
+        log.info("the released end: %s was the %d-th body to finish; %d children in flight or "
+                 "past it are dropped", last, self.config.total, len(drop))  # fmt: skip
+        self.ledger.commit(Dropped(run=self.run, agent=last, agents=tuple(drop)))
+
+    def _cancel(self, child: str, why: str) -> None:
+        """Cancel `child`'s job in flight, if it has one (`why`: the reason its trainer is told)."""
+        job = self.state.by_child.get(child)
+        if job is not None:
+            node = self.state.jobs[job].node
+            self.ledger.commit(Cancel(run=self.run, job=job, node=node, reason=f"{child}: {why}"))
+
+    def _undo(self) -> None:
+        """Undo the caught lies once the liars' births are all trained again
+        (`EvolutionState.undo_due`): every tournament decided after the first of those births
+        is void. The jobs of their children are cancelled, each born one's checkpoint file is
+        kept as `checkpoints/<job>.pt` (a child bred again with its body is born from it), and
+        the Undo is committed (published once those files are on the disk); the tournaments
+        are then decided again, as the honest run of the seed decided them."""
+        state = self.state
+        if not state.undo_due:
+            return
+        iteration = state.undo_from
+        assert iteration is not None
+        first = len(state.evolution.initial) + iteration
+        void = [c for c, k in state.evolution.index.items() if k >= first]
+        for child in void:
+            self._cancel(child, "undone, a lie swayed its tournament")
+        kept = None  # the last file kept: written after the others
+        for child in void:
+            birth = state.born.get(child)
+            if birth is not None and birth.repeat_of is None:
+                kept = self.ledger.link(birth.job, child)
+        caught = list(state.quarantined.values())[-1]
+        voided = sum(child in state.born for child in void)
+        log.warning("undoing %s's lie: tournaments c%05d on (%d children, %d born) are decided "
+                    "again with the honest results", caught.node, iteration, len(void),
+                    voided)  # fmt: skip
+        undo = Undo(run=self.run, node=caught.node, agent=caught.agent, iteration=iteration,
+                    voided=voided)  # fmt: skip
+        self.ledger.commit(undo, after=kept)
 
     def _wrong_report(self, report: FitnessReport, order: TrainJob) -> str:
         """Why `report` cannot be accepted for `order` ("" if it can): the body is the job's

@@ -10,8 +10,10 @@ evaluated (the book's evaluation stage). An audited child's FitnessReport is one
 (`audits`: it waits for another identity's until they agree; the child's first report decides
 whether it is audited, from the identities' records its births keep); a Quarantine puts the liar's
 unchecked births first in the queue, and their Retrained replaces the result they were born
-with. A TrainJob also records its child's body (the coordinator bred it: a fact, so a resumed
-coordinator trains the same body).
+with; once they are all trained again, an Undo makes every tournament decided after the first of
+the liar's births void (`on_undo`: their children forgotten, an honest training kept for a body
+bred again), so the run goes on as the honest run of its seed. A TrainJob also records its
+child's body (the coordinator bred it: a fact, so a resumed coordinator trains the same body).
 Not from the journal: the children held back because a child with their body is in training
 (`hold`); each goes back to the front of the queue once that child is born (then it is born as
 its repeat) or given up (a restart forgets them: they are in the queue again, and held again when
@@ -33,6 +35,7 @@ from derl.evolution import Child, Evolution, EvolutionConfig, Member
 from derl.messages import (
     Birth,
     ChildFailed,
+    Dropped,
     FitnessReport,
     JobFailed,
     MessageBase,
@@ -40,6 +43,7 @@ from derl.messages import (
     Retrained,
     Tournament,
     TrainJob,
+    Undo,
 )
 from derl.messages.dispatch import handles
 from derl.nodes.coordinator.jobs import Job, JobBook
@@ -72,7 +76,8 @@ class EvolutionState(JobBook):
         super().__init__(config.max_attempts)
         self.config = config
         self.evolution = evolution
-        self.attempts: dict[str, int] = {}  # child -> trainings started
+        self.attempts: dict[str, int] = {}  # child -> trainings started (undone ones too: a job
+        # id is never given twice)
         self.failed_on: dict[str, set[str]] = {}  # child -> nodes whose training of it failed
         self.waiting: deque[str] = deque()  # children to (re)assign, in order
         self.by_child: dict[str, str] = {}  # child -> its training job in flight
@@ -92,6 +97,15 @@ class EvolutionState(JobBook):
         self.inherits = config.inherit == "parent"
         self.report_sha256: dict[str, bytes] = {}
         self.sha256: dict[str, bytes] = {}
+        # undoing a caught lie (`on_undo`): the tournaments decided before each birth, the first
+        # tournament to decide again once the liars' births are trained again, the honest
+        # trainings of undone children (body_key -> the Birth; its job -> its file's SHA-256)
+        # and every job of an undone child (a late report of one is refused)
+        self.decided_before: dict[str, int] = {}
+        self.undo_from: int | None = None
+        self.kept: dict[str, Birth] = {}
+        self.kept_sha256: dict[str, bytes] = {}
+        self.undone: set[str] = set()
 
     @classmethod
     def start(cls, config: EvolutionConfig, initial: list[Genome] | None) -> EvolutionState:
@@ -184,6 +198,7 @@ class EvolutionState(JobBook):
         self._forget_orders(msg.agent)
         if self.inherits:
             self._born_sha256(msg.agent, msg.job, msg.repeat_of)
+        self.decided_before[msg.agent] = self.evolution.iterations
         work = (msg.episodes, msg.constraint_rows)
         self.evolution.birth(
             msg.agent, msg.fitness, msg.genome, msg.repeat_of, work, msg.cost_of_work
@@ -195,9 +210,15 @@ class EvolutionState(JobBook):
 
     @handles(Quarantine)
     def on_quarantine(self, msg: Quarantine) -> None:
-        """`msg.node` lied: its trials of children not born yet no longer count, and its
-        unchecked births wait first in the queue to be trained again."""
+        """`msg.node` lied: its trials of children not born yet no longer count, its unchecked
+        births wait first in the queue to be trained again, and every tournament decided after
+        the first of them is to be decided again (`undo_from`) once they are."""
         super().on_quarantine(msg)
+        decided = [self.decided_before[c] for c in msg.retrain if c in self.decided_before]
+        if self.undo_from is not None:
+            decided.append(self.undo_from)
+        if decided and min(decided) < self.evolution.iterations:
+            self.undo_from = min(decided)
         for reports in self.trials.values():
             reports[:] = [r for r in reports if identity(r.node) != msg.node]
         for child in reversed(msg.retrain):
@@ -209,7 +230,10 @@ class EvolutionState(JobBook):
     def on_retrained(self, msg: Retrained) -> None:
         super().on_retrained(msg)
         self.retraining.pop(msg.agent, None)
-        self.evolution.correct(msg.agent, msg.fitness, msg.cost_of_work)
+        work = None
+        if msg.episodes is not None and msg.constraint_rows is not None:
+            work = (msg.episodes, msg.constraint_rows)
+        self.evolution.correct(msg.agent, msg.fitness, msg.cost_of_work, work)
         if self.inherits:  # its file and its repeats' links are the new training's
             self._born_sha256(msg.agent, msg.job, None)
             for birth in self.births:
@@ -217,6 +241,54 @@ class EvolutionState(JobBook):
                     self._born_sha256(birth.agent, birth.job, msg.agent)
         self._forget_orders(msg.agent)
         self._remove(msg.job)
+
+    @handles(Undo)
+    def on_undo(self, msg: Undo) -> None:
+        """Every tournament from `msg.iteration` on is void: each child's honest training (every
+        born one's is, its liar's births trained again) is kept for a body bred again, its jobs
+        are refused from now on, and children held behind one of them go back to the queue."""
+        evolution = self.evolution
+        first = len(evolution.initial) + msg.iteration
+        void = [c for c, k in evolution.index.items() if k >= first]
+        gone = set(void)
+        for child in void:
+            birth = self.born.get(child)
+            if birth is not None and birth.repeat_of is None:
+                self.kept[evolution.body_key(child)] = birth
+                if child in self.sha256:
+                    self.kept_sha256[birth.job] = self.sha256[child]
+            if child in self.by_child:
+                self._remove(self.by_child[child])
+            self._forget_orders(child)
+            self._release(child)  # the children held behind it go back to the queue
+            self.failed_on.pop(child, None)
+            self.trials.pop(child, None)
+            self.sha256.pop(child, None)
+            self.decided_before.pop(child, None)
+            self.auditing.discard(child)
+            self.checked.discard(child)
+        for child in [c for c in self.held if c in gone]:
+            self.holding[self.held.pop(child)].remove(child)
+        self.waiting = deque(c for c in self.waiting if c not in gone)
+        self.undone.update(job for job, (_, agent) in self.issued.items() if agent in gone)
+        super().on_undo(msg)
+        evolution.undo(msg.iteration)
+        self.undo_from = None
+
+    @handles(Dropped)
+    def on_dropped(self, msg: Dropped) -> None:
+        """The released end: the dropped children leave the queue, their holds and the
+        population (their jobs were cancelled before)."""
+        dropped = set(msg.agents)
+        for child in msg.agents:
+            if child in self.by_child:
+                self._remove(self.by_child[child])
+            self._forget_orders(child)
+        self.waiting = deque(c for c in self.waiting if c not in dropped)
+        for child in [c for c in self.held if c in dropped]:
+            self.holding[self.held.pop(child)].remove(child)
+        super().on_dropped(msg)
+        self.evolution.drop(list(msg.agents))
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
@@ -253,7 +325,7 @@ class EvolutionState(JobBook):
     def _born_sha256(self, agent: str, job: str, repeat_of: str | None) -> None:
         """`agent`'s checkpoint file is the one of `job`'s report, or `repeat_of`'s file."""
         if repeat_of is None:
-            digest = self.report_sha256.pop(job, None)
+            digest = self.report_sha256.pop(job, self.kept_sha256.get(job))
         else:
             digest = self.sha256.get(repeat_of)
         if digest is not None:
@@ -337,9 +409,22 @@ class EvolutionState(JobBook):
         finish), while fewer than the run's total are started (`Evolution.tournament` says
         whether its population is known yet)."""
         evolution = self.evolution
+        if self.undo_from is not None or evolution.closed:
+            return False  # tournaments wait for the lie's undoing (`on_undo`), or are over
+        if self.config.end == "released":
+            return True  # until N bodies finished by the next breeding (`Evolution.closed`)
         unborn = [c for c in (*self.by_child, *self.waiting) if c not in self.retraining]
         started = evolution.settled + len(unborn) + len(self.held)
         return started < self.config.total
+
+    @property
+    def undo_due(self) -> bool:
+        """A caught lie is to be undone now: the liars' births are all trained again."""
+        return self.undo_from is not None and not self.retraining
+
+    def next_birth(self) -> int:
+        """The next Birth's number (an undone birth's is not given again)."""
+        return self.births[-1].birth + 1 if self.births else 0
 
     def next_job_id(self, child: str) -> str:
         return f"{child}.{self.attempts.get(child, 0) + 1}"
