@@ -190,9 +190,8 @@ class Run:
         flight end, and its trainer is idle."""
         evolution, iteration = self.evolution, self.undo_from
         assert iteration is not None
-        first = len(evolution.initial) + iteration
-        for child, k in evolution.index.items():
-            if k >= first and child in evolution.fitness:
+        for child in evolution.decided_from(iteration):
+            if child in evolution.fitness:
                 self.kept[(child, evolution.parents[child])] = evolution.fitness[child]
         gone = set(evolution.undo(iteration))
         self.undone += sum(child in self.born_from for child in gone)

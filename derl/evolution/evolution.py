@@ -358,13 +358,18 @@ class Evolution:
             duration = self.config.training_time.duration(self.steps, *work)
             self._new_clock({self.index[agent]: duration})
 
+    def decided_from(self, iteration: int) -> list[str]:
+        """The children of the tournaments from `iteration` on that are decided, in child order."""
+        first = len(self.initial) + iteration
+        return sorted((c for c, k in self.index.items() if k >= first), key=self.index.__getitem__)
+
     def undo(self, iteration: int) -> list[str]:
         """Every tournament from `iteration` on is void (decided while a lie was in the
         population): its child is forgotten, born or not, and the next tournament is
         `iteration` again, decided from the state the earlier ones left. The children
         forgotten, in child order; a born one that was a repeat of one of them is its own."""
         first = len(self.initial) + iteration
-        void = sorted((c for c, k in self.index.items() if k >= first), key=self.index.__getitem__)
+        void = self.decided_from(iteration)
         for child in void:
             self.genomes.pop(child, None)
             self.mutations.pop(child, None)

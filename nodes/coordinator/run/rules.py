@@ -391,8 +391,7 @@ class EvolutionRules:
             self._cancel(child, "the run ended (the released end)")
         clock = state.evolution.clock
         assert clock is not None
-        _, nth = clock.finished[self.config.total - 1]
-        last = next(c for c, k in state.evolution.index.items() if k == nth)
+        last = state.evolution.by_index[clock.finished[self.config.total - 1][1]].agent
         log.info("the released end: %s was the %d-th body to finish; %d children in flight or "
                  "past it are dropped", last, self.config.total, len(drop))  # fmt: skip
         self.ledger.commit(Dropped(run=self.run, agent=last, agents=tuple(drop)))
@@ -416,8 +415,7 @@ class EvolutionRules:
             return
         iteration = state.undo_from
         assert iteration is not None
-        first = len(state.evolution.initial) + iteration
-        void = [c for c, k in state.evolution.index.items() if k >= first]
+        void = state.evolution.decided_from(iteration)
         for child in void:
             self._cancel(child, "undone, a lie swayed its tournament")
         kept = None  # the last file kept: written after the others

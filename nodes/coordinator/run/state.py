@@ -248,8 +248,7 @@ class EvolutionState(JobBook):
         born one's is, its liar's births trained again) is kept for a body bred again, its jobs
         are refused from now on, and children held behind one of them go back to the queue."""
         evolution = self.evolution
-        first = len(evolution.initial) + msg.iteration
-        void = [c for c, k in evolution.index.items() if k >= first]
+        void = evolution.decided_from(msg.iteration)
         gone = set(void)
         for child in void:
             birth = self.born.get(child)
