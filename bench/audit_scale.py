@@ -95,7 +95,8 @@ class Run:
         if child is not None:
             self.queue.remove(child)
         while child is None:
-            if self.undo_from is not None or len(self.evolution.parents) >= self.config.total:
+            pending = self.retraining or self.undo_from is not None  # a lie may be undone
+            if pending or len(self.evolution.parents) >= self.config.total:
                 return False
             decided = self.evolution.tournament()
             if decided is None:
@@ -121,6 +122,9 @@ class Run:
             value, self.lies = 1.25 * value + 1.0, self.lies + 1
         if child in self.retraining:
             self.retraining.discard(child)
+            decided = self.decided_before[child]  # a lie born from: decide again after it
+            if value != self.evolution.fitness[child] and decided < self.evolution.iterations:
+                self.undo_from = min(decided, decided if self.undo_from is None else self.undo_from)
             self.evolution.correct(child, value)
             if not self.retraining and self.undo_from is not None:
                 self.undo()
@@ -174,11 +178,6 @@ class Run:
         for child in reversed(retrain):
             self.retraining.add(child)
             self.queue.appendleft(child)
-        decided = [self.decided_before[c] for c in retrain]
-        if self.undo_from is not None:
-            decided.append(self.undo_from)
-        if decided and min(decided) < self.evolution.iterations:
-            self.undo_from = min(decided)
         if liar in self.in_training:
             self.queue.appendleft(self.in_training.pop(liar))
             self.running = [r for r in self.running if r[2] != liar]

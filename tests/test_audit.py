@@ -137,8 +137,15 @@ def test_a_new_identity_that_lies_is_caught_at_its_first_report_and_never_born_f
     }
 
 
+@pytest.fixture(scope="module")
+def undone(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Coordinator]:
+    """The run with the liar, audited by the drawn share alone (made once): its folder."""
+    folder = tmp_path_factory.mktemp("undone") / "run"
+    return folder, run_with(folder, 0.3, liar=LIAR, **SHARE_ALONE)
+
+
 def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_its_lie_undone(
-    tmp_path: Path, unaudited: Coordinator
+    undone: tuple[Path, Coordinator], unaudited: Coordinator
 ) -> None:
     """Audited by the drawn share alone, the liar is caught at the first audited child it trains;
     each of its births that no audit checked is trained again, then every tournament decided
@@ -146,8 +153,7 @@ def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_its_lie_undone(
     undone kept for the bodies bred again: the run ends with the births and the fingerprint of
     the honest run. After the catch the liar gets no job, and a coordinator started on the
     journal knows all of it."""
-    folder = tmp_path / "run"
-    coordinator = run_with(folder, 0.3, liar=LIAR, **SHARE_ALONE)
+    folder, coordinator = undone
     state, journal = coordinator.state, list(replay(folder))
     assert list(state.quarantined) == [LIAR]
     (caught,) = [m for m in journal if isinstance(m, Quarantine)]
@@ -212,13 +218,12 @@ def test_a_lie_undone_in_the_cluster_timing_ends_as_the_honest_run(tmp_path: Pat
 
 
 def test_a_coordinator_stopped_while_it_undoes_a_lie_resumes_the_undoing(
-    tmp_path: Path, unaudited: Coordinator
+    tmp_path: Path, undone: tuple[Path, Coordinator], unaudited: Coordinator
 ) -> None:
     """The run of the test above, its coordinator stopped at each step of the undoing (while the
     liar's births are trained again, just before the Undo, just after it, after the first child
     bred again) and started on its journal with honest trainers: each ends as the honest run."""
-    lied = tmp_path / "lied"
-    run_with(lied, 0.3, liar=LIAR, **SHARE_ALONE)
+    lied = undone[0]
     journal = list(replay(lied))
     (caught,) = [m for m in journal if isinstance(m, Quarantine)]
     (undo,) = [m for m in journal if isinstance(m, Undo)]

@@ -379,7 +379,8 @@ def _notes(analysis: Analysis) -> list[str]:
         if s.quarantined:
             notes.append(
                 f"{s.run}: QUARANTINED as liars by an audit: {', '.join(s.quarantined)} (their "
-                "births no audit checked were trained again; the births shown are the honest ones)"
+                "births no audit checked were trained again, and every tournament decided after "
+                "a lie was born from was decided again: the births shown are the honest ones)"
             )
         if s.stability_simulated < s.bodies:
             notes.append(

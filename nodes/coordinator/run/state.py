@@ -29,6 +29,7 @@ never decided.
 from __future__ import annotations
 
 import logging
+import struct
 from collections import deque
 
 from derl.evolution import Child, Evolution, EvolutionConfig, Member
@@ -210,15 +211,9 @@ class EvolutionState(JobBook):
 
     @handles(Quarantine)
     def on_quarantine(self, msg: Quarantine) -> None:
-        """`msg.node` lied: its trials of children not born yet no longer count, its unchecked
-        births wait first in the queue to be trained again, and every tournament decided after
-        the first of them is to be decided again (`undo_from`) once they are."""
+        """`msg.node` lied: its trials of children not born yet no longer count, and its unchecked
+        births wait first in the queue to be trained again (`on_retrained`)."""
         super().on_quarantine(msg)
-        decided = [self.decided_before[c] for c in msg.retrain if c in self.decided_before]
-        if self.undo_from is not None:
-            decided.append(self.undo_from)
-        if decided and min(decided) < self.evolution.iterations:
-            self.undo_from = min(decided)
         for reports in self.trials.values():
             reports[:] = [r for r in reports if identity(r.node) != msg.node]
         for child in reversed(msg.retrain):
@@ -228,6 +223,16 @@ class EvolutionState(JobBook):
 
     @handles(Retrained)
     def on_retrained(self, msg: Retrained) -> None:
+        """A liar's birth trained again: where the result it was born with was a lie (what
+        evolution reads of it differs: fitness, cost of work, the cluster timing's counts, the
+        checkpoint children inherit), every tournament decided after its birth is to be
+        decided again (`undo_from`) once the liars' births are all trained again."""
+        born = self.born.get(msg.agent)
+        if born is not None and self._lied(born, msg):
+            decided = self.decided_before.get(msg.agent, 0)
+            if decided < self.evolution.iterations:
+                earlier = self.undo_from
+                self.undo_from = decided if earlier is None else min(decided, earlier)
         super().on_retrained(msg)
         self.retraining.pop(msg.agent, None)
         work = None
@@ -241,6 +246,17 @@ class EvolutionState(JobBook):
                     self._born_sha256(birth.agent, birth.job, msg.agent)
         self._forget_orders(msg.agent)
         self._remove(msg.job)
+
+    def _lied(self, born: Birth, retrained: Retrained) -> bool:
+        """Whether `born`'s result differs from its training again in what evolution reads."""
+        said = struct.pack("<2d", born.fitness, born.cost_of_work)  # NaN equals NaN
+        if said != struct.pack("<2d", retrained.fitness, retrained.cost_of_work):
+            return True
+        work = (retrained.episodes, retrained.constraint_rows)
+        if None not in work and work != (born.episodes, born.constraint_rows):
+            return True
+        new = self.report_sha256.get(retrained.job)
+        return self.inherits and new is not None and self.sha256.get(born.agent) != new
 
     @handles(Undo)
     def on_undo(self, msg: Undo) -> None:
@@ -408,8 +424,8 @@ class EvolutionState(JobBook):
         finish), while fewer than the run's total are started (`Evolution.tournament` says
         whether its population is known yet)."""
         evolution = self.evolution
-        if self.undo_from is not None or evolution.closed:
-            return False  # tournaments wait for the lie's undoing (`on_undo`), or are over
+        if self.retraining or self.undo_from is not None or evolution.closed:
+            return False  # a lie may be undone (`on_undo`), or the tournaments are over
         if self.config.end == "released":
             return True  # until N bodies finished by the next breeding (`Evolution.closed`)
         unborn = [c for c in (*self.by_child, *self.waiting) if c not in self.retraining]
