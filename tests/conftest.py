@@ -132,10 +132,13 @@ LONGEST = {
     "test_resume.py::test_derl_train_stops_on_sigterm_saving_everything_and_resumes": 32,
     "test_slurm.py::test_a_run_is_one_job_on_two_nodes": 32,
     "test_full_disk.py::test_a_full_disk_stalls_the_coordinator_until_it_has_room[tmpfs]": 30,
+    "test_audit.py::test_a_coordinator_stopped_while_it_undoes_a_lie_resumes_the_undoing": 30,
     "test_ppo.py::test_ppo_learns_inverted_pendulum": 28,
     "test_resume.py::test_a_training_stopped_and_resumed_ends_with_the_bits_of_one_never_"
     "stopped[mvt]": 27,
     "test_gym_api.py::test_stable_baselines3_trains_a_derl_body": 26,
+    "test_reproducible.py::test_the_coordinator_ends_a_run_as_the_released_code_did_on_any_"
+    "trainers_and_resumed": 25,
     "test_full_disk.py::test_a_full_disk_stalls_the_coordinator_until_it_has_room[fsize]": 26,
     "test_video.py::test_mvt_shows_the_box_and_its_goal_then_the_goal_from_the_box": 26,
     "test_resume.py::test_a_training_stopped_and_resumed_ends_with_the_bits_of_one_never_"
