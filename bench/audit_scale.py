@@ -7,11 +7,11 @@ whom, and the audit rules `nodes.coordinator.audits.Rules` and `Record` for whic
 trained twice; the queue follows `EvolutionState` (a child that waits for another identity goes
 first, a disagreement waits for a third identity, the liar is quarantined and its unchecked births
 trained again first, its jobs taken back; once they are, every tournament decided after the first
-of them is undone and decided again, `Evolution.undo`, a child bred again from the same parent born
-from the undone one's training at once). Bodies are not bred: a child's honest fitness is its
+of them that was a lie is undone and decided again, `Evolution.undo`, the same body bred again
+born from the undone child's training at once). Bodies are not bred: a child's honest fitness is its
 parent's honest fitness plus a draw, N(-2, 10), from 100 + N(0, 10) for an initial body (a model:
-the audits' top-rank rule sees the ranks this makes), drawn from the child and its parent (the
-same parent breeds the same body), and a training lasts U(0.5, 1.5).
+the audits' top-rank rule sees the ranks this makes), drawn from the child and its parent (a
+body is its ancestors' bred with its tournaments' seeds), and a training lasts U(0.5, 1.5).
 
 One trainer lies on a share of its reports (`--rates`, drawn per child) with 1.25 x + 1 of the
 honest fitness (the issue's liar, real checkpoints). Per run (JSON, one line): whether the liar was
@@ -54,7 +54,7 @@ class Run:
     config: EvolutionConfig
     trainers: int
     rate: float
-    honest: dict[tuple[str, str | None], float] = field(default_factory=dict)
+    honest: dict[tuple[str, ...], float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.rules = Rules.of(self.config)
@@ -75,15 +75,22 @@ class Run:
         self.caught_at: int | None = None
         self.decided_before: dict[str, int] = {}  # child -> tournaments decided before its birth
         self.undo_from: int | None = None  # the first tournament to decide again
-        self.kept: dict[tuple[str, str | None], float] = {}  # (undone child, parent) -> fitness
+        self.kept: dict[tuple[str, ...], float] = {}  # an undone child's `body` -> its fitness
 
     def fitness(self, child: str) -> float:
-        parent = self.evolution.parents[child]
-        if (child, parent) not in self.honest:
+        body = self.body(child)
+        if body not in self.honest:
+            parent = self.evolution.parents[child]
             rng = _draw(self.config.seed, child, parent)
             base = 100.0 if parent is None else self.fitness(parent) - 2.0
-            self.honest[(child, parent)] = base + rng.gauss(0.0, 10.0)
-        return self.honest[(child, parent)]
+            self.honest[body] = base + rng.gauss(0.0, 10.0)
+        return self.honest[body]
+
+    def body(self, child: str) -> tuple[str, ...]:
+        """What a child's body (and so its honest fitness) is a function of in this model: its
+        name and its ancestors' (each body is its parent's bred with its tournament's seed)."""
+        parent = self.evolution.parents[child]
+        return (child,) if parent is None else (child, *self.body(parent))
 
     def tried_by(self, child: str) -> set[str]:
         if child in self.retraining:
@@ -102,10 +109,10 @@ class Run:
             if decided is None:
                 return False
             self.evolution.record(decided)
-            kept = self.kept.get((decided.name, decided.parent))
+            kept = self.kept.get(self.body(decided.name))
             if kept is None:
                 child = decided.name
-            else:  # bred again from the same parent: born from the undone child's training
+            else:  # the same body bred again: born from the undone child's training
                 self.born(decided.name, "kept", kept, [])
                 self.born_from[decided.name] = ("kept", True)
         self.in_training[trainer] = child
@@ -185,13 +192,13 @@ class Run:
 
     def undo(self) -> None:
         """Every tournament from `undo_from` on is decided again (`Evolution.undo`): each born
-        child's (honest) result is kept for the same parent's child bred again, its trainings in
-        flight end, and its trainer is idle."""
+        child's (honest) result is kept for the same body bred again, its trainings in flight
+        end, and its trainer is idle."""
         evolution, iteration = self.evolution, self.undo_from
         assert iteration is not None
         for child in evolution.decided_from(iteration):
             if child in evolution.fitness:
-                self.kept[(child, evolution.parents[child])] = evolution.fitness[child]
+                self.kept[self.body(child)] = evolution.fitness[child]
         gone = set(evolution.undo(iteration))
         self.undone += sum(child in self.born_from for child in gone)
         self.undo_from = None
