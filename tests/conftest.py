@@ -132,7 +132,6 @@ LONGEST = {
     "test_resume.py::test_derl_train_stops_on_sigterm_saving_everything_and_resumes": 32,
     "test_slurm.py::test_a_run_is_one_job_on_two_nodes": 32,
     "test_full_disk.py::test_a_full_disk_stalls_the_coordinator_until_it_has_room[tmpfs]": 30,
-    "test_audit.py::test_a_coordinator_stopped_while_it_undoes_a_lie_resumes_the_undoing": 30,
     "test_ppo.py::test_ppo_learns_inverted_pendulum": 28,
     "test_resume.py::test_a_training_stopped_and_resumed_ends_with_the_bits_of_one_never_"
     "stopped[mvt]": 27,

@@ -40,6 +40,7 @@ LIAR = "t3"
 
 
 SHARE_ALONE = {"audit_first": 0, "audit_top": 0.0}  # the drawn share alone audits
+SHARED_RUNS = pytest.mark.xdist_group(name="audit")  # one process builds the runs they compare
 
 
 def _config(audit: float, **rules: object):
@@ -102,6 +103,7 @@ def unaudited(tmp_path_factory: pytest.TempPathFactory) -> Coordinator:
     return run_with(tmp_path_factory.mktemp("unaudited") / "run", 0.0, liar=None)
 
 
+@SHARED_RUNS
 @pytest.mark.parametrize("audit", [0.0, 0.3])
 def test_honest_trainers_give_the_births_of_an_unaudited_run(
     tmp_path: Path, audit: float, unaudited: Coordinator
@@ -118,6 +120,7 @@ def test_honest_trainers_give_the_births_of_an_unaudited_run(
     assert len(fitness) == _config(audit).total
 
 
+@SHARED_RUNS
 def test_a_new_identity_that_lies_is_caught_at_its_first_report_and_never_born_from(
     tmp_path: Path, unaudited: Coordinator
 ) -> None:
@@ -144,6 +147,7 @@ def undone(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Coordinator]
     return folder, run_with(folder, 0.3, liar=LIAR, **SHARE_ALONE)
 
 
+@SHARED_RUNS
 def test_a_trainer_that_adds_one_to_every_fitness_is_caught_and_its_lie_undone(
     undone: tuple[Path, Coordinator], unaudited: Coordinator
 ) -> None:
@@ -217,6 +221,7 @@ def test_a_lie_undone_in_the_cluster_timing_ends_as_the_honest_run(tmp_path: Pat
     assert lied.state.fingerprint() == honest_run.state.fingerprint()
 
 
+@SHARED_RUNS
 def test_a_coordinator_stopped_while_it_undoes_a_lie_resumes_the_undoing(
     tmp_path: Path, undone: tuple[Path, Coordinator], unaudited: Coordinator
 ) -> None:
