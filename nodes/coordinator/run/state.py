@@ -282,9 +282,7 @@ class EvolutionState(JobBook):
             self.decided_before.pop(child, None)
             self.auditing.discard(child)
             self.checked.discard(child)
-        for child in [c for c in self.held if c in gone]:
-            self.holding[self.held.pop(child)].remove(child)
-        self.waiting = deque(c for c in self.waiting if c not in gone)
+        self._unqueue(gone)
         self.undone.update(job for job, (_, agent) in self.issued.items() if agent in gone)
         super().on_undo(msg)
         evolution.undo(msg.iteration)
@@ -299,11 +297,15 @@ class EvolutionState(JobBook):
             if child in self.by_child:
                 self._remove(self.by_child[child])
             self._forget_orders(child)
-        self.waiting = deque(c for c in self.waiting if c not in dropped)
-        for child in [c for c in self.held if c in dropped]:
-            self.holding[self.held.pop(child)].remove(child)
+        self._unqueue(dropped)
         super().on_dropped(msg)
         self.evolution.drop(list(msg.agents))
+
+    def _unqueue(self, gone: set[str]) -> None:
+        """The children `gone` (undone or dropped) leave the queue and the holds."""
+        for child in [c for c in self.held if c in gone]:
+            self.holding[self.held.pop(child)].remove(child)
+        self.waiting = deque(c for c in self.waiting if c not in gone)
 
     @handles(JobFailed)
     def on_job_failed(self, msg: JobFailed) -> None:
