@@ -218,3 +218,27 @@ def test_the_checkpoint_writer_ends_quietly_when_its_coordinator_is_gone(tmp_pat
     assert writer.wait(timeout=30) == 0
     assert writer.stderr.read() == b""
     assert (tmp_path / "c00001.pt").read_bytes() == b"weights"  # written all the same
+
+
+def test_a_signal_to_the_coordinators_process_group_never_ends_its_checkpoint_writer(
+    tmp_path: Path,
+) -> None:
+    """A launcher stops a coordinator with SIGTERM to its process group (a terminal's Ctrl-C
+    reaches the group too): the writer, even while it starts, writes on (it died there with
+    exit code -15, the file of a birth already journaled lost)."""
+    script = (
+        "import os, signal, sys, time\n"
+        "from derl.nodes.runtime.checkpoints import CheckpointFiles\n"
+        "signal.signal(signal.SIGTERM, lambda *_: None)  # the coordinator stops in order\n"
+        "files = CheckpointFiles(sys.argv[1])\n"
+        "saved = files.save('c00001', b'weights')\n"
+        "while files._process.process is None:  # until the writer is spawned\n"
+        "    time.sleep(0.0001)\n"
+        "os.killpg(0, signal.SIGTERM)  # while it starts\n"
+        "print(saved.exception())\n"
+        "files.close()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True,
+                          text=True, timeout=60, start_new_session=True)  # fmt: skip
+    assert (done.returncode, done.stdout) == (0, "None\n"), done.stderr
+    assert (tmp_path / "checkpoints" / "c00001.pt").read_bytes() == b"weights"

@@ -14,9 +14,12 @@ with `bench/bus.py`, 1,000 simulated workers).
 
 Its input is a msgpack stream of batches, each a map agent -> the checkpoint (bytes) or the
 agent whose file it shares (str); for each batch it answers agent -> None (written) or
-[errno, message]. It ignores SIGINT and SIGTERM (a terminal's Ctrl-C reaches the whole process
-group) and ends at the end of its input: when the coordinator closes it or dies (an answer
-that finds the coordinator gone ends it too, quietly: nobody waits for it)."""
+[errno, message]. It runs in a process group of its own and ignores SIGINT and SIGTERM: a
+terminal's Ctrl-C or a launcher's SIGTERM reaches a process group, and one that ended it, even
+while it starts, lost the checkpoints of births the coordinator had journaled already (a run
+resumed after a Ctrl-C then waited for a file nobody could write). It ends at the end of its
+input: when the coordinator closes it or dies (an answer that finds the coordinator gone ends it
+too, quietly: nobody waits for it)."""
 
 from __future__ import annotations
 

@@ -151,6 +151,7 @@ class WriterProcess:
                 [sys.executable, "-m", checkpoint_writer.__name__, str(self.folder)],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
+                process_group=0,  # a signal to the coordinator's group must not end it
             )
             self.answers = checkpoint_writer.messages(_pipe(self.process.stdout).fileno())
         try:

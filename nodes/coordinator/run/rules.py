@@ -102,8 +102,15 @@ class EvolutionRules:
         for child in self.state.by_child:  # children in training hold later equal ones
             self.state.training(child)
         for birth in self.state.births:
-            if birth.repeat_of is not None and not ledger.checkpoints.path(birth.agent).exists():
+            if ledger.checkpoints.path(birth.agent).exists():
+                continue
+            if birth.repeat_of is not None:
                 ledger.link(birth.agent, birth.repeat_of)
+            else:  # journaled, its file not yet written when the coordinator stopped
+                log.warning("%s was born, but its checkpoint file is missing: it waits for "
+                            "%s's report of job %s, sent again until acknowledged (if that "
+                            "trainer stopped too, its file is lost)", birth.agent, birth.node,
+                            birth.job)  # fmt: skip
         self._undo()  # if the coordinator stopped before it, once the liars' births were in
         self._released_end()
         settings = self.config.model_dump_json()
