@@ -6,18 +6,21 @@ PYTHON ?= $(shell for p in python3.11 python3.12 python3.13 python3; do \
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: install install-test run test lint typecheck clips
+.PHONY: install install-test run test ruff lint typecheck mypy clips
 
 $(BIN)/python:
 	@test -n "$(PYTHON)" || { echo "derl needs Python >= 3.11 (none found on PATH; set PYTHON=...)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
+# --no-compile: Python writes a module's bytecode when a process first imports it, instead of pip
+# compiling every module of every package at install (torch's thousands: a minute of the
+# install's 1.5 on a 2-core machine).
 install: $(BIN)/python
-	$(BIN)/pip install -q -e .
+	$(BIN)/pip install -q --no-compile -e .
 
 install-test: $(BIN)/python
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q --no-compile -e '.[test]'
 
 # The main job: a whole evolution run on this host (coordinator, trainers, evaluator over
 # Zenoh on loopback), then a picture of its best bodies and a short clip of the best one
@@ -60,18 +63,27 @@ cd build/__editable__.derl-* && { $(abspath $(BIN))/mypy --config-file $(CURDIR)
 	$(CURDIR)/$(TYPECHECK)/mypy.txt; exit $$status; }
 endef
 
-lint: install-test
+ruff: install-test
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(typecheck)
 
-typecheck: install-test
-	$(typecheck)
+lint: ruff typecheck
+
+typecheck: install-test mypy
 
 # Four test processes (pytest-xdist) on 2 cores: many tests wait on nodes (leases, restarts,
 # Zenoh) while others compute, so four keep both cores busier than two (measured on one commit:
 # 1,026 s with -n 2, 797 s with -n 4, the cores 89% busy; `pytest` alone runs it serially).
 # `loadgroup` keeps a module's `xdist_group` on one process (its module fixture made once);
-# the 20 slowest tests are listed at the end.
-test: lint
-	$(BIN)/python -m pytest -n 4 --dist loadgroup --durations=20
+# the 20 slowest tests are listed at the end. mypy (single-threaded, a minute from a fresh
+# clone) runs beside the tests, its report printed after theirs; either failing fails `make test`.
+test: ruff
+	@mkdir -p $(TYPECHECK)
+	@$(MAKE) --no-print-directory mypy >$(TYPECHECK)/report.txt 2>&1 & checking=$$!; \
+	$(BIN)/python -m pytest -n 4 --dist loadgroup --durations=20; tested=$$?; \
+	wait $$checking; checked=$$?; cat $(TYPECHECK)/report.txt; \
+	exit $$(( tested ? tested : checked ))
+
+# mypy alone, derl installed (`make test` runs it so)
+mypy:
+	$(typecheck)

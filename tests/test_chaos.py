@@ -34,12 +34,13 @@ from derl.nodes.testing.waiting import wait_until
 from derl.nodes.tools.logs import read_log
 
 PROFILE = {
-    "total": 20,  # room for the coordinator kill after the trainer faults, on a fast machine too
-    "train_steps": 24576,  # 12 PPO iterations of 16 envs x 128 steps: time to interrupt one
+    "total": 10,  # one child in flight (TINY_PROFILE): a faulted job stalls the run, so few are
+    # born before the coordinator's kill
+    "train_steps": 16384,  # 8 PPO iterations of 16 envs x 128 steps: time to interrupt one
     "lease_s": 8.0,
     "max_attempts": 1,  # a failed training gives its child up
 }
-TRAINERS = ("a", "b", "c")
+TRAINERS = ("a", "b")
 
 
 class Saboteur:
@@ -144,6 +145,7 @@ def test_a_run_survives_a_schedule_of_faults(tmp_path: Path, procs: Processes) -
 
         # the coordinator SIGKILLed mid-run, and restarted on its endpoint a second later
         born = len(births(local.dir))
+        print(f"chaos: {born} born at the coordinator's kill")
         assert born < PROFILE["total"] - 2, "the run got too far before the coordinator's kill"
         at["SIGKILL coordinator"] = time.time()
         procs.kill("coordinator")
