@@ -378,11 +378,11 @@ def _pids(launcher_log: str) -> dict[str, list[int]]:
 
 @pytest.mark.slow
 def test_launch_runs_to_the_end_and_restarts_a_killed_trainer(tmp_path: Path) -> None:
-    # Trainings of ~2 s (20 PPO iterations), so the run is still going when a trainer dies: with
+    # Trainings of ~1 s (8 PPO iterations), so the run is still going when a trainer dies: with
     # the tiny profile's 0.3 s ones, one trainer could take all three bodies before the other
     # was ready, and the run could end before the kill. The victim is whichever trainer got the
     # first job.
-    path, run_dir = _local_launch(tmp_path, trainers=2, total=3, train_steps=40960)
+    path, run_dir = _local_launch(tmp_path, trainers=2, total=3, train_steps=16384)
     processes = Processes(tmp_path / "test-logs")
     try:
         launcher = processes.start("launcher", derl_argv("launch", str(path)))

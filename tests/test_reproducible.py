@@ -31,7 +31,7 @@ PROFILE = {
     "in_flight": 2,
     "tournament": 2,
     "total": 8,  # smoke's: 4 initial bodies and 4 children
-    "train_steps": 8192,  # 4 PPO iterations of 16 envs x 128 steps, about a second a body
+    "train_steps": 4096,  # 2 PPO iterations of 16 envs x 128 steps, under a second a body
 }
 
 Facts = list[tuple[str, str | None, int, str, str]]

@@ -220,7 +220,9 @@ def test_a_study_of_two_worlds_from_runs_to_figure_4(tmp_path: Path, procs: Proc
     issued = len(journaled(study, EvalJob))
     plan = read_plan(study)
     # then on one host: `derl study` resumes it where it stopped
-    resume = procs.start("resume", derl_argv("study", "--study-dir", str(study), "--port", "0"))
+    resume = procs.start(
+        "resume", derl_argv("study", "--study-dir", str(study), "--port", "0", "--workers", "1")
+    )
     assert coordinator.returncode != 0 and procs.finish(resume, 300) == 0
     assert read_plan(study) == plan  # chosen once
     keys = [(r.agent, r.task, r.seed, r.steps) for r in journaled(study, EvalResult)]
