@@ -13,14 +13,11 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
-# --no-compile: Python writes a module's bytecode when a process first imports it, instead of pip
-# compiling every module of every package at install (torch's thousands: a minute of the
-# install's 1.5 on a 2-core machine).
 install: $(BIN)/python
-	$(BIN)/pip install -q --no-compile -e .
+	$(BIN)/pip install -q -e .
 
 install-test: $(BIN)/python
-	$(BIN)/pip install -q --no-compile -e '.[test]'
+	$(BIN)/pip install -q -e '.[test]'
 
 # The main job: a whole evolution run on this host (coordinator, trainers, evaluator over
 # Zenoh on loopback), then a picture of its best bodies and a short clip of the best one
