@@ -219,6 +219,34 @@ def test_an_ack_waits_for_its_checkpoint_and_a_lost_one_is_written_again(
     assert not coordinator.ledger.stalled
 
 
+def test_a_restarted_coordinator_names_a_born_childs_missing_file_and_takes_it_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A birth journaled whose file never reached the disk (its writer ended first): the
+    restarted coordinator says which file is missing and whose report it waits for, and the
+    trainer's report sent again writes it (a Ctrl-C'd `derl run` lost it, and its resume waited
+    for the file without a word)."""
+    run = run_id()
+    config = load_profile("smoke").model_copy(update={"population": 2, "in_flight": 1, "total": 3})
+    initial = sample_population(2, np.random.default_rng(3))
+    with _serving(run, tmp_path, config, initial) as (coordinator, _):
+        job = _job_for(coordinator, "w1")
+        coordinator.dispatch(_report(job, 1))
+        coordinator.settle()
+        checkpoint = coordinator.ledger.checkpoints.path(job.agent)
+        _written(checkpoint)
+    checkpoint.unlink()
+    with (
+        caplog.at_level(logging.WARNING, logger="derl.coordinator"),
+        _serving(run, tmp_path, config, initial) as (restarted, _),
+    ):
+        assert (f"{job.agent} was born, but its checkpoint file is missing: it waits for w1's "
+                f"report of job {job.job}") in caplog.text  # fmt: skip
+        restarted.dispatch(_report(job, 1))
+        restarted.settle()
+        assert _written(checkpoint) == _weights(job, 1)
+
+
 def _written(path: Path) -> bytes:
     wait_until(path.exists, 10, f"{path} written")
     return path.read_bytes()
