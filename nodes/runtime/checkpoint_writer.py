@@ -1,5 +1,5 @@
-"""The process that writes the coordinator's checkpoint files: `python -m
-derl.nodes.runtime.checkpoint_writer FOLDER`, started by `CheckpointFiles`.
+"""The process that writes the coordinator's checkpoint files: `python -I checkpoint_writer.py
+FOLDER`, started by `CheckpointFiles` (the file, not the module: it imports msgpack, not derl).
 
 A batch's files are written to temporary names, put on the disk with one `syncfs` of the file
 system (Linux; elsewhere one fsync per file), renamed into place, links made to files already in

@@ -148,7 +148,8 @@ class WriterProcess:
         next call starts another)."""
         if self.process is None:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", checkpoint_writer.__name__, str(self.folder)],
+                # the file itself, isolated (-I): only msgpack to import, not derl (0.2 s of CPU)
+                [sys.executable, "-I", checkpoint_writer.__file__, str(self.folder)],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 process_group=0,  # a signal to the coordinator's group must not end it
