@@ -238,7 +238,7 @@ def test_a_bad_plugin_stops_a_run_before_any_node_with_one_line(
 
 def _run(folder: Path, installed: Path) -> Path:
     """A run of the plugins' profile by nodes started one by one: first a trainer that lacks the
-    plugins (which refuses), then an evaluator and 3 trainers that hold them, to its end."""
+    plugins (which refuses), then an evaluator and 2 trainers that hold them, to its end."""
     folder.mkdir()
     local = LocalRun.at(folder, **PLUGIN_PROFILE)
     processes = Processes(folder / "logs")
@@ -254,7 +254,7 @@ def _run(folder: Path, installed: Path) -> Path:
         evaluator = derl_argv("evaluator", "--run", local.run, "--connect", local.endpoint,
                               "--name", "e0")  # fmt: skip
         processes.start("e0", evaluator, held)
-        for k in range(3):
+        for k in range(2):
             processes.start(f"t{k}", local.trainer(f"t{k}"), held)
         assert processes.finish(coordinator, timeout=300) == 0, processes.log("coordinator")
     finally:
