@@ -23,6 +23,7 @@ from derl.messages import Ack, RunStatus
 from derl.nodes.coordinator.disk_faults import DiskFaults
 from derl.nodes.coordinator.outbox import Outbox
 from derl.nodes.journal.segments import Journal, read_segment
+from derl.nodes.runtime import checkpoint_writer
 from derl.nodes.runtime.checkpoint_writer import write_batch
 from derl.nodes.runtime.checkpoints import CheckpointFiles
 from derl.nodes.testing.waiting import ManualClock, wait_until
@@ -209,7 +210,7 @@ def test_the_checkpoint_writer_ends_quietly_when_its_coordinator_is_gone(tmp_pat
     """A writer whose coordinator died (nobody reads its answers) ends without a traceback (it
     printed a BrokenPipeError's)."""
     writer = subprocess.Popen(
-        [sys.executable, "-m", "derl.nodes.runtime.checkpoint_writer", str(tmp_path)],
+        [sys.executable, "-I", checkpoint_writer.__file__, str(tmp_path)],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )  # fmt: skip
     writer.stdout.close()  # the coordinator is gone

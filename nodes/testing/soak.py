@@ -94,7 +94,7 @@ def label(pid: int) -> str | None:
         argv = (Path(f"/proc/{pid}") / "cmdline").read_bytes().decode().split("\0")
     except OSError:
         return None
-    if any(arg.endswith("checkpoint_writer") for arg in argv):
+    if any(arg.endswith("checkpoint_writer.py") for arg in argv):
         return "checkpoint_writer"
     if "derl.nodes.cli" not in argv[:-1]:
         return None
