@@ -222,3 +222,25 @@ def test_every_fig4_panel_orders_tasks_and_worlds_as_the_paper() -> None:
     for steps in (2048, 4096):
         group = [r for r in rows if r.steps == steps]
         assert tasks_and_worlds(group) == (["patrol", "obstacle"], ["ft", "vt"])
+
+
+def test_fig4_draws_a_cost_of_work_whose_median_or_limits_are_unknown(
+    tmp_path: Path, quadruped: Genome
+) -> None:
+    """A body that never reached a task's goal (reward <= 0) has no cost of work: a censored
+    value. Where half or more of a task's results are censored, the median is unknown; where a
+    few are, a limit may be: the report draws them (it failed on an FT demo run of 2 bodies)."""
+    reached = {"patrol": (1, 2), "incline": (0, 1, 2, 3)}  # the seeds whose body reached the goal
+    evaluations = tuple(
+        Evaluation(agent="c0", task=task, seed=seed, steps=1_000_000,
+                   reward=1.0 + seed if seed in done else -1.0,
+                   cost_of_work=0.5 + seed if seed in done else float("nan"))
+        for task, done in reached.items()
+        for seed in range(5)
+    )  # fmt: skip
+    run = chain_run(quadruped, "ft", [1.0, 2.0, 3.0], [4.0], evaluations=evaluations)
+    write_report([run], tmp_path, AnalysisConfig(**FAST))
+    summary = {row["task"]: row for row in table(tmp_path / "test_summary.csv")}
+    assert summary["patrol"]["cost_of_work_value"] == ""  # 3 of 5 censored: unknown
+    assert float(summary["incline"]["cost_of_work_value"]) == pytest.approx(2.5)
+    assert (tmp_path / "tests.png").stat().st_size > 10_000

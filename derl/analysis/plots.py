@@ -23,7 +23,7 @@ from matplotlib.ticker import MaxNLocator
 from derl.analysis.compute import Analysis, RunAnalysis, WorldAnalysis, pooled
 from derl.analysis.learning import LineageGain
 from derl.analysis.morphology import DESCRIPTORS
-from derl.analysis.statistics import Correlation, Point
+from derl.analysis.statistics import Correlation, Estimate, Point
 from derl.analysis.testsuite import budget_label, budgets, tasks_and_worlds
 from derl.unimal import Genome
 from derl.unimal.render import GRID_GAP, render_grid
@@ -550,6 +550,16 @@ def tests(path: Path, analysis: Analysis) -> Path:
     return _save(figure, path)
 
 
+def _error_bar(estimate: Estimate) -> tuple[float, float]:
+    """The lengths of an estimate's error bar below and above its value; none (0) where the
+    value is unknown (a median of mostly censored values) and on the side of a limit that is
+    (an unbounded interval)."""
+    value, low, high = estimate.value, estimate.low, estimate.high
+    if value is None:
+        return 0.0, 0.0
+    return (0.0 if low is None else value - low), (0.0 if high is None else high - value)
+
+
 def _test_bars(axis: Axes, analysis: Analysis, budget: int | None, metric: str) -> None:
     """One panel of fig. 4: `metric`'s median per task and world at one budget."""
     tasks, worlds = tasks_and_worlds([t for t in analysis.tests if t.steps == budget])
@@ -561,9 +571,7 @@ def _test_bars(axis: Axes, analysis: Analysis, budget: int | None, metric: str) 
         x = np.array([t for t, task in enumerate(tasks) if task in rows], dtype=float)
         est = [rows[task] for task in tasks if task in rows]
         value = np.array([np.nan if e.value is None else e.value for e in est])
-        err = np.array(
-            [[0, 0] if e.low is None else [e.value - e.low, e.high - e.value] for e in est]
-        ).T
+        err = np.array([_error_bar(e) for e in est]).T
         axis.bar(
             x + (k - (len(worlds) - 1) / 2) * width,
             value,
