@@ -41,7 +41,10 @@ from derl.nodes.testing.waiting import wait_until
 
 PROFILE = {
     "total": 4,
-    "train_steps": 16384,  # 8 PPO iterations, ~2 s a body: time to interrupt a training
+    # 16 PPO iterations, ~3 s a body on a quiet machine: time for the test's session to hear a
+    # trainer mid-job and interrupt it (at 16,384 steps a body trained in 1.4 s once the
+    # coordinator no longer loaded torch, and the victim was killed after its report)
+    "train_steps": 32768,
     "lease_s": 20.0,
 }
 
