@@ -27,7 +27,7 @@ PROFILE = {
     "in_flight": 1,
     "tournament": 2,
     "total": 5,
-    "train_steps": 16384,  # 8 PPO iterations, ~2 s a body: the forging comes in a job's first half
+    "train_steps": 32768,  # 16 PPO iterations, ~3 s a body: the forging comes in a job's first half
     "num_envs": 16,
     "lease_s": 20.0,
     "eval_top": 0,

@@ -272,7 +272,7 @@ def test_a_report_with_another_body_than_its_job_is_rejected(tmp_path: Path, pro
     before the trainer's own, naming the trainer and its job, carrying another valid mutated
     body and a plausible fitness: rejected (the coordinator decides every body), and the child
     is born once, from its trainer's report, with its job's body."""
-    local = LocalRun.at(tmp_path, population=2, total=3, train_steps=12288)
+    local = LocalRun.at(tmp_path, population=2, total=3, train_steps=24576)
     procs.start("coordinator", local.coordinator())
     with observe(local) as observer:
         jobs: queue.Queue[TrainJob] = queue.Queue()
