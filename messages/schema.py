@@ -582,11 +582,12 @@ class RunSettings(MessageBase):
 
 
 class PopulationSnapshot(MessageBase):
-    """The current population (periodic and on change); `birth_counter` births so far."""
+    """The current population (periodic and on change); `birth_counter` birth numbers given."""
 
     type: Literal["PopulationSnapshot"] = "PopulationSnapshot"
     birth_counter: Count
-    """Births so far."""
+    """Birth numbers given so far: the births, and those undone after a caught lie (whose
+    numbers are not given again)."""
     members: Annotated[tuple[PopulationEntry, ...], Field(max_length=MAX_ITEMS)] = ()
     """The population: the most recent births."""
 

@@ -492,7 +492,8 @@ class EvolutionRules:
             PopulationEntry(agent=m.agent, fitness=m.fitness, parent=m.parent, birth=m.birth)
             for m in self.state.evolution.population
         )
-        return PopulationSnapshot(run=self.run, birth_counter=self.born, members=members)
+        given = self.state.evolution.births_made  # an undone birth's number is not given again
+        return PopulationSnapshot(run=self.run, birth_counter=given, members=members)
 
     def log_progress(self) -> None:
         """One line for the births since the last call (a line per birth would be a thousand a
