@@ -85,8 +85,10 @@ def test_killed_trainer_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("victim", local.trainer("victim"))
     procs.start("survivor", local.trainer("survivor"))
-    child = observer.training("victim").agent
+    observer.training("victim")
     procs.kill("victim")
+    # the child it held when killed (the progress heard may be of a job it has finished since)
+    child = [job for job in jobs(local.dir) if job.node == "victim"][-1].agent
     wait_until(lambda: len(births(local.dir)) == 4, 300, "every body born")
     assert_born_once(local.dir, 4)
     holders = [job.node for job in jobs(local.dir) if job.agent == child]
