@@ -184,12 +184,10 @@ class Observer:
         bus.subscribe(bus.keys.all("progress"), self.progress.append, (TrainProgress,))
 
     def training(self, node: str, after: int = 0, timeout: float = 120) -> TrainProgress:
-        """Progress of a job `node` is training now, in the job's first half (its second half is
-        the time a test has to interrupt it: a test's session that links to the trainer late
-        hears the next job), heard after the first `after` progress."""
+        """Progress of a job `node` is training now, heard after the first `after` progress."""
         return wait_until(
             lambda: next((p for p in self.progress[after:]
-                          if p.node == node and 2 * p.env_steps <= p.total_steps), None),
+                          if p.node == node and p.env_steps < p.total_steps), None),
             timeout, f"{node} mid-job",
         )  # fmt: skip
 

@@ -267,10 +267,7 @@ def test_a_real_trainer_that_inflates_every_report_leaves_the_honest_run(
     runs = {}
     for name, audit, trainers in (("honest", 0.0, ("a", "b")), ("lied", 0.05, ("a", "b", "x"))):
         (tmp_path / name).mkdir()
-        # 16,384-step trainings (~1.5 s): the liar, started last, takes part (at 4,096 the
-        # honest two were once done before it was ready)
-        local = LocalRun.at(tmp_path / name, population=4, total=8, in_flight=2, audit=audit,
-                            train_steps=16384)  # fmt: skip
+        local = LocalRun.at(tmp_path / name, population=4, total=8, in_flight=2, audit=audit)
         coordinator = procs.start(f"{name}-coordinator", local.coordinator())
         for trainer in trainers:
             argv = local.trainer(trainer)

@@ -4,6 +4,7 @@ and restarted on its endpoint prints exactly the journal's births, each once, no
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -13,11 +14,12 @@ import pytest
 import yaml
 from nodes_fixtures import Processes, derl_argv, free_port, run_id
 
-from derl.messages import Birth, FitnessReport, Reject, Rejection, TrainJob, TrainProgress, encode
+from derl.messages import Birth, FitnessReport, Reject, Rejection, TrainProgress, encode
 from derl.messages.examples import examples
 from derl.nodes.journal.segments import replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.testing.waiting import wait_until
+from derl.unimal import Genome
 
 PROFILE = {
     "profile": "smoke",
@@ -25,7 +27,7 @@ PROFILE = {
     "in_flight": 1,
     "tournament": 2,
     "total": 5,
-    "train_steps": 32768,  # 16 PPO iterations, ~3 s a body: the forging comes in a job's first half
+    "train_steps": 16384,  # 8 PPO iterations, ~2 s a body: the forging comes in a job's first half
     "num_envs": 16,
     "lease_s": 20.0,
     "eval_top": 0,
@@ -43,9 +45,8 @@ def _forge(bus: Bus, progress: TrainProgress, run_dir: Path) -> None:
     node's key, and under another name for its job."""
     template = next(m for m in examples(bus.run, 3) if isinstance(m, FitnessReport))
     real = {"agent": progress.agent, "job": progress.job, "node": progress.node}
-    body = next(
-        m.genome for m in _journal(run_dir) if isinstance(m, TrainJob) and m.job == progress.job
-    )
+    bodies = json.loads((run_dir / "initial_population.json").read_text())
+    body = Genome.model_validate(bodies[int(progress.agent.removeprefix("i"))])
     impossible = template.model_copy(
         update={**real, "genome": body, "mutation": None, "fitness": 3e9}
     )

@@ -34,9 +34,9 @@ from derl.nodes.testing.waiting import wait_until
 from derl.nodes.tools.logs import read_log
 
 PROFILE = {
-    "total": 12,  # one child in flight (TINY_PROFILE): a faulted job stalls the run, so few are
-    # born before the coordinator's kill (it must come mid-run)
-    "train_steps": 32768,  # 16 PPO iterations of 16 envs x 128 steps: time to interrupt one
+    "total": 10,  # one child in flight (TINY_PROFILE): a faulted job stalls the run, so few are
+    # born before the coordinator's kill
+    "train_steps": 16384,  # 8 PPO iterations of 16 envs x 128 steps: time to interrupt one
     "lease_s": 8.0,
     "max_attempts": 1,  # a failed training gives its child up
 }

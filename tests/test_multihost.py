@@ -153,8 +153,8 @@ def _launch_file(tmp: Path, net: Network) -> Path:
     launch = {
         "run": run_id(),
         "run_dir": str(tmp / "run"),
-        # ~4 s trainings: hostA's trainers still hold their jobs when the test cuts them off
-        "profile": str(write_profile(tmp / "profile.yaml", total=4, train_steps=49152)),
+        # ~1.5 s trainings: hostA's trainers still hold their jobs when the test cuts them off
+        "profile": str(write_profile(tmp / "profile.yaml", total=4, train_steps=24576)),
         "topology": {"kind": "peer_mesh", "seed": f"tcp/{net.address('coord')}:{PORT}"},
         "hosts": [
             host("coord", [{"role": "coordinator", "restart": "on-failure"}]),

@@ -272,18 +272,18 @@ def test_a_report_with_another_body_than_its_job_is_rejected(tmp_path: Path, pro
     before the trainer's own, naming the trainer and its job, carrying another valid mutated
     body and a plausible fitness: rejected (the coordinator decides every body), and the child
     is born once, from its trainer's report, with its job's body."""
-    local = LocalRun.at(tmp_path, population=2, total=3, train_steps=49152)
+    local = LocalRun.at(tmp_path, population=2, total=3, train_steps=12288)
     procs.start("coordinator", local.coordinator())
     with observe(local) as observer:
         jobs: queue.Queue[TrainJob] = queue.Queue()
         observer.bus.subscribe(observer.bus.keys.job("a"), jobs.put, (TrainJob,))
         wait_until(lambda: observer.statuses, 60, "the coordinator's status")
-        template = next(m for m in examples(local.run, 0) if isinstance(m, FitnessReport))
         procs.start("a", local.trainer("a"))
         job = jobs.get(timeout=120)
         while job.parent is None:  # the initial bodies' jobs
             job = jobs.get(timeout=120)
         forged_body, _ = breed(job.genome, 12345)
+        template = next(m for m in examples(local.run, 0) if isinstance(m, FitnessReport))
         forged = template.model_copy(update={
             "job": job.job, "agent": job.agent, "node": "a", "genome": forged_body,
             "fitness": FORGED_BODY_FITNESS, "env_steps": job.steps})  # fmt: skip

@@ -25,7 +25,7 @@ def test_a_short_soak_finishes_with_every_child_born_once(tmp_path: Path) -> Non
     # draws 6 or 7 faults of 4 or 5 kinds in 24 s, a router stopped for 21 s among them (a minute
     # of faults drew 12: each more stop of the router or the evaluator held the run up to 25 s)
     soak = Soak(tmp_path, minutes=0.2, fault_every=(2.0, 4.0), total=24, trainers=2, seed=1,
-                train_steps=8192)  # fmt: skip
+                train_steps=4096)  # fmt: skip
     report = soak.execute()
     print(json.dumps({k: v for k, v in report.items() if k != "fault_log"}, indent=1))
     assert report["finished"], report["fault_log"]
