@@ -184,11 +184,15 @@ class Observer:
         bus.subscribe(bus.keys.all("progress"), self.progress.append, (TrainProgress,))
 
     def training(self, node: str, after: int = 0, timeout: float = 120) -> TrainProgress:
-        """Progress of a job `node` is training now, heard after the first `after` progress."""
+        """Progress of a job `node` is training now, in its first half, heard after the first
+        `after` progress. A trainer publishes progress once a second and at a job's first
+        iteration: the first a session hears may be a job's last but one (a session that has
+        just joined misses what came before its subscription reached the trainer), and on a
+        fast machine that job ends before a test can act on it."""
         return wait_until(
             lambda: next((p for p in self.progress[after:]
-                          if p.node == node and p.env_steps < p.total_steps), None),
-            timeout, f"{node} mid-job",
+                          if p.node == node and 2 * p.env_steps <= p.total_steps), None),
+            timeout, f"{node} in a job's first half",
         )  # fmt: skip
 
 

@@ -32,6 +32,7 @@ from derl.nodes.coordinator.run.state import EvolutionState
 from derl.nodes.journal.history import load_history
 from derl.nodes.journal.segments import JournalWriter, replay
 from derl.nodes.testing.trainers import honest, honest_report, simulate_run
+from derl.nodes.testing.waiting import wait_until
 from derl.unimal import Genome
 
 RUN = "audit"
@@ -268,12 +269,17 @@ def test_a_real_trainer_that_inflates_every_report_leaves_the_honest_run(
     for name, audit, trainers in (("honest", 0.0, ("a", "b")), ("lied", 0.05, ("a", "b", "x"))):
         (tmp_path / name).mkdir()
         local = LocalRun.at(tmp_path / name, population=4, total=8, in_flight=2, audit=audit)
-        coordinator = procs.start(f"{name}-coordinator", local.coordinator())
         for trainer in trainers:
             argv = local.trainer(trainer)
             if trainer == "x":  # the same options, the liar's code
                 argv = [sys.executable, "-m", "derl.nodes.testing.liar", *argv[4:]]
             procs.start(f"{name}-{trainer}", argv)
+        # the coordinator once every trainer is up: on a fast machine two trainers started
+        # first train all 8 bodies before a third one's imports are done
+        logs = [f"{name}-{trainer}" for trainer in trainers]
+        wait_until(lambda: all("ready for run" in procs.log(log) for log in logs),  # noqa: B023
+                   60, "the trainers up")  # fmt: skip
+        coordinator = procs.start(f"{name}-coordinator", local.coordinator())
         assert procs.finish(coordinator, timeout=120) == 0, procs.log(f"{name}-coordinator")
         runs[name] = load_history(local.dir)
     honest_run, lied = runs["honest"], runs["lied"]

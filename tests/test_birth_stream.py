@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -27,7 +29,7 @@ PROFILE = {
     "in_flight": 1,
     "tournament": 2,
     "total": 5,
-    "train_steps": 16384,  # 8 PPO iterations, ~2 s a body: the forging comes in a job's first half
+    "train_steps": 16384,  # 8 PPO iterations, ~1-2 s a body
     "num_envs": 16,
     "lease_s": 20.0,
     "eval_top": 0,
@@ -87,7 +89,15 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
                 180,
                 "a training in its first half",
             )
-            _forge(bus, first, run_dir)
+            # its trainer stopped until every forged report is answered: its own report comes
+            # after them on a machine of any speed (SIGSTOP for well within the transport lease)
+            holder = procs.started[first.node].pid
+            os.killpg(holder, signal.SIGSTOP)
+            try:
+                _forge(bus, first, run_dir)
+                wait_until(lambda: _answered(run_dir, first), 2, "the forged reports answered")
+            finally:
+                os.killpg(holder, signal.SIGCONT)
             wait_until(lambda: len(_births(run_dir)) >= 2, 240, "two births")
             procs.kill("coordinator")
             with segments(run_dir)[-1].open("ab") as torn:  # a write cut short by the kill
@@ -118,6 +128,17 @@ def test_a_raw_monitor_sees_exactly_the_journals_births(tmp_path: Path) -> None:
     finally:
         procs.close()
     assert all(p.poll() is not None for p in procs.started.values())
+
+
+def _answered(run_dir: Path, progress: TrainProgress) -> bool:
+    """Whether the coordinator journaled its answer to each report `_forge` made for the job of
+    `progress`: three Rejects (two under the trainer's name, one for mallory) and the Rejection of
+    the trainer's name on mallory's key (the non-finite fitness never decodes: nothing to say)."""
+    journal = _journal(run_dir)
+    rejects = [m for m in journal if isinstance(m, Reject) and m.job == progress.job]
+    return len(rejects) >= 3 and any(
+        isinstance(m, Rejection) and "/mallory/" in m.key for m in journal
+    )
 
 
 def _births(run_dir: Path) -> list[Birth]:

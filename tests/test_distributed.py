@@ -82,8 +82,12 @@ def test_killed_trainer_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("victim", local.trainer("victim"))
     procs.start("survivor", local.trainer("survivor"))
-    child = observer.training("victim").agent
+    heard = observer.training("victim")
     procs.kill("victim")
+    lost = wait_until(lambda: [m for m in journaled(local.dir, JobLost) if m.node == "victim"],
+                      local.lease_s + 10, "the victim's job lost")  # fmt: skip
+    assert [m.job for m in lost] == [heard.job]  # killed holding the job heard in its first half
+    child = heard.agent
     wait_until(lambda: len(births(local.dir)) == 4, 300, "every body born")
     assert_born_once(local.dir, 4)
     holders = [job.node for job in jobs(local.dir) if job.agent == child]
@@ -130,9 +134,15 @@ def test_coordinator_restart_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("a", local.trainer("a"))
     procs.start("b", local.trainer("b"))
-    wait_until(lambda: len(births(local.dir)) >= 2, 180, "two births")
+
+    def midway() -> bool:  # two born, and a child in training (its report not yet journaled)
+        reported = {m.job for m in journaled(local.dir, FitnessReport)}
+        return len(births(local.dir)) >= 2 and any(j.job not in reported for j in jobs(local.dir))
+
+    wait_until(midway, 180, "two births and a child in training")
     procs.kill("coordinator")
     before = births(local.dir)
+    assert len(before) < 4, before
     segment = segments(local.dir)[-1]
     with segment.open("ab") as torn:  # a write cut short by the kill
         torn.write(b"\x05garbage-tail")
@@ -146,9 +156,15 @@ def test_coordinator_restart_loses_nothing(
 
 
 @pytest.mark.slow
-def test_garbage_on_every_key_is_rejected(
-    local: LocalRun, procs: Processes, observer: Observer
-) -> None:
+def test_garbage_on_every_key_is_rejected(tmp_path: Path, procs: Processes) -> None:
+    # a run far longer than the test (which stops it): still going while its rejections are
+    # counted, on a machine of any speed
+    local = LocalRun.at(tmp_path, **{**PROFILE, "total": 1000})
+    with observe(local) as observer:
+        _garbage_on_every_key(local, procs, observer)
+
+
+def _garbage_on_every_key(local: LocalRun, procs: Processes, observer: Observer) -> None:
     coordinator = procs.start("coordinator", local.coordinator())
     trainer = procs.start("t", local.trainer("t"))
     wait_until(lambda: observer.progress, 120, "training to start")

@@ -1,8 +1,8 @@
 """A run across real hosts: three network namespaces (coordinator, hostA, hostB), each with its
 own loopback and a veth link to a bridge in a fourth namespace, all made (and deleted) by the
 test. Each host runs `derl launch LAUNCH --host NAME` from one launch file: a peer mesh over TCP
-seeded by the coordinator's endpoint. Once hostA's trainers hold a job, hostA drops off the
-network (its link goes down) and its processes are SIGKILLed: the run carries on on hostB, and
+seeded by the coordinator's endpoint. Once a hostA trainer holds a job, hostA freezes, drops off
+the network (its link goes down) and its processes are SIGKILLed: the run carries on on hostB, and
 every body is born exactly once.
 
 Needs root and `ip netns` (iproute2); skipped with the reason otherwise.
@@ -32,7 +32,7 @@ from nodes_fixtures import (
     write_profile,
 )
 
-from derl.messages import Birth
+from derl.messages import Birth, FitnessReport, TrainJob
 from derl.nodes.testing.waiting import wait_until
 
 SUBNET = "10.213.0"  # only ever inside the namespaces this test makes
@@ -99,10 +99,10 @@ class Network:
         found = _ip("netns", "pids", self.ns[host], check=False)
         return [int(pid) for pid in found.stdout.split()]
 
-    def kill_all(self, host: str) -> None:
+    def kill_all(self, host: str, sig: int = signal.SIGKILL) -> None:
         for pid in self.pids(host):
             with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
+                os.kill(pid, sig)
 
     def link_down(self, host: str) -> None:
         _ip("-n", self.ns[host], "link", "set", "eth0", "down")
@@ -153,7 +153,7 @@ def _launch_file(tmp: Path, net: Network) -> Path:
     launch = {
         "run": run_id(),
         "run_dir": str(tmp / "run"),
-        # ~1.5 s trainings: hostA's trainers still hold their jobs when the test cuts them off
+        # ~1-2 s trainings: the test sees a hostA trainer's job and freezes hostA within them
         "profile": str(write_profile(tmp / "profile.yaml", total=4, train_steps=24576)),
         "topology": {"kind": "peer_mesh", "seed": f"tcp/{net.address('coord')}:{PORT}"},
         "hosts": [
@@ -183,8 +183,14 @@ def test_run_survives_a_host_dropping_off(tmp_path: Path, network: Network) -> N
                 network.address("coord"), network.address("hostA")},
             60, "hostB connected to coord and hostA",
         )  # fmt: skip
-        wait_until(lambda: [j for j in jobs(run_dir) if j.node.startswith("hostA-")], 120,
-                   "a job held by a hostA trainer")  # fmt: skip
+
+        def held_on_a() -> list[TrainJob]:
+            reported = {m.job for m in journaled(run_dir, FitnessReport)}
+            return [j for j in jobs(run_dir) if j.node.startswith("hostA-")
+                    and j.job not in reported]  # fmt: skip
+
+        wait_until(held_on_a, 120, "a job held by a hostA trainer")
+        network.kill_all("hostA", signal.SIGSTOP)  # frozen at once: its job stays unreported
         network.link_down("hostA")  # hostA vanishes: no FIN, the lease (2.5 s) notices
         network.kill_all("hostA")
         wait_until(lambda: processes.started["coord"].poll() is not None, 180, "the run to end")

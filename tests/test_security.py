@@ -19,7 +19,9 @@ commands:
 from __future__ import annotations
 
 import json
+import os
 import queue
+import signal
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -271,23 +273,33 @@ def test_a_report_with_another_body_than_its_job_is_rejected(tmp_path: Path, pro
     certificate). A report for a tournament child in flight, published on its trainer's key
     before the trainer's own, naming the trainer and its job, carrying another valid mutated
     body and a plausible fitness: rejected (the coordinator decides every body), and the child
-    is born once, from its trainer's report, with its job's body."""
+    is born once, from its trainer's report, with its job's body. The trainer is stopped
+    (SIGSTOP, well within the transport's lease) from the child's job until the forged report is
+    rejected, so its own report comes second on a machine of any speed."""
     local = LocalRun.at(tmp_path, population=2, total=3, train_steps=12288)
     procs.start("coordinator", local.coordinator())
     with observe(local) as observer:
         jobs: queue.Queue[TrainJob] = queue.Queue()
+        answers: queue.Queue[Reject] = queue.Queue()
         observer.bus.subscribe(observer.bus.keys.job("a"), jobs.put, (TrainJob,))
+        observer.bus.subscribe(observer.bus.keys.ack("a"), answers.put, (Reject,))
         wait_until(lambda: observer.statuses, 60, "the coordinator's status")
-        procs.start("a", local.trainer("a"))
+        trainer = procs.start("a", local.trainer("a"))
         job = jobs.get(timeout=120)
+        forged_body, _ = breed(job.genome, 12345)  # a valid body of an initial body's line
         while job.parent is None:  # the initial bodies' jobs
             job = jobs.get(timeout=120)
-        forged_body, _ = breed(job.genome, 12345)
-        template = next(m for m in examples(local.run, 0) if isinstance(m, FitnessReport))
-        forged = template.model_copy(update={
-            "job": job.job, "agent": job.agent, "node": "a", "genome": forged_body,
-            "fitness": FORGED_BODY_FITNESS, "env_steps": job.steps})  # fmt: skip
-        observer.bus.publish(forged)
+        os.killpg(trainer.pid, signal.SIGSTOP)
+        try:
+            assert forged_body != job.genome
+            template = next(m for m in examples(local.run, 0) if isinstance(m, FitnessReport))
+            forged = template.model_copy(update={
+                "job": job.job, "agent": job.agent, "node": "a", "genome": forged_body,
+                "fitness": FORGED_BODY_FITNESS, "env_steps": job.steps})  # fmt: skip
+            observer.bus.publish(forged)
+            answers.get(timeout=2)
+        finally:
+            os.killpg(trainer.pid, signal.SIGCONT)
         assert procs.finish(procs.started["coordinator"], timeout=120) == 0
     assert_born_once(local.dir, 3)
     journal = list(replay(local.dir))
@@ -295,3 +307,4 @@ def test_a_report_with_another_body_than_its_job_is_rejected(tmp_path: Path, pro
     assert birth.fitness != FORGED_BODY_FITNESS and birth.genome != forged_body
     rejects = [m for m in journal if isinstance(m, Reject) and m.job == job.job]
     assert [m.reason for m in rejects] == ["not the body of its job"]
+    assert [m.node for m in journal if isinstance(m, TrainJob) and m.agent == job.agent] == ["a"]

@@ -5,6 +5,7 @@ Run: python -m derl.nodes.testing.liar --run RUN --connect ENDPOINT --name NAME"
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
 
 from derl.lifetime import LifetimeResult
@@ -34,6 +35,7 @@ def main() -> None:
     parser.add_argument("--connect", required=True)
     parser.add_argument("--name", required=True)
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     worker = LyingTrainer(args.run, args.name, "trainer", 1)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: worker.stop.set())

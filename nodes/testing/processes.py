@@ -1,5 +1,6 @@
-"""Processes as /proc shows them: the ones a process started, a process's resident memory, open
-files and threads, and a free port to listen on."""
+"""Processes as /proc shows them: the ones a process started, the ones whose command line holds
+given arguments, a process's resident memory, open files and threads, and a free port to listen
+on."""
 
 from __future__ import annotations
 
@@ -23,6 +24,21 @@ def descendants(pid: int) -> list[int]:
         for child in children.get(todo.pop(), []):
             found.append(child)
             todo.append(child)
+    return found
+
+
+def with_arguments(*words: str) -> list[int]:
+    """The processes on this machine whose command line holds `words` as consecutive arguments
+    (e.g. "--name", "a")."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+            except OSError:
+                continue
+            if any(argv[k : k + len(words)] == list(words) for k in range(len(argv))):
+                found.append(int(entry.name))
     return found
 
 
