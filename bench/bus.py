@@ -91,10 +91,9 @@ from derl.messages import (
 from derl.nodes.coordinator.node import Liveliness
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.testing.processes import free_port
-from derl.nodes.testing.trainers import fake_report
+from derl.nodes.testing.trainers import fake_report, untrained_policy
 from derl.nodes.testing.waiting import wait_until
 from derl.nodes.worker.node import ready_wait
-from derl.policy_check import untrained_policy
 from derl.unimal import Genome, sample_population
 
 SCALE_PROFILE = {

@@ -2,22 +2,21 @@
 before it lets a reported training be born (a trainer could otherwise send any bytes, and an
 unreadable "checkpoint" became a run's best agent).
 
-A checkpoint passes when it loads (`Checkpoint.from_bytes`: torch's weights-only reader) into the
-network of the body in the world, every weight and statistic of the right shape and finite: the
-observation spaces and the action count are the body's (proprioception and actions from its
-model) and the world's (its other observation types). The body's spaces are computed once per
-body (a few tens of ms: the model in the flat world), the world's once per world.
+A checkpoint passes when it reads (`read_checkpoint`: no pickled code runs) as the network of the
+body in the world, every weight and statistic of the right shape and finite: the observation
+spaces and the action count are the body's (proprioception and actions from its model) and the
+world's (its other observation types), the weights those of `derl.rl.architecture`'s network.
+The body's spaces are computed once per body (a few tens of ms: the model in the flat world), the
+world's once per world. Nothing here imports torch: a coordinator never does.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from derl.envs import EnvConfig, UnimalEnv, make_task
-from derl.lifetime import ppo_config
-from derl.rl.checkpoint import Checkpoint, Policy
-from derl.rl.network import ActorCritic
+from derl.rl.architecture import parameter_shapes
+from derl.rl.checkpoint_format import read_checkpoint
 from derl.rl.normalize import ObsNormalizer
 from derl.unimal import Genome, body_hash
 
@@ -27,24 +26,24 @@ BODY_WORLD = "ft"  # where a body's own spaces are read (a plane: the cheapest w
 def policy_problem(data: bytes, genome: Genome, world: str) -> str:
     """Why `data` is not a policy of `genome` in `world` ("" if it is one)."""
     try:
-        checkpoint = Checkpoint.from_bytes(data)
-    except Exception as error:  # whatever torch's reader or the format check raise
+        checkpoint = read_checkpoint(data)
+    except Exception as error:  # whatever the archive reader or the format check raise
         return f"the checkpoint does not load ({type(error).__name__})"
     spaces, actions = expected_spaces(genome, world)
-    if checkpoint.obs_spaces != spaces or checkpoint.action_dim != actions:
+    if checkpoint["obs_spaces"] != spaces or checkpoint["action_dim"] != actions:
         return (
-            f"the checkpoint's network sees {checkpoint.obs_spaces} and acts on "
-            f"{checkpoint.action_dim}, the body in {world} {spaces} and {actions}"
+            f"the checkpoint's network sees {checkpoint['obs_spaces']} and acts on "
+            f"{checkpoint['action_dim']}, the body in {world} {spaces} and {actions}"
         )
+    weights, stats = checkpoint["weights"], checkpoint["obs_stats"]
+    shapes = {name: weight.shape for name, weight in weights.items()}
+    if shapes != parameter_shapes(spaces, actions):
+        return "the checkpoint's weights are not its network's"
     try:
-        Policy.from_checkpoint(checkpoint)
-    except (RuntimeError, ValueError, KeyError, TypeError) as error:
-        return f"the checkpoint's weights are not its network's ({type(error).__name__})"
-    weights = checkpoint.weights.values()
-    stats = checkpoint.obs_stats.values()
-    if not all(bool(torch.isfinite(w).all()) for w in weights) or not all(
-        bool(np.isfinite(s).all()) for s in stats
-    ):
+        ObsNormalizer(spaces, checkpoint["config"].obs_clip).load_state_dict(stats)
+    except (ValueError, KeyError, TypeError) as error:
+        return f"the checkpoint's statistics are not its network's ({type(error).__name__})"
+    if not all(bool(np.isfinite(array).all()) for array in (*weights.values(), *stats.values())):
         return "the checkpoint holds non-finite numbers"
     return ""
 
@@ -72,14 +71,3 @@ def _world_spaces(world: str, genome: Genome) -> dict[str, int]:
         spaces = UnimalEnv(genome, make_task(world), EnvConfig(num_envs=1)).obs_spaces
         _WORLDS[world] = {k: v for k, v in spaces.items() if k != "proprioception"}
     return _WORLDS[world]
-
-
-def untrained_policy(genome: Genome, world: str, seed: int = 0) -> bytes:
-    """A checkpoint of `genome`'s network in `world` with initial weights drawn from `seed`
-    (the same bytes for the same arguments): a policy that passes `policy_problem`, for tests
-    and benchmarks that stand in for a trainer."""
-    spaces, actions = expected_spaces(genome, world)
-    torch.manual_seed(seed)
-    net = ActorCritic(spaces, actions)
-    config = ppo_config(world, 4096, seed, num_envs=16)
-    return Checkpoint.capture(net, ObsNormalizer(spaces, config.obs_clip), config).to_bytes()

@@ -52,8 +52,8 @@ from derl.nodes.errors import Refused
 from derl.nodes.journal.history import run_log
 from derl.nodes.journal.segments import read_segment
 from derl.nodes.runtime.bus import Bus, ZenohOptions, matched, open_session
+from derl.nodes.testing.trainers import untrained_policy
 from derl.nodes.testing.waiting import ManualClock, wait_until
-from derl.policy_check import untrained_policy
 from derl.rl import PPOConfig, PPOHyperparameters
 from derl.unimal import Genome, Joint, Limb, body_hash, sample_population
 from tests.nodes_fixtures import free_port, run_id

@@ -86,6 +86,23 @@ def test_the_messages_load_neither_mujoco_nor_torch() -> None:
     assert loaded.strip() == "[]"
 
 
+def test_a_coordinator_checks_a_reported_policy_without_torch() -> None:
+    """The coordinator's check of a reported checkpoint (`policy_problem`, at every report) reads
+    it without torch, whose import costs each coordinator about a second of CPU: the shipped FT
+    agent passes, its bytes cut short do not, and torch is never loaded."""
+    checked = subprocess.run(
+        [sys.executable, "-c", "import sys; from pathlib import Path; "
+         "import derl.nodes.coordinator.node, derl.nodes.coordinator.run.rules; "
+         "from derl.policy_check import policy_problem; from derl.unimal import Genome; "
+         "agent = Path('agents/ft'); data = (agent / 'checkpoint.pt').read_bytes(); "
+         "genome = Genome.model_validate_json((agent / 'genome.json').read_text()); "
+         "print(repr(policy_problem(data, genome, 'ft')), "
+         "repr(policy_problem(data[:-100], genome, 'ft')), 'torch' in sys.modules)"],
+        capture_output=True, text=True, check=True, cwd=ROOT,
+    ).stdout  # fmt: skip
+    assert checked.strip() == "'' 'the checkpoint does not load (BadZipFile)' False"
+
+
 def test_the_mutation_operators_are_named_once_for_the_wire() -> None:
     from derl.unimal.mutations import OPERATORS
     from derl.unimal.space import OPERATOR_NAMES

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import zipfile
 
 import numpy as np
 import pydantic
@@ -22,8 +23,10 @@ from derl.rl import (
     RunningMeanStd,
     TrainResult,
     compute_gae,
+    torch_archive,
     train,
 )
+from derl.rl.architecture import parameter_shapes
 from derl.rl.episodes import EpisodeTracker
 from derl.rl.fused import FusedActorCritic
 from derl.rl.loss import PPOCoefficients, Samples, ppo_loss
@@ -84,6 +87,63 @@ def test_network_shapes_and_init() -> None:
     assert single.actor.fuse is None and single.critic.fuse is None
     assert sum(p.numel() for p in single.actor.parameters()) == (4 + 1) * 64 + 65 * 64
     assert single.action_mean({"proprioception": torch.zeros(3, 4)}).shape == (3, 1)
+
+
+@pytest.mark.parametrize(
+    "spaces", [{"proprioception": 4}, DERL_OBS, {"proprioception": 30, "goal": 3, "box": 9}]
+)
+def test_the_torch_free_architecture_names_the_networks_parameters(spaces: dict[str, int]) -> None:
+    """What a coordinator checks a checkpoint against (`parameter_shapes`, no torch) is the state
+    dict of the network a trainer builds."""
+    net = ActorCritic(spaces, 5)
+    assert {k: tuple(v.shape) for k, v in net.state_dict().items()} == parameter_shapes(spaces, 5)
+
+
+class _Code:
+    """An object whose unpickling would run code."""
+
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        return (print, ("ran",))
+
+
+def test_the_torch_free_reader_reads_what_torch_reads_and_runs_no_code() -> None:
+    """`torch_archive.load` gives torch.load's (weights-only) tensors as arrays, views (a
+    transposed weight, a slice, a 0-d count, several dtypes) included; it refuses any other global
+    and a tensor that reaches past its storage."""
+    base = torch.arange(24, dtype=torch.float32).reshape(4, 6)
+    tree = {
+        "t": base.T, "slice": base[1:3, 2:], "count": torch.tensor(3.0, dtype=torch.float64),
+        "ints": torch.arange(5), "mask": torch.tensor([True, False]), "empty": torch.zeros(0, 3),
+        "nested": [1, "a", (2.5, None), {"k": torch.ones(2, dtype=torch.float16)}],
+    }  # fmt: skip
+    buffer = io.BytesIO()
+    torch.save(tree, buffer)
+    read = torch_archive.load(buffer.getvalue())
+    expected = torch.load(io.BytesIO(buffer.getvalue()), weights_only=True)
+    for key in ("t", "slice", "count", "ints", "mask", "empty"):
+        assert read[key].dtype == expected[key].numpy().dtype and read[key].flags.writeable
+        np.testing.assert_array_equal(read[key], expected[key].numpy())
+    assert read["nested"][:3] == [1, "a", (2.5, None)]
+    np.testing.assert_array_equal(read["nested"][3]["k"], np.ones(2, np.float16))
+
+    code = io.BytesIO()
+    torch.save({"w": torch.zeros(2), "x": _Code()}, code)
+    with pytest.raises(Exception, match="print is not allowed in a checkpoint"):
+        torch_archive.load(code.getvalue())
+    past = io.BytesIO()
+    torch.save(torch.zeros(4)[2:], past)
+    forged = io.BytesIO()
+    with zipfile.ZipFile(past) as archive, zipfile.ZipFile(forged, "w") as copy:
+        for name in archive.namelist():
+            data = archive.read(name)
+            if name.endswith("data.pkl"):  # the view at offset 2: size 2 -> 9
+                assert b"K\x02K\x02\x85" in data
+                data = data.replace(b"K\x02K\x02\x85", b"K\x02K\x09\x85")
+            copy.writestr(name, data)
+    with pytest.raises(ValueError, match="reaches past its storage"):
+        torch_archive.load(forged.getvalue())
+    with pytest.raises(Exception):  # noqa: B017 - any error: these bytes are no archive
+        torch_archive.load(b"PK\x03\x04 not a zip")
 
 
 def _samples(aux: torch.Tensor, action_dim: int) -> Samples:

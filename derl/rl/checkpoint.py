@@ -1,9 +1,8 @@
 """A trained policy as bytes, and the deterministic numpy policy rebuilt from it.
 
-The bytes are `torch.save` of a plain dict of tensors, ints and strings, so `torch.load` reads
-them back with `weights_only=True` (no pickled code). Only the observation statistics are kept:
-the reward scale matters for training, not for acting. Checkpoints of an earlier `FORMAT`
-(`OLD_FORMATS` says how each differs) are refused with a `ValueError`.
+The bytes are `torch.save` of a plain dict of tensors, ints and strings, read back by a reader
+that runs no pickled code and needs no torch (`derl.rl.checkpoint_format`, which has the layout).
+Only the observation statistics are kept: the reward scale matters for training, not for acting.
 """
 
 from __future__ import annotations
@@ -15,19 +14,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from derl.rl.checkpoint_format import FORMAT, read_checkpoint
 from derl.rl.config import PPOConfig
 from derl.rl.network import ActorCritic
 from derl.rl.normalize import ObsNormalizer
-
-FORMAT = 3
-"""Version of the byte layout and of what the policy sees: 3, a network of one observation type
-has no fuse layer and proprioception has the limb ends in x and y (see `OLD_FORMATS`)."""
-OLD_FORMATS = {
-    1: "normalised every observation type (now only proprioception), so its policy would see "
-    "other inputs than it was trained on",
-    2: "gave a network of one observation type a third layer and observed the limb ends in 3-D, "
-    "which its policy no longer has",
-}
 
 
 @dataclass(frozen=True)
@@ -70,20 +60,13 @@ class Checkpoint:
 
     @classmethod
     def from_bytes(cls, data: bytes) -> Checkpoint:
-        raw = torch.load(io.BytesIO(data), weights_only=True)
-        version = raw.get("format", 1)
-        if version != FORMAT:
-            why = OLD_FORMATS.get(version, "is unknown")
-            raise ValueError(
-                f"checkpoint format {version}, this derl reads format {FORMAT}: format "
-                f"{version} {why}; train it again"
-            )
+        fields = read_checkpoint(data)
         return cls(
-            obs_spaces=dict(raw["obs_spaces"]),
-            action_dim=int(raw["action_dim"]),
-            weights=raw["weights"],
-            obs_stats={k: v.numpy() for k, v in raw["obs_stats"].items()},
-            config=PPOConfig.model_validate_json(raw["config"]),
+            obs_spaces=fields["obs_spaces"],
+            action_dim=fields["action_dim"],
+            weights={k: torch.from_numpy(v) for k, v in fields["weights"].items()},
+            obs_stats=fields["obs_stats"],
+            config=fields["config"],
         )
 
 

@@ -36,8 +36,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from derl.rl.architecture import HIDDEN
 from derl.rl.loss import PPOCoefficients
-from derl.rl.network import HIDDEN, ActorCritic, Encoder
+from derl.rl.network import ActorCritic, Encoder
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 SPARSE = "heightmap"

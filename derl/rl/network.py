@@ -3,7 +3,8 @@
 Each encoder runs one [dim -> 64 -> 64] tanh MLP per observation type; with several types it
 concatenates their outputs and passes them through a 64-unit tanh layer, with one type (FT and the
 flat test tasks: proprioception only) that MLP's output is the encoding (the released code's
-`ConcatMLPEncoder` and `MLPObsEncoder`). This module defines and initialises the network and acts
+`ConcatMLPEncoder` and `MLPObsEncoder`); `derl.rl.architecture` lists its parameters' names and
+shapes without torch. This module defines and initialises the network and acts
 for `Policy`; training minimises the PPO loss (`derl.rl.loss`) running the network's arithmetic
 by hand on a flat copy of the weights (`derl.rl.fused`).
 """
@@ -13,8 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-HIDDEN = 64
-"""Width of every hidden layer (paper, appendix B)."""
+from derl.rl.architecture import HIDDEN
 
 TensorObs = dict[str, torch.Tensor]
 

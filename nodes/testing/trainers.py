@@ -13,7 +13,10 @@ from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 
+import torch
+
 from derl.evolution import EvolutionConfig
+from derl.lifetime import ppo_config
 from derl.messages import (
     Ack,
     Cancel,
@@ -28,7 +31,10 @@ from derl.messages import (
 )
 from derl.nodes.coordinator.node import Coordinator, Liveliness
 from derl.nodes.coordinator.run.rules import EvolutionRules
-from derl.policy_check import untrained_policy
+from derl.policy_check import expected_spaces
+from derl.rl.checkpoint import Checkpoint
+from derl.rl.network import ActorCritic
+from derl.rl.normalize import ObsNormalizer
 from derl.unimal import Genome, body_hash
 
 
@@ -41,6 +47,17 @@ class Recorder:
 
     def publish(self, msg: MessageBase, data: bytes | None = None) -> None:
         self.messages.append(msg)
+
+
+def untrained_policy(genome: Genome, world: str, seed: int = 0) -> bytes:
+    """A checkpoint of `genome`'s network in `world` with initial weights drawn from `seed`
+    (the same bytes for the same arguments): a policy that passes `policy_problem`
+    (`derl.policy_check`), for tests and benchmarks that stand in for a trainer."""
+    spaces, actions = expected_spaces(genome, world)
+    torch.manual_seed(seed)
+    net = ActorCritic(spaces, actions)
+    config = ppo_config(world, 4096, seed, num_envs=16)
+    return Checkpoint.capture(net, ObsNormalizer(spaces, config.obs_clip), config).to_bytes()
 
 
 @cache

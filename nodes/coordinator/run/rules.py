@@ -65,6 +65,7 @@ from derl.nodes.coordinator.run.files import (
 from derl.nodes.coordinator.run.state import EvolutionState, tournament_message
 from derl.nodes.errors import Refused
 from derl.plugins import PluginError
+from derl.policy_check import policy_problem
 from derl.unimal import Genome, MutationFailed
 from derl.unimal.space import DENSITIES
 
@@ -451,8 +452,6 @@ class EvolutionRules:
             return f"fitness {report.fitness:g} is beyond what the world allows (|f| <= {bound:g})"
         if report.env_steps > order.steps:
             return f"{report.env_steps} env steps trained, the job allowed {order.steps}"
-        from derl.policy_check import policy_problem  # torch: not before the first report
-
         return policy_problem(report.checkpoint, order.genome, order.task)
 
     def on_evaluation(self, result: EvalResult) -> None:
