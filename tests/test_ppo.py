@@ -108,8 +108,8 @@ class _Code:
 
 def test_the_torch_free_reader_reads_what_torch_reads_and_runs_no_code() -> None:
     """`torch_archive.load` gives torch.load's (weights-only) tensors as arrays, views (a
-    transposed weight, a slice, a 0-d count, several dtypes) included; it refuses any other global
-    and a tensor that reaches past its storage."""
+    transposed weight, a slice, a 0-d count, several dtypes) included; it refuses any other
+    global, what is not plain data, and a tensor that reaches past its storage."""
     base = torch.arange(24, dtype=torch.float32).reshape(4, 6)
     tree = {
         "t": base.T, "slice": base[1:3, 2:], "count": torch.tensor(3.0, dtype=torch.float64),
@@ -130,6 +130,10 @@ def test_the_torch_free_reader_reads_what_torch_reads_and_runs_no_code() -> None
     torch.save({"w": torch.zeros(2), "x": _Code()}, code)
     with pytest.raises(Exception, match="print is not allowed in a checkpoint"):
         torch_archive.load(code.getvalue())
+    numbered = io.BytesIO()
+    torch.save({"w": torch.zeros(2), "by number": {3: torch.ones(1)}}, numbered)
+    with pytest.raises(ValueError, match="a key int"):  # plain data: string keys
+        torch_archive.load(numbered.getvalue())
     past = io.BytesIO()
     torch.save(torch.zeros(4)[2:], past)
     forged = io.BytesIO()

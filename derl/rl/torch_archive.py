@@ -7,7 +7,9 @@ A `torch.save` file is a zip archive: `<name>/data.pkl` pickles the object, each
 bytes are the member `<name>/data/<key>`. The unpickler here accepts what torch's weights-only
 reader accepts for a checkpoint of plain data (dicts, lists, tuples, numbers, strings, an empty
 `OrderedDict` of hooks, tensors of CPU storages) and refuses every other global with
-`pickle.UnpicklingError`: no pickled code runs. A tensor's view must lie inside its storage.
+`pickle.UnpicklingError`: no pickled code runs. A tensor's view must lie inside its storage, and
+what was read must be such plain data (numbers in every array: a pickle's BUILD could have made
+one an array of objects).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import collections
 import io
 import pickle
 import zipfile
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -44,7 +47,39 @@ def load(data: bytes) -> Any:
         root = pickles[0].removesuffix("data.pkl")
         if archive.read(f"{root}byteorder") != b"little":
             raise ValueError("a big-endian torch.save archive")
-        return _Unpickler(archive, root).load()
+        loaded = _Unpickler(archive, root).load()
+    _check_plain(loaded)
+    return loaded
+
+
+PLAIN = (str, int, float, bool, type(None))
+NUMBERS = "biuf"
+"""The kinds of numpy dtype an array read may have: booleans, integers, floats."""
+
+
+def _check_plain(value: Any) -> None:
+    """`ValueError` unless `value` is plain data: PLAIN values, arrays of NUMBERS, and lists,
+    tuples and dicts (string keys) of plain data."""
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind not in NUMBERS:
+            raise ValueError(f"an array of {value.dtype}")
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise ValueError(f"a key {type(key).__name__}")
+            _check_plain(item)
+    elif isinstance(value, list | tuple):
+        for item in value:
+            _check_plain(item)
+    elif not isinstance(value, PLAIN):
+        raise ValueError(f"a {type(value).__name__}")
+
+
+@dataclass(frozen=True, slots=True)
+class _StorageType:
+    """A storage class a pickle names: neither callable nor changeable by the pickle."""
+
+    dtype: np.dtype
 
 
 class _Unpickler(pickle.Unpickler):
@@ -59,16 +94,17 @@ class _Unpickler(pickle.Unpickler):
         if (module, name) == ("collections", "OrderedDict"):
             return collections.OrderedDict
         if module == "torch" and name in STORAGES:
-            return np.dtype(STORAGES[name])
+            return _StorageType(np.dtype(STORAGES[name]))
         raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a checkpoint")
 
     def persistent_load(self, pid: Any) -> np.ndarray:
         """A storage: ("storage", its type, key, location, element count) -> its elements."""
         if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"):
             raise pickle.UnpicklingError(f"unknown persistent id {pid!r:.80}")
-        _, dtype, key, location, count = pid
-        if not isinstance(dtype, np.dtype) or location != "cpu" or not isinstance(key, str):
-            raise pickle.UnpicklingError(f"a storage of {dtype!r:.40} on {location!r:.20}")
+        _, kind, key, location, count = pid
+        if not isinstance(kind, _StorageType) or location != "cpu" or not isinstance(key, str):
+            raise pickle.UnpicklingError(f"a storage of {kind!r:.40} on {location!r:.20}")
+        dtype = kind.dtype
         if key not in self.storages:
             raw = self.archive.read(f"{self.root}data/{key}")
             if not isinstance(count, int) or len(raw) != count * dtype.itemsize:
