@@ -1,6 +1,6 @@
 """The bytes of `torch.save` read without torch, its tensors as numpy arrays: for a process that
 checks checkpoints but never runs a policy (the coordinator, which torch's import would cost
-about 1.3 s of CPU and 150 MB at its first report).
+about 1.3 s of CPU and 230 MB of memory at its first report).
 
 A `torch.save` file is a zip archive: `<name>/data.pkl` pickles the object, each tensor a call of
 `torch._utils._rebuild_tensor_v2` on a storage that the pickle names by a persistent id and whose
