@@ -90,7 +90,7 @@ from derl.messages import (
 )
 from derl.nodes.coordinator.node import Liveliness
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.testing.processes import free_port
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.testing.trainers import fake_report, untrained_policy
 from derl.nodes.testing.waiting import wait_until
 from derl.nodes.worker.node import ready_wait

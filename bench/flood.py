@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import tempfile
 import threading
 import time
@@ -28,17 +27,12 @@ import yaml
 from derl.messages import Ack, FitnessReport, Reject, TrainJob, WorkerReady
 from derl.nodes.coordinator.ledger import JOURNALED_REFUSALS
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.runtime.processes import spawn_derl, stop_all
-from derl.policy_check import untrained_policy
+from derl.nodes.testing.trainers import untrained_policy
 
 RUN = "flood"
 PROFILE = {"profile": "smoke", "total": 1000, "eval_top": 0, "eval_tasks": [], "lease_s": 3600.0}
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def _rss_mb(pid: int) -> float:
@@ -70,7 +64,7 @@ def flood(seconds: float, every: float, work: Path, kinds: tuple[str, ...] = KIN
           ) -> dict[str, object]:  # fmt: skip
     profile, run_dir = work / "flood.yaml", work / "run"
     profile.write_text(yaml.safe_dump(PROFILE))
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     coordinator = spawn_derl(
         ["coordinator", "--run", RUN, "--profile", str(profile), "--run-dir", str(run_dir),
          "--listen", endpoint], work / "coordinator.log",

@@ -9,7 +9,8 @@ query on ``derl/RUN/births/*``), then subscribes to the birth stream ``derl/RUN/
 a RingChannel (when it falls behind, the oldest samples are dropped: a monitor must never slow the
 run). It also reads the coordinator's status (``derl/RUN/status``, once a second): when that counts
 more births and failed children than it has printed (a birth journaled just before a coordinator
-crash and never published, or dropped by the RingChannel), it asks again. Each payload is a msgpack
+crash and never published, or dropped by the RingChannel), it asks again, at each status until the
+answer fills the gap or holds all the coordinator remembers. Each payload is a msgpack
 map with ``type`` "Birth" (agent, parent, fitness, cost_of_work, birth, generation, node, mutation,
 ...) or "ChildFailed" (agent, attempts, error); docs/protocol.md lists every field. Births are
 journaled before they are published, so these are exactly the run's births; a birth heard twice
@@ -49,11 +50,17 @@ def show(sample: zenoh.Sample) -> None:
         print(f"{agent} failed after {event['attempts']} attempts: {event['error']}", flush=True)
 
 
-def ask(session: zenoh.Session, key: str) -> None:
-    """The births the coordinator remembers (its latest 1,000)."""
+REMEMBERED = 1000  # the births a coordinator answers a query with (derl: REMEMBERED_BIRTHS)
+
+
+def ask(session: zenoh.Session, key: str) -> int:
+    """Show the births the coordinator remembers; how many it answered with."""
+    answered = 0
     for reply in session.get(key, timeout=2.0):
         if reply.ok is not None:
+            answered += 1
             show(reply.ok)
+    return answered
 
 
 with zenoh.open(config) as session:
@@ -70,8 +77,9 @@ with zenoh.open(config) as session:
             if news is not None:
                 counts = msgpack.unpackb(news.payload.to_bytes())
                 settled = counts["born"] + counts["failed"]
-                if settled - len(seen) > gap:  # one went by unheard
-                    ask(session, key)
+                # one went by unheard: ask (again at the next status while the answer falls
+                # short, e.g. a coordinator just restarted whose queryable is not reached yet)
+                if settled - len(seen) > gap and ask(session, key) >= REMEMBERED:
                     gap = settled - len(seen)
             if sample is None and news is None:
                 time.sleep(0.05)

@@ -37,6 +37,11 @@ ARITY: Final[dict[str, int]] = {
 }
 """Key kinds and how many id segments follow each."""
 
+REMEMBERED_BIRTHS: Final = 1000
+"""How many of its latest births (and children given up) the coordinator answers a query on
+``births/*`` with: a monitor that hears fewer than the run's status counts asks again until an
+answer fills the gap or holds this many."""
+
 PUBLISHERS: Final[dict[str, tuple[str, ...]]] = {
     "alive": ("trainer", "evaluator"),
     "ready": ("trainer", "evaluator"),

@@ -8,7 +8,6 @@ import os
 import resource
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -34,6 +33,7 @@ from derl.messages import (
 )
 from derl.nodes.journal.segments import Journal, replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.runtime.processes import child_setup, stop_all
 from derl.nodes.testing.processes import descendants
 from derl.nodes.testing.waiting import wait_until
@@ -71,24 +71,6 @@ SMOKE_RUN = pytest.mark.xdist_group(name="smoke-run")
 
 def run_id() -> str:
     return f"t{uuid.uuid4().hex[:10]}"
-
-
-def free_port(host: str = "127.0.0.1", span: int = 1) -> int:
-    """A port P such that P .. P + span - 1 can be bound on `host` now (a small race remains)."""
-    for _ in range(200):
-        with socket.socket() as probe:
-            probe.bind((host, 0))
-            port = probe.getsockname()[1]
-        if port + span > 65535:
-            continue
-        try:
-            for k in range(1, span):
-                with socket.socket() as other:
-                    other.bind((host, port + k))
-        except OSError:
-            continue
-        return port
-    raise RuntimeError(f"no {span} free consecutive ports on {host}")
 
 
 def write_profile(path: Path, **overrides: object) -> Path:

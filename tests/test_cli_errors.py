@@ -34,7 +34,9 @@ from nodes_fixtures import derl_argv, free_port
 from derl.evolution import load_profile
 from derl.messages import WorkerReady
 from derl.nodes.cli.main import main
+from derl.nodes.cli.run import listenable
 from derl.nodes.journal.segments import Journal
+from derl.nodes.runtime.ports import bindable, ephemeral_range
 from derl.unimal import Genome
 
 GENOME = "genome.json"
@@ -277,3 +279,14 @@ def test_bad_input_gets_one_line_and_an_exit_status(
     assert lines and filled(says) in lines[-1], stderr
     assert "Traceback" not in stderr
     assert len([line for line in lines if line.startswith("derl")]) == 1, stderr
+
+
+def test_a_free_port_is_drawn_outside_the_ephemeral_range() -> None:
+    """`--port 0` and the tests' endpoints: a port the kernel gives neither to a socket bound to
+    port 0 (another node's listener) nor to an outgoing connection, so none takes it before its
+    listener binds it (a study resumed with `--port 0` once found its port taken so)."""
+    first, last = ephemeral_range()
+    ports = [free_port(span=3) for _ in range(50)]
+    assert not [p for p in ports if first <= p + 2 and p <= last], (first, last, ports)
+    assert all(bindable("127.0.0.1", p + k) for p in ports for k in range(3))
+    assert listenable(0) not in range(first, last + 1)

@@ -393,21 +393,27 @@ def test_example_monitor_prints_fitness(
     assert any(line.startswith("skipped derl/") for line in lines)
 
 
+@pytest.mark.parametrize("late", [False, True], ids=["answered", "answered-late"])
 @pytest.mark.parametrize("watcher", ["example", "monitor"])
 def test_a_birth_never_published_is_asked_for_again(
-    watcher: str, procs: Processes, bus: Bus, endpoint: str
+    watcher: str, late: bool, procs: Processes, bus: Bus, endpoint: str
 ) -> None:
     """A birth the coordinator journaled but never published (it was killed in between): once
-    the status counts it, the example monitor and `derl monitor` ask again and show it."""
+    the status counts it, the example monitor and `derl monitor` ask again and show it; and
+    again while the answer falls short (`late`: the first question after the status is answered
+    with nothing, as when the restarted coordinator's queryable is not reached yet)."""
     birth = next(m for m in examples(bus.run, 0) if isinstance(m, Birth))
     status = next(m for m in examples(bus.run, 0) if isinstance(m, RunStatus))
     journaled: list[Birth] = []  # what the coordinator's query answers
+    held: list[Birth] = []  # what it answers from the next question on
     asked: list[float] = []
 
     def answer(query: zenoh.Query) -> None:
         asked.append(time.monotonic())
         for b in list(journaled):
             query.reply(bus.keys.births(b.agent), encode(b))
+        journaled.extend(held)
+        held.clear()
 
     queryable = bus.session.declare_queryable(bus.keys.all("births"), answer)
     try:
@@ -422,7 +428,8 @@ def test_a_birth_never_published_is_asked_for_again(
         # its question at start is answered with nothing (or, before it knew of the queryable,
         # not at all)
         wait_until(lambda: asked or time.monotonic() > started + 8, 10, "the question at start")
-        journaled.append(birth)  # journaled, and the coordinator killed before publishing it
+        # journaled, and the coordinator killed before publishing it
+        (held if late else journaled).append(birth)
         counts = status.model_copy(update={"born": 1, "failed": 0})
         for _ in range(8):  # the restarted coordinator's status, once a second
             bus.publish(counts)

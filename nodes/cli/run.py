@@ -50,6 +50,7 @@ from derl.nodes.launch.commands import NodeCommand, build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.runtime.rundir import lock_run_dir
 
 if TYPE_CHECKING:
@@ -266,8 +267,14 @@ def watch_command(endpoint: str, run: str, zenoh_config: Path | None = None) -> 
 
 
 def listenable(port: int, host: str = "127.0.0.1") -> int:
-    """`port` (a free one for 0) if the coordinator can listen on it at `host`, else exit
-    saying so."""
+    """`port` if the coordinator can listen on it at `host`, else exit saying so; for 0 a free
+    one outside the ephemeral range (`free_port`: no other node's port 0 takes it before the
+    coordinator listens)."""
+    if port == 0:
+        try:
+            return free_port(host)
+        except OSError as error:
+            fail(f"{error}; choose a port with --port", IN_USE)
     with socket.socket() as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener
         try:

@@ -54,6 +54,7 @@ from derl.messages import (
     parse,
 )
 from derl.messages.dispatch import Handler, handles
+from derl.messages.keys import REMEMBERED_BIRTHS
 from derl.nodes.coordinator.ledger import Ledger
 from derl.nodes.coordinator.rules import Rules
 from derl.nodes.coordinator.run.audits import incarnation
@@ -79,7 +80,6 @@ RESEND_AFTER_S = 2.0  # a job order is sent again for a WorkerReady that came in
 # the last (`_ready`)
 IDLE_S = (0.0005, 0.01)  # the wait when nothing came: the first, doubled up to the last
 RETRY_S = 1.0  # a coordinator whose journal cannot be written tries again this often
-RECENT_BIRTHS = 1000  # births a late monitor gets by query
 REPORTS_HELD = 256  # reports an inlet holds (each up to 8 MiB: 2 GiB at most; ~100 kB usually)
 INLETS = (  # what the loop takes, in this order in each pass, and how many each holds
     ("ready", (WorkerReady,), INLET_CAPACITY),
@@ -132,9 +132,9 @@ class Coordinator(Handler):
         self.ledger = Ledger(run, run_dir, rules.state, clock)
         rules.start(self.ledger)
         self.keys = KeySpace(run)
-        self.recent: deque[tuple[str, bytes]] = deque(maxlen=RECENT_BIRTHS)  # (key, payload)
+        self.recent: deque[tuple[str, bytes]] = deque(maxlen=REMEMBERED_BIRTHS)  # (key, payload)
         self.recent_lock = threading.Lock()
-        for birth in self.state.births[-RECENT_BIRTHS:]:
+        for birth in self.state.births[-REMEMBERED_BIRTHS:]:
             self._remember(birth, encode(birth))
         now = self.clock()
         self.heard = {job: now for job in self.state.jobs}  # leases restart on a restart

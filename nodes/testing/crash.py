@@ -45,8 +45,8 @@ from derl.messages import (
 from derl.nodes.journal.reader import JournalDamaged
 from derl.nodes.journal.segments import cut_torn_tail, replay, segments
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.testing.disk import Cut, Knowledge, Op, build, cuts, normalized, parse_trace
-from derl.nodes.testing.processes import free_port
 from derl.nodes.testing.trainers import fake_report, policy_of
 
 RUN = "crash"

@@ -32,6 +32,7 @@ from derl.messages import Birth, MessageBase, TrainJob, decode, encode
 from derl.nodes.coordinator.node import DONE_ANNOUNCEMENTS, Coordinator, Liveliness
 from derl.nodes.coordinator.run.rules import EvolutionRules
 from derl.nodes.journal.segments import cut_torn_tail, replay, segments
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.runtime.processes import spawn_derl, stop_all
 from derl.nodes.testing.crash import (
     PROFILE,
@@ -43,7 +44,6 @@ from derl.nodes.testing.crash import (
     zenoh_trainers,
 )
 from derl.nodes.testing.disk import Cut, Knowledge, build
-from derl.nodes.testing.processes import free_port
 from derl.nodes.testing.trainers import Recorder, policy_of
 
 

@@ -1,11 +1,9 @@
 """Processes as /proc shows them: the ones a process started, the ones whose command line holds
-given arguments, a process's resident memory, open files and threads, and a free port to listen
-on."""
+given arguments, and a process's resident memory, open files and threads."""
 
 from __future__ import annotations
 
 import os
-import socket
 from pathlib import Path
 
 
@@ -57,10 +55,3 @@ def sample(pid: int) -> dict[str, float] | None:
         "open_files": fds,
         "threads": int(fields["Threads"]),
     }
-
-
-def free_port() -> int:
-    """A port on 127.0.0.1 free now (a small race remains)."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]

@@ -50,9 +50,10 @@ import zenoh
 from derl.messages import Birth, ChildFailed
 from derl.nodes.journal.segments import replay
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
+from derl.nodes.runtime.ports import free_port
 from derl.nodes.runtime.processes import child_setup, stop_all
 from derl.nodes.testing.faults import put_garbage
-from derl.nodes.testing.processes import descendants, free_port, sample
+from derl.nodes.testing.processes import descendants, sample
 
 TRAIN_STEPS = 16384  # a training's steps, unless told
 PROFILE = {

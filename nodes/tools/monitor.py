@@ -47,6 +47,7 @@ from derl.messages import (
     WorkerReady,
 )
 from derl.messages.dispatch import Handler, handles
+from derl.messages.keys import REMEMBERED_BIRTHS
 from derl.nodes.journal.history import RunHistory
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
 from derl.nodes.tools.topic import DISCOVERY_S, Checker, Tap, ask, choose_run
@@ -300,10 +301,10 @@ def monitor(
         keys = KeySpace(view.run)
         tap = Tap(session, keys.everything(), on_sample)
 
-        def ask_births() -> None:
+        def ask_births() -> int:
             """Those before we came, and any that went by unheard (journaled just before a
-            coordinator crash and never published)."""
-            ask(session, keys.all("births"), on_sample)
+            coordinator crash and never published): how many the coordinator answered with."""
+            return ask(session, keys.all("births"), on_sample)
 
         ask_births()
         gap = 0  # what asking cannot fill (a late monitor of a run beyond the births remembered)
@@ -323,8 +324,11 @@ def monitor(
             if view.status is not None:
                 missing = view.status.born + view.status.failed - view.settled
                 if missing > gap:  # one went by unheard: its answer comes with the next update
-                    ask_births()
-                gap = missing
+                    # an answer short of all it remembers (a coordinator just restarted, its
+                    # queryable not reached yet): asked again at the next update
+                    gap = missing if ask_births() >= REMEMBERED_BIRTHS else 0
+                else:
+                    gap = missing
             return view.render(time.monotonic())
 
         if once is not None:

@@ -129,13 +129,16 @@ def ask(
     key_expr: str,
     on_sample: Callable[[zenoh.Sample, float], None],
     timeout: float = ASK_S,
-) -> None:
+) -> int:
     """Hand `on_sample(sample, arrival)` what the run's queryables hold on `key_expr`: the
     coordinator answers ``births/*`` with the births it remembers (those before a watcher came,
-    and any that went by unheard)."""
+    and any that went by unheard). How many samples they answered with."""
+    answered = 0
     for reply in session.get(key_expr, timeout=timeout):
         if reply.ok is not None:
+            answered += 1
             on_sample(reply.ok, time.monotonic())
+    return answered
 
 
 class RunNotFound(LookupError):
