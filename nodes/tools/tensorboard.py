@@ -173,7 +173,7 @@ class LiveRun:
     points need of their curves: `Scalars.kept`), and the latest status when its step changed or
     `PROGRESS_S` after the last one written."""
 
-    def __init__(self, scalars: Scalars, ask_births: Callable[[], None]) -> None:
+    def __init__(self, scalars: Scalars, ask_births: Callable[[], object]) -> None:
         self.scalars = scalars
         self.ask_births = ask_births
         self.history = RunHistory()
