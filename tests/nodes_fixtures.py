@@ -200,6 +200,12 @@ def jobs(run_dir: Path) -> list[TrainJob]:
     return journaled(run_dir, TrainJob)
 
 
+def in_training(run_dir: Path) -> list[TrainJob]:
+    """The jobs issued whose report is not journaled yet (in training, or lost)."""
+    reported = {m.job for m in journaled(run_dir, FitnessReport)}
+    return [j for j in jobs(run_dir) if j.job not in reported]
+
+
 def assert_born_once(run_dir: Path, total: int) -> None:
     born = births(run_dir)
     assert len(born) == total, born

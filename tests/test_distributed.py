@@ -26,6 +26,7 @@ from nodes_fixtures import (
     births,
     derl_argv,
     free_port,
+    in_training,
     jobs,
     journaled,
     observe,
@@ -134,12 +135,8 @@ def test_coordinator_restart_loses_nothing(
     procs.start("coordinator", local.coordinator())
     procs.start("a", local.trainer("a"))
     procs.start("b", local.trainer("b"))
-
-    def midway() -> bool:  # two born, and a child in training (its report not yet journaled)
-        reported = {m.job for m in journaled(local.dir, FitnessReport)}
-        return len(births(local.dir)) >= 2 and any(j.job not in reported for j in jobs(local.dir))
-
-    wait_until(midway, 180, "two births and a child in training")
+    wait_until(lambda: len(births(local.dir)) >= 2 and in_training(local.dir), 180,
+               "two births and a child in training")  # fmt: skip
     procs.kill("coordinator")
     before = births(local.dir)
     assert len(before) < 4, before

@@ -26,13 +26,14 @@ import yaml
 from nodes_fixtures import (
     Processes,
     assert_born_once,
+    in_training,
     jobs,
     journaled,
     run_id,
     write_profile,
 )
 
-from derl.messages import Birth, FitnessReport, TrainJob
+from derl.messages import Birth
 from derl.nodes.testing.waiting import wait_until
 
 SUBNET = "10.213.0"  # only ever inside the namespaces this test makes
@@ -184,12 +185,8 @@ def test_run_survives_a_host_dropping_off(tmp_path: Path, network: Network) -> N
             60, "hostB connected to coord and hostA",
         )  # fmt: skip
 
-        def held_on_a() -> list[TrainJob]:
-            reported = {m.job for m in journaled(run_dir, FitnessReport)}
-            return [j for j in jobs(run_dir) if j.node.startswith("hostA-")
-                    and j.job not in reported]  # fmt: skip
-
-        wait_until(held_on_a, 120, "a job held by a hostA trainer")
+        wait_until(lambda: [j for j in in_training(run_dir) if j.node.startswith("hostA-")],
+                   120, "a job held by a hostA trainer")  # fmt: skip
         network.kill_all("hostA", signal.SIGSTOP)  # frozen at once: its job stays unreported
         network.link_down("hostA")  # hostA vanishes: no FIN, the lease (2.5 s) notices
         network.kill_all("hostA")

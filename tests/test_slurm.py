@@ -44,11 +44,12 @@ from nodes_fixtures import (
     REPO,
     assert_born_once,
     free_port,
+    in_training,
     journaled,
     write_profile,
 )
 
-from derl.messages import Birth, FitnessReport, JobLost, TrainJob
+from derl.messages import Birth, JobLost, TrainJob
 from derl.nodes.journal.segments import segments
 from derl.nodes.launch.commands import NODE_CONFIG, NodeCommand
 from derl.nodes.launch.identities import MONITOR, issue_identities, make_ca
@@ -415,12 +416,7 @@ SLOWER = {"train_steps": 40960}  # trainings of ~2 s (on a quiet core): somethin
 def test_a_cancelled_trainer_step_is_replaced(slurm: Cluster, tmp_path: Path) -> None:
     job = _sbatch_run(slurm, tmp_path, "--nodes=2", "--ntasks=3", **SLOWER)
     run_dir = tmp_path / "run"
-
-    def held() -> TrainJob | None:  # a job in training: no report of it journaled yet
-        reported = {m.job for m in journaled(run_dir, FitnessReport)}
-        return next((j for j in journaled(run_dir, TrainJob) if j.job not in reported), None)
-
-    first = wait_until(held, 120, "a job in training")
+    first = wait_until(lambda: in_training(run_dir), 120, "a job in training")[0]
     named = with_arguments("--name", first.node)  # its srun step and the trainer that step runs
     for pid in set(named) - {p for p in named if set(descendants(p)) & set(named)}:
         os.kill(pid, signal.SIGSTOP)  # the trainer frozen mid-job at once, on any machine

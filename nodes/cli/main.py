@@ -91,18 +91,24 @@ def _interrupted(number: int, _frame: object) -> None:
     raise SystemExit(130)
 
 
+def log_to_stderr() -> None:
+    """A node's log lines on stderr, rate-limited (nothing if a handler is there already: a
+    test's); not torch's INFO lines at exit."""
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+        handlers=[ratelimit.install(logging.StreamHandler(sys.stderr))],
+    )
+    logging.getLogger("torch").setLevel(logging.WARNING)
+
+
 def main(argv: list[str] | None = None) -> int:
     before = signal.signal(signal.SIGINT, _interrupted)
     try:
         parser = build_parser()
     finally:
         signal.signal(signal.SIGINT, before)
-    logging.basicConfig(  # (nothing if a handler is there already: a test's)
-        level=logging.INFO,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-        handlers=[ratelimit.install(logging.StreamHandler(sys.stderr))],
-    )
-    logging.getLogger("torch").setLevel(logging.WARNING)  # not its INFO lines at exit
+    log_to_stderr()
     args = parser.parse_args(argv)
     try:
         return args.handler(args)

@@ -20,7 +20,6 @@ import json
 import re
 import shlex
 import signal
-import socket
 import statistics
 import threading
 import unicodedata
@@ -50,7 +49,7 @@ from derl.nodes.launch.commands import NodeCommand, build_commands
 from derl.nodes.launch.local import local_launch
 from derl.nodes.launch.supervisor import Supervisor
 from derl.nodes.runtime.bus import Bus, ZenohOptions, open_session
-from derl.nodes.runtime.ports import free_port
+from derl.nodes.runtime.ports import bind_error, free_port
 from derl.nodes.runtime.rundir import lock_run_dir
 
 if TYPE_CHECKING:
@@ -275,14 +274,10 @@ def listenable(port: int, host: str = "127.0.0.1") -> int:
             return free_port(host)
         except OSError as error:
             fail(f"{error}; choose a port with --port", IN_USE)
-    with socket.socket() as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener
-        try:
-            probe.bind((host, port))
-        except OSError as error:
-            fail(f"cannot listen on {host}:{port}: {error.strerror} (another run, node or "
-                 "router?); choose another port with --port", IN_USE)  # fmt: skip
-        return probe.getsockname()[1]
+    if (refused := bind_error(host, port)) is not None:
+        fail(f"cannot listen on {host}:{port}: {refused.strerror} (another run, node or "
+             "router?); choose another port with --port", IN_USE)  # fmt: skip
+    return port
 
 
 def local_run_id(run_dir: Path) -> str:

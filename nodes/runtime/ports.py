@@ -24,15 +24,21 @@ def ephemeral_range() -> tuple[int, int]:
     return first, last
 
 
-def bindable(host: str, port: int) -> bool:
-    """Whether a listener may bind `port` on `host` now (with SO_REUSEADDR, as Zenoh's)."""
+def bind_error(host: str, port: int) -> OSError | None:
+    """Why a listener may not bind `port` on `host` now (with SO_REUSEADDR, as Zenoh's), or
+    None where it may."""
     with socket.socket() as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
-        except OSError:
-            return False
-    return True
+        except OSError as error:
+            return error
+    return None
+
+
+def bindable(host: str, port: int) -> bool:
+    """Whether a listener may bind `port` on `host` now."""
+    return bind_error(host, port) is None
 
 
 def free_port(host: str = "127.0.0.1", span: int = 1) -> int:

@@ -5,11 +5,11 @@ Run: python -m derl.nodes.testing.liar --run RUN --connect ENDPOINT --name NAME"
 from __future__ import annotations
 
 import argparse
-import logging
 import signal
 
 from derl.lifetime import LifetimeResult
 from derl.messages import Curve, FitnessReport, TrainJob
+from derl.nodes.cli.main import log_to_stderr
 from derl.nodes.runtime.bus import ZenohOptions
 from derl.nodes.worker.node import Worker
 
@@ -35,7 +35,7 @@ def main() -> None:
     parser.add_argument("--connect", required=True)
     parser.add_argument("--name", required=True)
     args = parser.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    log_to_stderr()  # as derl's own trainer logs
     worker = LyingTrainer(args.run, args.name, "trainer", 1)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: worker.stop.set())
